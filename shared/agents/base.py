@@ -1,0 +1,66 @@
+"""What every agent offers: act, update, score, and save/restore its whole state."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+import torch
+
+
+class Agent(Protocol):
+    """The learning core. No I/O inside: runners feed it batches and save its state."""
+
+    device: torch.device
+    uses_intrinsic: bool
+
+    def act(self, obs: np.ndarray, explore: bool, rng: np.random.Generator) -> np.ndarray:
+        """One action in [-1, 1] for one (C, H, W) uint8 observation."""
+        ...
+
+    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """One gradient update on a batch already on `device`; returns its losses."""
+        ...
+
+    def score(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """Intrinsic rewards of a batch of transitions: novelty, surprise and their weighted sum."""
+        ...
+
+    def state_dict(self) -> dict:
+        """Every network, optimizer and counter (not RNG states: runners own those)."""
+        ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
+    def policy_state_dict(self) -> dict[str, torch.Tensor]:
+        """The weights an actor needs to act."""
+        ...
+
+    def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None: ...
+
+
+def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A (C, H, W) uint8 observation as a (1, C, H, W) uint8 tensor on `device`; the cast happens there."""
+    return torch.as_tensor(obs, device=device).unsqueeze(0)
+
+
+def soft_update(target: torch.nn.Module, online: torch.nn.Module, tau: float) -> None:
+    with torch.no_grad():
+        for t, o in zip(target.parameters(), online.parameters(), strict=True):
+            t.lerp_(o, tau)
+
+
+def adam(params, lr: float, weight_decay: float = 0.0, betas=(0.9, 0.999)) -> torch.optim.Adam:
+    # foreach keeps the many small tensors of an update in few kernels on CPU and GPU alike.
+    return torch.optim.Adam(list(params), lr=lr, weight_decay=weight_decay, betas=betas, foreach=True)
+
+
+def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) -> None:
+    """Zero, backpropagate once, step each optimizer (several when one loss trains several parts)."""
+    for opt in optimizers:
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    for opt in optimizers:
+        opt.step()

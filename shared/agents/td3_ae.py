@@ -1,0 +1,219 @@
+"""NaSA-TD3 and its TD3 baselines on one code base.
+
+- `nasa_td3`: TD3 + autoencoder + novelty/surprise intrinsic rewards (ensemble predictor).
+- `td3_ae`: the same without intrinsic rewards (no ensemble).
+- `pixel_td3`: the conv encoder trained by the critic only; no decoder.
+
+Gradient routing follows the reference (UoA-CARES/NaSA_TD3): the critic loss
+updates the whole encoder, the actor loss reaches no encoder parameter, and the
+target actor and critic use the online encoder (there is no target encoder).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from shared import intrinsic
+from shared.agents.base import adam, optimizer_step, soft_update, to_obs_tensor
+from shared.config import AgentConfig
+from shared.nets import Decoder, DeterministicActor, Encoder, Ensemble, TwinQ
+
+
+class TD3AE:
+    def __init__(
+        self,
+        algo: str,
+        obs_shape: tuple[int, int, int],
+        action_dim: int,
+        config: AgentConfig,
+        device: torch.device,
+    ) -> None:
+        if algo not in ("nasa_td3", "td3_ae", "pixel_td3"):
+            raise ValueError(f"TD3AE does not implement {algo!r}")
+        self.algo = algo
+        self.config = config
+        self.device = device
+        self.action_dim = action_dim
+        self.uses_decoder = algo != "pixel_td3"
+        self.uses_intrinsic = algo == "nasa_td3"
+        c = config
+
+        self.encoder = Encoder(obs_shape, c.latent_dim, c.num_filters, c.num_conv_layers).to(device)
+        self.actor = DeterministicActor(c.latent_dim, action_dim, c.hidden_dim).to(device)
+        self.critic = TwinQ(c.latent_dim, action_dim, c.hidden_dim).to(device)
+        # Targets hold the heads only: the online encoder serves both.
+        self.actor_target = copy.deepcopy(self.actor)
+        self.critic_target = copy.deepcopy(self.critic)
+        for p in [*self.actor_target.parameters(), *self.critic_target.parameters()]:
+            p.requires_grad_(False)
+
+        self.actor_opt = adam(self.actor.parameters(), c.actor_lr)
+        # The critic's optimizer holds the encoder too, and so does the autoencoder's:
+        # the reference does this on purpose, so the encoder takes both updates.
+        self.critic_opt = adam([*self.critic.parameters(), *self.encoder.parameters()], c.critic_lr)
+        if self.uses_decoder:
+            self.decoder = Decoder(
+                obs_shape, self.encoder.conv_shape, c.latent_dim, c.num_filters, c.num_conv_layers
+            ).to(device)
+            self.encoder_opt = adam(self.encoder.parameters(), c.encoder_lr)
+            self.decoder_opt = adam(self.decoder.parameters(), c.decoder_lr, c.decoder_weight_decay)
+        if self.uses_intrinsic:
+            self.ensemble = Ensemble(
+                c.latent_dim, action_dim, c.ensemble_hidden_dim, c.ensemble_size
+            ).to(device)
+            # One Adam over all members equals one per member: each member's loss
+            # reaches only its own parameters, and Adam is per parameter.
+            self.ensemble_opt = adam(self.ensemble.parameters(), c.ensemble_lr, c.ensemble_weight_decay)
+        if device.type == "cuda":
+            for module in self._modules().values():
+                module.to(memory_format=torch.channels_last)
+        self.num_updates = 0
+
+    # -- acting ---------------------------------------------------------------
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, explore: bool, rng: np.random.Generator) -> np.ndarray:
+        action = self.actor(self.encoder(to_obs_tensor(obs, self.device)))[0].cpu().numpy()
+        if explore:
+            action = action + rng.normal(0.0, self.config.exploration_noise, size=action.shape)
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+    # -- intrinsic rewards ----------------------------------------------------
+
+    @torch.no_grad()
+    def score(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        if not self.uses_intrinsic:
+            raise RuntimeError(f"{self.algo} has no intrinsic rewards")
+        z = self.encoder(obs)
+        z_next = self.encoder(next_obs)
+        novelty = intrinsic.novelty(obs, self.decoder(z))
+        surprise = intrinsic.surprise(self.ensemble(z, action), z_next)
+        total = self.config.novelty_weight * novelty + self.config.surprise_weight * surprise
+        return {"novelty": novelty, "surprise": surprise, "intrinsic": total}
+
+    # -- learning -------------------------------------------------------------
+
+    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """One update in the reference's order: critic, autoencoder, actor (delayed), ensemble."""
+        c = self.config
+        self.num_updates += 1
+        obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
+        reward = batch["reward"].view(-1, 1)
+        discount = batch["discount"].view(-1, 1)
+        metrics: dict[str, float] = {}
+        if self.uses_intrinsic:
+            if c.intrinsic_timing == "fresh":
+                bonus = self.score(obs, action, next_obs)["intrinsic"]
+            else:
+                bonus = torch.nan_to_num(batch["intrinsic"], nan=0.0)
+            reward = reward + bonus.view(-1, 1)
+            metrics["intrinsic_batch_mean"] = bonus.mean().item()
+
+        with torch.no_grad():
+            z_next = self.encoder(next_obs)
+            noise = (torch.randn_like(action) * c.target_noise).clamp(
+                -c.target_noise_clip, c.target_noise_clip
+            )
+            next_action = (self.actor_target(z_next) + noise).clamp(-1.0, 1.0)
+            target_q = torch.min(*self.critic_target(z_next, next_action))
+            q_target = reward + c.gamma * discount * target_q
+
+        z = self.encoder(obs)
+        q1, q2 = self.critic(z, action)
+        critic_loss = F.mse_loss(q1, q_target) + F.mse_loss(q2, q_target)
+        if self.uses_decoder and c.shared_encoder_pass:
+            ae_loss = self._ae_loss(obs, z)
+            optimizer_step([self.critic_opt, self.encoder_opt, self.decoder_opt], critic_loss + ae_loss)
+            metrics["ae_loss"] = ae_loss.item()
+        else:
+            optimizer_step([self.critic_opt], critic_loss)
+            if self.uses_decoder:
+                # The reference encodes again after the critic step.
+                ae_loss = self._ae_loss(obs, self.encoder(obs))
+                optimizer_step([self.encoder_opt, self.decoder_opt], ae_loss)
+                metrics["ae_loss"] = ae_loss.item()
+        metrics["critic_loss"] = critic_loss.item()
+
+        z_now = None
+        if self.num_updates % c.policy_delay == 0:
+            with torch.no_grad():
+                z_now = self.encoder(obs)  # detached: the actor loss reaches no encoder parameter
+            self.critic.requires_grad_(False)
+            actor_loss = -torch.min(*self.critic(z_now, self.actor(z_now))).mean()
+            optimizer_step([self.actor_opt], actor_loss)
+            self.critic.requires_grad_(True)
+            soft_update(self.critic_target, self.critic, c.tau)
+            soft_update(self.actor_target, self.actor, c.tau)
+            metrics["actor_loss"] = actor_loss.item()
+
+        if self.uses_intrinsic:
+            with torch.no_grad():
+                z_now = self.encoder(obs) if z_now is None else z_now
+                z_next_now = self.encoder(next_obs)
+            predictions = self.ensemble(z_now, action)
+            # Sum of the members' MSEs: each member gets exactly its own gradient.
+            ensemble_loss = (predictions - z_next_now).pow(2).mean(dim=(1, 2)).sum()
+            optimizer_step([self.ensemble_opt], ensemble_loss)
+            metrics["ensemble_loss"] = ensemble_loss.item() / c.ensemble_size
+        return metrics
+
+    def _ae_loss(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        reconstruction = self.decoder(z)
+        rec_loss = F.mse_loss(reconstruction, obs.float() / 255.0)
+        latent_loss = (0.5 * z.pow(2).sum(dim=1)).mean()
+        return rec_loss + self.config.decoder_latent_lambda * latent_loss
+
+    # -- state ----------------------------------------------------------------
+
+    def _modules(self) -> dict[str, torch.nn.Module]:
+        modules = {
+            "encoder": self.encoder,
+            "actor": self.actor,
+            "critic": self.critic,
+            "actor_target": self.actor_target,
+            "critic_target": self.critic_target,
+        }
+        if self.uses_decoder:
+            modules["decoder"] = self.decoder
+        if self.uses_intrinsic:
+            modules["ensemble"] = self.ensemble
+        return modules
+
+    def _optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        opts = {"actor_opt": self.actor_opt, "critic_opt": self.critic_opt}
+        if self.uses_decoder:
+            opts |= {"encoder_opt": self.encoder_opt, "decoder_opt": self.decoder_opt}
+        if self.uses_intrinsic:
+            opts["ensemble_opt"] = self.ensemble_opt
+        return opts
+
+    def state_dict(self) -> dict:
+        state = {name: m.state_dict() for name, m in self._modules().items()}
+        state |= {name: o.state_dict() for name, o in self._optimizers().items()}
+        state["num_updates"] = self.num_updates
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        for name, module in self._modules().items():
+            module.load_state_dict(state[name])
+        for name, opt in self._optimizers().items():
+            opt.load_state_dict(state[name])
+        self.num_updates = int(state["num_updates"])
+
+    def policy_state_dict(self) -> dict[str, torch.Tensor]:
+        return {
+            **{f"encoder.{k}": v for k, v in self.encoder.state_dict().items()},
+            **{f"actor.{k}": v for k, v in self.actor.state_dict().items()},
+        }
+
+    def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        for prefix, module in (("encoder.", self.encoder), ("actor.", self.actor)):
+            module.load_state_dict(
+                {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+            )

@@ -1,0 +1,194 @@
+"""Typed configuration: one home for every default.
+
+The defaults are the settings of the NaSA-TD3 reference implementation
+(../shared/DESIGN.md, section 1); SAC-AE's own settings live in
+`SAC_AE_OVERRIDES`. `validate()` rejects bad values with a clear message
+before any work starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+Algo = Literal["nasa_td3", "td3_ae", "pixel_td3", "sac_ae"]
+ALGOS: tuple[str, ...] = ("nasa_td3", "td3_ae", "pixel_td3", "sac_ae")
+
+
+class ConfigError(ValueError):
+    """A configuration value that cannot work."""
+
+
+@dataclass
+class EnvConfig:
+    task: str = "cartpole-balance"
+    """dm_control task as `domain-task`, e.g. cheetah-run."""
+    image_size: int = 84
+    frame_stack: int = 3
+    action_repeat: int = 1
+    camera_id: int = 0
+    render_quality: Literal["paper", "fast"] = "paper"
+    """`paper`: the suite's scene as is; `fast`: 512 shadow map, no multisampling."""
+    time_limit: Literal["bootstrap", "terminal"] = "bootstrap"
+    """`bootstrap` (default): bootstrap through the suite's time-limit ending;
+    `terminal`: treat it as terminal, as the NaSA-TD3 reference does."""
+
+
+@dataclass
+class AgentConfig:
+    latent_dim: int = 200
+    num_filters: int = 32
+    num_conv_layers: int = 4
+    hidden_dim: int = 1024
+    actor_lr: float = 1e-4
+    critic_lr: float = 1e-3
+    """The critic's optimizer also holds the encoder (the reference does this on purpose)."""
+    encoder_lr: float = 1e-4
+    decoder_lr: float = 1e-4
+    decoder_weight_decay: float = 1e-7
+    decoder_latent_lambda: float = 1e-6
+    ensemble_size: int = 5
+    ensemble_hidden_dim: int = 512
+    ensemble_lr: float = 1e-4
+    ensemble_weight_decay: float = 1e-3
+    gamma: float = 0.99
+    tau: float = 0.005
+    """Soft-update rate of the Q heads and actor MLP (TD3) or of the critic (SAC-AE)."""
+    policy_delay: int = 2
+    target_noise: float = 0.2
+    target_noise_clip: float = 0.5
+    exploration_noise: float = 0.1
+    novelty_weight: float = 1.0
+    """alpha in R = R_ext + alpha * R_novel + beta * R_surprise."""
+    surprise_weight: float = 1.0
+    """beta in R = R_ext + alpha * R_novel + beta * R_surprise."""
+    intrinsic_timing: Literal["collect", "fresh"] = "collect"
+    """`collect`: scored once when stored (the paper); `fresh`: rescored at each sampling."""
+    shared_encoder_pass: bool = False
+    """Faster, not the reference: encode each batch once for critic and autoencoder
+    (the reference encodes again after the critic step)."""
+    # SAC-AE only.
+    encoder_tau: float = 0.05
+    init_temperature: float = 0.1
+    alpha_lr: float = 1e-4
+    alpha_beta: float = 0.5
+    actor_beta: float = 0.9
+    critic_beta: float = 0.9
+    log_std_min: float = -10.0
+    log_std_max: float = 2.0
+
+
+SAC_AE_OVERRIDES: dict[str, object] = {
+    "latent_dim": 50,
+    "actor_lr": 1e-3,
+    "critic_lr": 1e-3,
+    "encoder_lr": 1e-3,
+    "decoder_lr": 1e-3,
+    "tau": 0.01,
+}
+
+
+def agent_defaults(algo: str) -> AgentConfig:
+    """The reference settings of one algorithm."""
+    check_algo(algo)
+    config = AgentConfig()
+    if algo == "sac_ae":
+        config = dataclasses.replace(config, **SAC_AE_OVERRIDES)
+    return config
+
+
+@dataclass
+class TrainConfig:
+    algo: Algo = "nasa_td3"
+    seed: int = 0
+    steps: int = 1_000_000
+    """Environment steps (agent decisions, after action repeat)."""
+    warmup_steps: int = 1_000
+    """Uniform random steps before learning starts."""
+    updates_per_step: int = 5
+    """G: gradient updates per environment step after warm-up."""
+    batch_size: int = 128
+    replay_capacity: int = 1_000_000
+    eval_every: int = 10_000
+    eval_episodes: int = 10
+    checkpoint_every: int = 10_000
+    device: str = "auto"
+    """`cpu`, `cuda`, `cuda:N` or `auto` (cuda when present)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    agent: AgentConfig = field(default_factory=AgentConfig)
+
+
+def check_algo(algo: str) -> None:
+    if algo not in ALGOS:
+        raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
+
+
+def validate(config: TrainConfig) -> TrainConfig:
+    """Reject values that cannot work, naming the field and the rule."""
+    check_algo(config.algo)
+    positive = {
+        "steps": config.steps,
+        "updates_per_step": config.updates_per_step,
+        "batch_size": config.batch_size,
+        "replay_capacity": config.replay_capacity,
+        "eval_every": config.eval_every,
+        "eval_episodes": config.eval_episodes,
+        "checkpoint_every": config.checkpoint_every,
+        "env.image_size": config.env.image_size,
+        "env.frame_stack": config.env.frame_stack,
+        "env.action_repeat": config.env.action_repeat,
+        "agent.latent_dim": config.agent.latent_dim,
+        "agent.num_filters": config.agent.num_filters,
+        "agent.num_conv_layers": config.agent.num_conv_layers,
+        "agent.hidden_dim": config.agent.hidden_dim,
+        "agent.ensemble_size": config.agent.ensemble_size,
+        "agent.ensemble_hidden_dim": config.agent.ensemble_hidden_dim,
+        "agent.policy_delay": config.agent.policy_delay,
+    }
+    for name, value in positive.items():
+        if value < 1:
+            raise ConfigError(f"{name} must be >= 1, got {value}")
+    if config.warmup_steps < 0:
+        raise ConfigError(f"warmup_steps must be >= 0, got {config.warmup_steps}")
+    if config.env.image_size < 2 * config.agent.num_conv_layers + 8:
+        raise ConfigError(
+            f"env.image_size {config.env.image_size} is too small for "
+            f"{config.agent.num_conv_layers} conv layers"
+        )
+    agent = config.agent
+    for name in ("actor_lr", "critic_lr", "encoder_lr", "decoder_lr", "ensemble_lr", "alpha_lr"):
+        value = getattr(agent, name)
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"agent.{name} must be a finite number > 0, got {value}")
+    for name in ("gamma", "tau", "encoder_tau"):
+        value = getattr(agent, name)
+        if not (0.0 < value <= 1.0):
+            raise ConfigError(f"agent.{name} must be in (0, 1], got {value}")
+    for name in (
+        "target_noise", "target_noise_clip", "exploration_noise", "novelty_weight",
+        "surprise_weight", "decoder_weight_decay", "decoder_latent_lambda",
+        "ensemble_weight_decay", "init_temperature",
+    ):
+        value = getattr(agent, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise ConfigError(f"agent.{name} must be a finite number >= 0, got {value}")
+    if agent.intrinsic_timing not in ("collect", "fresh"):
+        raise ConfigError(f"agent.intrinsic_timing must be collect or fresh, got {agent.intrinsic_timing!r}")
+    if config.env.render_quality not in ("paper", "fast"):
+        raise ConfigError(f"env.render_quality must be paper or fast, got {config.env.render_quality!r}")
+    if config.env.time_limit not in ("bootstrap", "terminal"):
+        raise ConfigError(f"env.time_limit must be bootstrap or terminal, got {config.env.time_limit!r}")
+    return config
+
+
+def to_dict(config: TrainConfig) -> dict:
+    return dataclasses.asdict(config)
+
+
+def from_dict(data: dict) -> TrainConfig:
+    data = dict(data)
+    env = EnvConfig(**data.pop("env", {}))
+    agent = AgentConfig(**data.pop("agent", {}))
+    return TrainConfig(env=env, agent=agent, **data)

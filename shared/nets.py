@@ -1,0 +1,194 @@
+"""Networks of NaSA-TD3 and its baselines, with the reference initialisation.
+
+Shapes are computed from a dummy forward pass, never hard-coded for 84x84.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def weight_init(module: nn.Module) -> None:
+    """Orthogonal linear layers; delta-orthogonal convolutions (as SAC-AE and the reference)."""
+    if isinstance(module, nn.Linear):
+        nn.init.orthogonal_(module.weight)
+        nn.init.zeros_(module.bias)
+    elif isinstance(module, nn.Conv2d | nn.ConvTranspose2d):
+        nn.init.zeros_(module.weight)
+        nn.init.zeros_(module.bias)
+        mid = module.weight.size(2) // 2
+        nn.init.orthogonal_(module.weight.data[:, :, mid, mid], nn.init.calculate_gain("relu"))
+
+
+def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(in_dim, hidden_dim),
+        nn.ReLU(),
+        nn.Linear(hidden_dim, hidden_dim),
+        nn.ReLU(),
+        nn.Linear(hidden_dim, out_dim),
+    )
+
+
+class Encoder(nn.Module):
+    """Conv stack (3x3, stride 2 then 1) -> Linear -> LayerNorm -> tanh.
+
+    `pixel_scale` divides the input: 1.0 for the NaSA-TD3 reference, which feeds
+    raw 0..255 floats, and 255.0 for SAC-AE.
+    """
+
+    def __init__(
+        self,
+        obs_shape: tuple[int, int, int],
+        latent_dim: int,
+        num_filters: int = 32,
+        num_layers: int = 4,
+        pixel_scale: float = 1.0,
+    ) -> None:
+        super().__init__()
+        layers: list[nn.Module] = [nn.Conv2d(obs_shape[0], num_filters, 3, stride=2), nn.ReLU()]
+        for _ in range(num_layers - 1):
+            layers += [nn.Conv2d(num_filters, num_filters, 3, stride=1), nn.ReLU()]
+        self.convs = nn.Sequential(*layers)
+        with torch.no_grad():
+            conv_shape = self.convs(torch.zeros(1, *obs_shape)).shape[1:]
+        self.conv_shape: tuple[int, int, int] = tuple(conv_shape)  # type: ignore[assignment]
+        self.fc = nn.Linear(conv_shape.numel(), latent_dim)
+        self.ln = nn.LayerNorm(latent_dim)
+        self.latent_dim = latent_dim
+        self.pixel_scale = pixel_scale
+        self.apply(weight_init)
+
+    def forward_conv(self, obs: torch.Tensor) -> torch.Tensor:
+        x = obs.float()
+        if self.pixel_scale != 1.0:
+            x = x / self.pixel_scale
+        return self.convs(x).flatten(1)
+
+    def forward_head(self, h: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.ln(self.fc(h)))
+
+    def forward(self, obs: torch.Tensor, detach_conv: bool = False) -> torch.Tensor:
+        h = self.forward_conv(obs)
+        if detach_conv:  # SAC-AE's actor: conv tied to the critic's, trained by the critic only
+            h = h.detach()
+        return self.forward_head(h)
+
+    def copy_conv_weights_from(self, other: Encoder) -> None:
+        """Tie conv weights (SAC-AE: the actor's encoder shares the critic's convolutions)."""
+        for mine, theirs in zip(self.convs, other.convs, strict=True):
+            if isinstance(mine, nn.Conv2d):
+                mine.weight = theirs.weight
+                mine.bias = theirs.bias
+
+
+class Decoder(nn.Module):
+    """Linear -> ReLU -> reshape -> transposed convs mirroring the encoder.
+
+    `sigmoid_output`: the NaSA-TD3 reference squashes to [0, 1] (target obs/255);
+    SAC-AE leaves the output linear (target: 5-bit obs centred on 0).
+    """
+
+    def __init__(
+        self,
+        obs_shape: tuple[int, int, int],
+        conv_shape: tuple[int, int, int],
+        latent_dim: int,
+        num_filters: int = 32,
+        num_layers: int = 4,
+        sigmoid_output: bool = True,
+    ) -> None:
+        super().__init__()
+        self.conv_shape = conv_shape
+        self.fc = nn.Linear(latent_dim, int(torch.Size(conv_shape).numel()))
+        layers: list[nn.Module] = []
+        for _ in range(num_layers - 1):
+            layers += [nn.ConvTranspose2d(num_filters, num_filters, 3, stride=1), nn.ReLU()]
+        size = conv_shape[1] + 2 * (num_layers - 1)
+        # The stride-2 layer must land exactly on the image size (84: 41 -> 84 needs output_padding 1).
+        output_padding = obs_shape[1] - ((size - 1) * 2 + 3)
+        if output_padding not in (0, 1):
+            raise ValueError(f"cannot decode to {obs_shape} from conv shape {conv_shape}")
+        layers.append(
+            nn.ConvTranspose2d(num_filters, obs_shape[0], 3, stride=2, output_padding=output_padding)
+        )
+        if sigmoid_output:
+            layers.append(nn.Sigmoid())
+        self.deconvs = nn.Sequential(*layers)
+        self.apply(weight_init)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        h = torch.relu(self.fc(z)).view(-1, *self.conv_shape)
+        return self.deconvs(h)
+
+
+class DeterministicActor(nn.Module):
+    """TD3 actor head on a latent: hidden -> hidden -> tanh actions."""
+
+    def __init__(self, latent_dim: int, action_dim: int, hidden_dim: int) -> None:
+        super().__init__()
+        self.net = mlp(latent_dim, hidden_dim, action_dim)
+        self.apply(weight_init)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(z))
+
+
+class TwinQ(nn.Module):
+    """Two Q heads on (latent, action)."""
+
+    def __init__(self, latent_dim: int, action_dim: int, hidden_dim: int) -> None:
+        super().__init__()
+        self.q1 = mlp(latent_dim + action_dim, hidden_dim, 1)
+        self.q2 = mlp(latent_dim + action_dim, hidden_dim, 1)
+        self.apply(weight_init)
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        za = torch.cat([z, action], dim=1)
+        return self.q1(za), self.q2(za)
+
+
+class Ensemble(nn.Module):
+    """K latent-dynamics predictors (z, a) -> z', kept as separate modules as the reference does."""
+
+    def __init__(self, latent_dim: int, action_dim: int, hidden_dim: int, size: int) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(
+            mlp(latent_dim + action_dim, hidden_dim, latent_dim) for _ in range(size)
+        )
+        self.apply(weight_init)
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Stacked predictions, shape (K, B, latent)."""
+        za = torch.cat([z, action], dim=1)
+        return torch.stack([member(za) for member in self.members])
+
+
+class GaussianActor(nn.Module):
+    """SAC-AE's actor head: tanh-squashed Gaussian with bounded log-std."""
+
+    def __init__(
+        self, latent_dim: int, action_dim: int, hidden_dim: int, log_std_min: float, log_std_max: float
+    ) -> None:
+        super().__init__()
+        self.net = mlp(latent_dim, hidden_dim, 2 * action_dim)
+        self.log_std_min = log_std_min
+        self.log_std_max = log_std_max
+        self.apply(weight_init)
+
+    def forward(self, z: torch.Tensor, sample: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """Returns (squashed action, log-prob); the mean action when `sample` is False."""
+        mu, log_std = self.net(z).chunk(2, dim=-1)
+        log_std = torch.tanh(log_std)
+        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
+        if not sample:
+            return torch.tanh(mu), torch.zeros(mu.shape[0], 1, device=mu.device)
+        std = log_std.exp()
+        noise = torch.randn_like(mu)
+        pre_tanh = mu + noise * std
+        log_prob = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True)
+        log_prob = log_prob - 0.5 * torch.log(torch.tensor(2 * torch.pi)) * mu.shape[-1]
+        action = torch.tanh(pre_tanh)
+        log_prob = log_prob - torch.log(torch.relu(1 - action.pow(2)) + 1e-6).sum(-1, keepdim=True)
+        return action, log_prob
