@@ -192,3 +192,53 @@ def from_dict(data: dict) -> TrainConfig:
     env = EnvConfig(**data.pop("env", {}))
     agent = AgentConfig(**data.pop("agent", {}))
     return TrainConfig(env=env, agent=agent, **data)
+
+
+# A preset changes what costs (image size, widths, batch, G, action repeat) and keeps
+# the method: autoencoder, intrinsic rewards and TD3 as they are.
+PRESETS: dict[str, dict[str, object]] = {
+    "paper": {},
+    "cpu-small": {
+        "updates_per_step": 1,
+        "batch_size": 64,
+        "warmup_steps": 500,
+        "eval_every": 1_000,
+        "eval_episodes": 5,
+        "checkpoint_every": 5_000,
+        "replay_capacity": 100_000,
+        "env.image_size": 64,
+        "env.action_repeat": 8,
+        "env.render_quality": "fast",
+        "agent.latent_dim": 50,
+        "agent.hidden_dim": 256,
+        "agent.ensemble_hidden_dim": 128,
+        "agent.num_conv_layers": 2,
+    },
+}
+PRESET_NAMES = ("auto", *PRESETS)
+
+
+def apply_preset(config: TrainConfig, preset: str) -> TrainConfig:
+    """A copy of `config` with the preset's values set."""
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESET_NAMES)}")
+    config = from_dict(to_dict(config))
+    for key, value in PRESETS[preset].items():
+        target = config
+        *parents, name = key.split(".")
+        for parent in parents:
+            target = getattr(target, parent)
+        if not hasattr(target, name):
+            raise ConfigError(f"preset {preset!r} sets unknown field {key!r}")
+        setattr(target, name, value)
+    return config
+
+
+def auto_preset(device_type: str) -> str:
+    """The paper's settings on a GPU; on a CPU they take ~13 s per env step, so the small preset."""
+    return "paper" if device_type == "cuda" else "cpu-small"
+
+
+def default_config(algo: str, preset: str) -> TrainConfig:
+    """Reference settings of `algo` with a preset applied."""
+    return apply_preset(TrainConfig(algo=algo, agent=agent_defaults(algo)), preset)  # type: ignore[arg-type]

@@ -56,6 +56,8 @@ class PixelEnv(Protocol):
 
     def reset(self) -> TimeStep: ...
     def step(self, action: np.ndarray) -> TimeStep: ...
+    def rng_state(self) -> dict: ...
+    def set_rng_state(self, state: dict) -> None: ...
 
 
 def all_tasks() -> list[str]:
@@ -113,6 +115,17 @@ class DMCPixels:
         pixels = self._env.physics.render(self.image_size, self.image_size, camera_id=self.camera_id)
         return np.ascontiguousarray(pixels.transpose(2, 0, 1))
 
+    def rng_state(self) -> dict:
+        """The task's random state, which draws each episode's initial state."""
+        name, keys, pos, has_gauss, cached = self._env.task.random.get_state()
+        return {"name": name, "keys": keys.tolist(), "pos": pos, "has_gauss": has_gauss, "cached": cached}
+
+    def set_rng_state(self, state: dict) -> None:
+        keys = np.asarray(state["keys"], dtype=np.uint32)
+        self._env.task.random.set_state(
+            (state["name"], keys, state["pos"], state["has_gauss"], state["cached"])
+        )
+
     def reset(self) -> tuple[np.ndarray, float, float, bool]:
         self._env.reset()
         return self.render(), 0.0, 1.0, False
@@ -144,6 +157,12 @@ class FrameStack:
         self.k = k
         self.action_dim = env.action_dim
         self.obs_shape = (3 * k, env.image_size, env.image_size)
+
+    def rng_state(self) -> dict:
+        return self._env.rng_state()
+
+    def set_rng_state(self, state: dict) -> None:
+        self._env.set_rng_state(state)
 
     def reset(self) -> TimeStep:
         frame, _, _, _ = self._env.reset()

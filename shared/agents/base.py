@@ -13,6 +13,7 @@ class Agent(Protocol):
 
     device: torch.device
     uses_intrinsic: bool
+    num_updates: int
 
     def act(self, obs: np.ndarray, explore: bool, rng: np.random.Generator) -> np.ndarray:
         """One action in [-1, 1] for one (C, H, W) uint8 observation."""

@@ -1,0 +1,84 @@
+"""`nasa`: the command line. Each subcommand is a typed dataclass read by tyro."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from shared.config import PRESET_NAMES, ConfigError, TrainConfig, auto_preset, default_config
+from shared.device import DeviceError, resolve_device
+from shared.envs import UnknownTaskError
+
+
+@dataclass
+class TrainCommand:
+    """Train one agent on one task in a single process."""
+
+    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
+    out: Path | None = None
+    """Run folder (default runs/<task>-<algo>-s<seed>)."""
+    resume: Path | None = None
+    """Continue the run in this folder exactly from its last checkpoint (other flags but --steps ignored)."""
+    preset: str = "auto"
+    """`paper` (the reference settings), `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
+
+
+def _preparse(argv: list[str]) -> argparse.Namespace:
+    """Read --preset, --algo and --device first: they choose the defaults every other flag overrides."""
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--preset", default="auto")
+    parser.add_argument("--algo", default="nasa_td3")
+    parser.add_argument("--device", default="auto")
+    known, _ = parser.parse_known_args(argv)
+    return known
+
+
+def train(argv: list[str]) -> None:
+    pre = _preparse(argv)
+    if pre.preset not in PRESET_NAMES:
+        raise ConfigError(f"unknown preset {pre.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
+    device = resolve_device(pre.device)
+    preset = auto_preset(device.type) if pre.preset == "auto" else pre.preset
+    default = TrainCommand(config=default_config(pre.algo, preset), preset=pre.preset)
+    cmd = tyro.cli(TrainCommand, args=argv, default=default, prog="nasa train")
+    from nasa.train import Trainer  # after parsing: --help needs no torch or GL
+
+    if cmd.resume is not None:
+        print(f"nasa train: resuming {cmd.resume}", flush=True)
+        steps = cmd.config.steps if "--steps" in argv else None
+        Trainer.resume(cmd.resume, steps=steps).run()
+        return
+    c = cmd.config
+    out = cmd.out or Path("runs") / f"{c.env.task}-{c.algo}-s{c.seed}"
+    how = f"{preset} (auto: {device.type})" if pre.preset == "auto" else preset
+    print(
+        f"nasa train: {c.algo} on {c.env.task}, seed {c.seed}, {c.steps} steps, "
+        f"preset {how}, device {device}, out {out}",
+        flush=True,
+    )
+    Trainer.create(c, out).run()
+
+
+COMMANDS = {"train": train}
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] not in COMMANDS:
+        names = ", ".join(COMMANDS)
+        print(f"usage: nasa {{{names}}} [--help]", file=sys.stderr)
+        sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
+    try:
+        COMMANDS[argv[0]](argv[1:])
+    except (ConfigError, DeviceError, UnknownTaskError, FileExistsError) as err:
+        print(f"nasa {argv[0]}: error: {err}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

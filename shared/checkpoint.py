@@ -1,0 +1,71 @@
+"""Checkpoints on disk: written atomically, never a pickled object.
+
+A checkpoint is a dict of tensors, numbers, strings and lists saved with
+`torch.save` and loaded with `weights_only=True`; it lands by an atomic
+rename, so a reader sees the previous checkpoint or the new one, never half
+of one.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+
+CHECKPOINT_FORMAT = 1
+
+
+def save(path: str | Path, state: dict) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "wb") as f:
+        torch.save({"format": CHECKPOINT_FORMAT, **state}, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load(path: str | Path, device: torch.device | str = "cpu") -> dict:
+    state = torch.load(Path(path), map_location=device, weights_only=True)
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(
+            f"checkpoint {path} has format {state.get('format')!r}; this version reads {CHECKPOINT_FORMAT}"
+        )
+    return state
+
+
+def rng_state(rng: np.random.Generator) -> dict:
+    """Every random state a run draws from: numpy's generator, torch CPU and CUDA, Python's."""
+    state = {
+        "numpy": _encode_numpy_state(rng.bit_generator.state),
+        "torch": torch.get_rng_state(),
+        "python": list(random.getstate()[1]),
+        "python_version": random.getstate()[0],
+        "python_gauss": random.getstate()[2],
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_state(rng: np.random.Generator, state: dict) -> None:
+    rng.bit_generator.state = _decode_numpy_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    random.setstate((state["python_version"], tuple(state["python"]), state["python_gauss"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _encode_numpy_state(state: dict) -> dict:
+    # PCG64 states are Python ints wider than 64 bits: keep them as decimal strings.
+    inner = {k: str(v) for k, v in state["state"].items()}
+    return {**state, "state": inner}
+
+
+def _decode_numpy_state(state: dict) -> dict:
+    inner = {k: int(v) for k, v in state["state"].items()}
+    return {**state, "state": inner}

@@ -1,0 +1,62 @@
+"""The run folder's CSV files: eval.csv and train.csv.
+
+Both runners (the single-process trainer and the learner service) write them
+through this module, so a plot never cares which runner made a run.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+TRAIN_FIELDS = (
+    "step", "episode", "return", "length", "novelty_mean", "surprise_mean",
+    "critic_loss", "actor_loss", "ae_loss", "ensemble_loss", "updates", "steps_per_s", "wall_s",
+)
+
+
+def eval_fields(episodes: int) -> list[str]:
+    return ["step", "mean", "std", *(f"return_{i}" for i in range(episodes))]
+
+
+class CsvLog:
+    """An append-only CSV with a fixed header; rows are flushed at once."""
+
+    def __init__(self, path: str | Path, fields: list[str] | tuple[str, ...]) -> None:
+        self.path = Path(path)
+        self.fields = list(fields)
+        if not self.path.exists():
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self.fields)
+
+    def append(self, row: dict) -> None:
+        unknown = set(row) - set(self.fields)
+        if unknown:
+            raise ValueError(f"{self.path.name}: unknown fields {sorted(unknown)}")
+        with open(self.path, "a", newline="") as f:
+            csv.writer(f).writerow([_format(row.get(k)) for k in self.fields])
+
+    def rows(self) -> int:
+        with open(self.path) as f:
+            return sum(1 for _ in f) - 1
+
+    def truncate(self, rows: int) -> None:
+        """Keep the header and the first `rows` rows (a resumed run drops what came after its checkpoint)."""
+        with open(self.path) as f:
+            lines = f.readlines()
+        with open(self.path, "w") as f:
+            f.writelines(lines[: rows + 1])
+
+
+def read_rows(path: str | Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _format(value: object) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
