@@ -27,11 +27,6 @@ from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 CHECKPOINT_FILE = "checkpoint.pt"
 
 
-def make_env(config: TrainConfig, seed: int) -> envs.FrameStack:
-    e = config.env
-    return envs.make(e.task, seed, e.frame_stack, e.action_repeat, e.image_size, e.camera_id, e.render_quality)
-
-
 def batch_to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
     """Move a sampled batch to the device; uint8 frames travel as uint8 and are cast there."""
     keys = ("obs", "next_obs", "action", "reward", "discount", "intrinsic")
@@ -48,8 +43,8 @@ class Trainer:
         self.config = validate(config)
         self.out = Path(out)
         self.device = resolve_device(config.device)
-        self.env = make_env(config, config.seed)
-        self.eval_env = make_env(config, config.seed + 1_000_000)
+        self.env = envs.from_config(config.env, config.seed)
+        self.eval_env = envs.from_config(config.env, config.seed + 1_000_000)
         self.agent: Agent = make_agent(
             config.algo, self.env.obs_shape, self.env.action_dim, config.agent, self.device
         )

@@ -14,9 +14,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # must be set before dm_control loads
 
 from collections import deque  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
-from typing import Literal, Protocol  # noqa: E402
+from typing import TYPE_CHECKING, Literal, Protocol  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+if TYPE_CHECKING:
+    from shared.config import EnvConfig
 
 RenderQuality = Literal["paper", "fast"]
 PAPER_TASKS = (
@@ -202,3 +205,9 @@ def stored_discount(ts: TimeStep, time_limit: Literal["bootstrap", "terminal"]) 
     if time_limit == "terminal" and ts.last:
         return 0.0
     return ts.discount
+
+
+def from_config(config: EnvConfig, seed: int) -> FrameStack:
+    """The environment an `EnvConfig` describes (trainer, actors and evaluator alike)."""
+    c = config
+    return make(c.task, seed, c.frame_stack, c.action_repeat, c.image_size, c.camera_id, c.render_quality)
