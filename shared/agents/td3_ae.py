@@ -62,9 +62,9 @@ class TD3AE:
             self.encoder_opt = adam(self.encoder.parameters(), c.encoder_lr)
             self.decoder_opt = adam(self.decoder.parameters(), c.decoder_lr, c.decoder_weight_decay)
         if self.uses_intrinsic:
-            self.ensemble = Ensemble(
-                c.latent_dim, action_dim, c.ensemble_hidden_dim, c.ensemble_size
-            ).to(device)
+            self.ensemble = Ensemble(c.latent_dim, action_dim, c.ensemble_hidden_dim, c.ensemble_size).to(
+                device
+            )
             # One Adam over all members equals one per member: each member's loss
             # reaches only its own parameters, and Adam is per parameter.
             self.ensemble_opt = adam(self.ensemble.parameters(), c.ensemble_lr, c.ensemble_weight_decay)
@@ -105,7 +105,6 @@ class TD3AE:
         self.num_updates += 1
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
-        discount = batch["discount"].view(-1, 1)
         metrics: dict[str, float] = {}
         if self.uses_intrinsic:
             if c.intrinsic_timing == "fresh":
@@ -114,54 +113,85 @@ class TD3AE:
                 bonus = torch.nan_to_num(batch["intrinsic"], nan=0.0)
             reward = reward + bonus.view(-1, 1)
             metrics["intrinsic_batch_mean"] = bonus.mean().item()
-
-        with torch.no_grad():
-            z_next = self.encoder(next_obs)
-            noise = (torch.randn_like(action) * c.target_noise).clamp(
-                -c.target_noise_clip, c.target_noise_clip
-            )
-            next_action = (self.actor_target(z_next) + noise).clamp(-1.0, 1.0)
-            target_q = torch.min(*self.critic_target(z_next, next_action))
-            q_target = reward + c.gamma * discount * target_q
-
-        z = self.encoder(obs)
-        q1, q2 = self.critic(z, action)
-        critic_loss = F.mse_loss(q1, q_target) + F.mse_loss(q2, q_target)
+        q_target = self.td_target(reward, batch["discount"].view(-1, 1), next_obs)
         if self.uses_decoder and c.shared_encoder_pass:
-            ae_loss = self._ae_loss(obs, z)
-            optimizer_step([self.critic_opt, self.encoder_opt, self.decoder_opt], critic_loss + ae_loss)
-            metrics["ae_loss"] = ae_loss.item()
+            metrics |= self.update_critic_and_autoencoder(obs, action, q_target)
         else:
-            optimizer_step([self.critic_opt], critic_loss)
+            metrics |= self.update_critic(obs, action, q_target)
             if self.uses_decoder:
-                # The reference encodes again after the critic step.
-                ae_loss = self._ae_loss(obs, self.encoder(obs))
-                optimizer_step([self.encoder_opt, self.decoder_opt], ae_loss)
-                metrics["ae_loss"] = ae_loss.item()
-        metrics["critic_loss"] = critic_loss.item()
-
+                metrics |= self.update_autoencoder(obs)
         z_now = None
         if self.num_updates % c.policy_delay == 0:
             with torch.no_grad():
-                z_now = self.encoder(obs)  # detached: the actor loss reaches no encoder parameter
-            self.critic.requires_grad_(False)
-            actor_loss = -torch.min(*self.critic(z_now, self.actor(z_now))).mean()
-            optimizer_step([self.actor_opt], actor_loss)
-            self.critic.requires_grad_(True)
+                z_now = self.encoder(obs)
+            metrics |= self.update_actor(z_now)
             soft_update(self.critic_target, self.critic, c.tau)
             soft_update(self.actor_target, self.actor, c.tau)
-            metrics["actor_loss"] = actor_loss.item()
-
         if self.uses_intrinsic:
-            with torch.no_grad():
-                z_now = self.encoder(obs) if z_now is None else z_now
-                z_next_now = self.encoder(next_obs)
-            predictions = self.ensemble(z_now, action)
-            # Sum of the members' MSEs: each member gets exactly its own gradient.
-            ensemble_loss = (predictions - z_next_now).pow(2).mean(dim=(1, 2)).sum()
-            optimizer_step([self.ensemble_opt], ensemble_loss)
-            metrics["ensemble_loss"] = ensemble_loss.item() / c.ensemble_size
+            metrics |= self.update_ensemble(obs, action, next_obs, z_now)
         return metrics
+
+    @torch.no_grad()
+    def td_target(self, reward: torch.Tensor, discount: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Clipped double-Q target with target policy smoothing; targets read the online encoder."""
+        c = self.config
+        z_next = self.encoder(next_obs)
+        next_action = self.actor_target(z_next)
+        noise = (torch.randn_like(next_action) * c.target_noise).clamp(
+            -c.target_noise_clip, c.target_noise_clip
+        )
+        next_action = (next_action + noise).clamp(-1.0, 1.0)
+        return reward + c.gamma * discount * torch.min(*self.critic_target(z_next, next_action))
+
+    def critic_loss(self, z: torch.Tensor, action: torch.Tensor, q_target: torch.Tensor) -> torch.Tensor:
+        q1, q2 = self.critic(z, action)
+        return F.mse_loss(q1, q_target) + F.mse_loss(q2, q_target)
+
+    def update_critic(
+        self, obs: torch.Tensor, action: torch.Tensor, q_target: torch.Tensor
+    ) -> dict[str, float]:
+        """The critic loss trains the Q heads and the whole encoder (conv, fc, LayerNorm)."""
+        loss = self.critic_loss(self.encoder(obs), action, q_target)
+        optimizer_step([self.critic_opt], loss)
+        return {"critic_loss": loss.item()}
+
+    def update_autoencoder(self, obs: torch.Tensor) -> dict[str, float]:
+        """Reconstruction + latent penalty; the reference encodes again after the critic step."""
+        loss = self._ae_loss(obs, self.encoder(obs))
+        optimizer_step([self.encoder_opt, self.decoder_opt], loss)
+        return {"ae_loss": loss.item()}
+
+    def update_critic_and_autoencoder(
+        self, obs: torch.Tensor, action: torch.Tensor, q_target: torch.Tensor
+    ) -> dict[str, float]:
+        """`shared_encoder_pass`: one encoder pass and one backward for both losses (not the reference)."""
+        z = self.encoder(obs)
+        critic_loss = self.critic_loss(z, action, q_target)
+        ae_loss = self._ae_loss(obs, z)
+        optimizer_step([self.critic_opt, self.encoder_opt, self.decoder_opt], critic_loss + ae_loss)
+        return {"critic_loss": critic_loss.item(), "ae_loss": ae_loss.item()}
+
+    def update_actor(self, z: torch.Tensor) -> dict[str, float]:
+        """The actor loss on detached latents: it reaches no encoder parameter."""
+        z = z.detach()
+        self.critic.requires_grad_(False)  # the actor loss trains the actor only; skip critic grads
+        loss = -torch.min(*self.critic(z, self.actor(z))).mean()
+        optimizer_step([self.actor_opt], loss)
+        self.critic.requires_grad_(True)
+        return {"actor_loss": loss.item()}
+
+    def update_ensemble(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor, z: torch.Tensor | None = None
+    ) -> dict[str, float]:
+        """Each predictor regresses Enc(next_obs) from (Enc(obs), action), on detached latents."""
+        with torch.no_grad():
+            z = self.encoder(obs) if z is None else z
+            z_next = self.encoder(next_obs)
+        predictions = self.ensemble(z, action)
+        # Sum of the members' MSEs: each member gets exactly its own gradient.
+        loss = (predictions - z_next).pow(2).mean(dim=(1, 2)).sum()
+        optimizer_step([self.ensemble_opt], loss)
+        return {"ensemble_loss": loss.item() / self.config.ensemble_size}
 
     def _ae_loss(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         reconstruction = self.decoder(z)
@@ -214,6 +244,4 @@ class TD3AE:
 
     def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         for prefix, module in (("encoder.", self.encoder), ("actor.", self.actor)):
-            module.load_state_dict(
-                {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-            )
+            module.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
