@@ -1,0 +1,298 @@
+"""ReplayStore against a naive buffer that keeps a full stack per transition."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import pytest
+
+from services.replay import ReplayStore
+
+SHAPE = (3, 16, 16)
+K = 3
+A = 2
+
+
+class NaiveStack:
+    """What shared.envs.FrameStack produces: the reset frame repeated k times, then a sliding window."""
+
+    def __init__(self, first: np.ndarray, k: int = K) -> None:
+        self.frames = deque([first] * k, maxlen=k)
+
+    def push(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        obs = np.concatenate(self.frames, axis=0)
+        self.frames.append(frame)
+        return obs, np.concatenate(self.frames, axis=0)
+
+
+def random_frame(rng: np.random.Generator, prev: np.ndarray | None = None) -> np.ndarray:
+    # Mostly small changes (like real video) with occasional big ones, to exercise wrapping deltas.
+    if prev is None or rng.random() < 0.1:
+        return rng.integers(0, 256, SHAPE, dtype=np.uint8)
+    f = prev.copy()
+    f[:, rng.integers(0, 16), :] = rng.integers(0, 256, (3, 16), dtype=np.uint8)
+    return f
+
+
+def fill(store: ReplayStore, rng: np.random.Generator, n_steps: int, actors: int = 3,
+         max_len: int = 40, die_prob: float = 0.02, first_actor: int = 0) -> dict[int, dict]:
+    """Interleave several actors with random episode lengths; returns naive records by index."""
+    naive: dict[int, dict] = {}
+    state: dict[int, tuple[int, NaiveStack, np.ndarray, int]] = {}
+    incarnation = dict.fromkeys(range(first_actor, first_actor + actors), 0)
+    done = 0
+    steps: dict[int, int] = {}
+    while done < n_steps:
+        a = first_actor + int(rng.integers(actors))
+        if a not in state:
+            f0 = random_frame(rng)
+            ep = store.begin_episode(f0, actor_id=a, incarnation=incarnation[a])
+            state[a] = (ep, NaiveStack(f0), f0, int(rng.integers(1, max_len)))
+            continue
+        ep, stack, prev, remaining = state[a]
+        if rng.random() < die_prob:  # the actor dies mid-episode and restarts
+            incarnation[a] += 1
+            del state[a]
+            continue
+        frame = random_frame(rng, prev)
+        obs, nxt = stack.push(frame)
+        action = rng.uniform(-1, 1, A).astype(np.float32)
+        reward = float(rng.normal())
+        last = remaining == 1
+        g = store.add(ep, action, reward, 0.99, frame, last, policy_version=done)
+        step = steps.get(ep, 0)
+        steps[ep] = step + 1
+        naive[g] = dict(obs=obs, next_obs=nxt, action=action, reward=np.float32(reward),
+                        episode_id=ep, actor_id=a, incarnation=incarnation[a], step=step,
+                        policy_version=done)
+        done += 1
+        if last:
+            del state[a]
+        else:
+            state[a] = (ep, stack, frame, remaining - 1)
+    return naive
+
+
+def check_batch(batch: dict, naive: dict[int, dict]) -> None:
+    for i, g in enumerate(batch["index"].tolist()):
+        r = naive[g]
+        np.testing.assert_array_equal(batch["obs"][i], r["obs"], err_msg=f"obs of {g}")
+        np.testing.assert_array_equal(batch["next_obs"][i], r["next_obs"], err_msg=f"next of {g}")
+        np.testing.assert_array_equal(batch["action"][i], r["action"])
+        assert batch["reward"][i] == r["reward"]
+        for key in ("episode_id", "actor_id", "incarnation", "step", "policy_version"):
+            assert batch[key][i] == r[key], (key, g)
+
+
+@pytest.mark.parametrize("capacity,chunk_len", [(10_000, 8), (150, 8), (97, 3), (64, 16)])
+def test_stacks_match_naive_buffer(capacity: int, chunk_len: int) -> None:
+    rng = np.random.default_rng(capacity)
+    store = ReplayStore(capacity, SHAPE, K, A, chunk_len=chunk_len)
+    naive = fill(store, rng, 600)
+    assert store.num_inserted == 600
+    assert len(store) == min(600, capacity)
+    batch = store.sample(256, np.random.default_rng(1))
+    assert batch["obs"].shape == (256, 3 * K, 16, 16) and batch["obs"].dtype == np.uint8
+    assert batch["next_obs"].shape == (256, 3 * K, 16, 16)
+    assert batch["action"].shape == (256, A) and batch["action"].dtype == np.float32
+    # Uniform over the live window only: nothing evicted is ever returned.
+    assert batch["index"].min() >= 600 - min(600, capacity)
+    check_batch(batch, naive)
+    # Every live transition, not only a sample, rebuilds exactly (wrap-around included).
+    for g in range(600 - len(store), 600, 50):
+        sub = store.sample(1, np.random.default_rng(g))
+        check_batch(sub, naive)
+    store.close()
+
+
+def test_every_live_transition_exact_after_wraparound() -> None:
+    rng = np.random.default_rng(7)
+    store = ReplayStore(50, SHAPE, K, A, chunk_len=4, sample_threads=1)
+    naive = fill(store, rng, 333, actors=2, max_len=12)
+    seen = set()
+    for s in range(40):
+        b = store.sample(64, np.random.default_rng(s))
+        check_batch(b, naive)
+        seen.update(b["index"].tolist())
+    assert seen == set(range(283, 333))  # all 50 live, none evicted
+    # Chunks no live transition needs were freed: memory follows the window, not history.
+    assert store.stats()["frames"] < 50 * 2 + 2 * 4 * 2
+
+
+def test_sample_is_deterministic_and_uniform() -> None:
+    store = ReplayStore(1000, SHAPE, K, A)
+    fill(store, np.random.default_rng(0), 1200)
+    a = store.sample(32, np.random.default_rng(5))
+    b = store.sample(32, np.random.default_rng(5))
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+    idx = np.concatenate([store.sample(256, np.random.default_rng(s))["index"] for s in range(40)])
+    counts = np.bincount(idx - 200, minlength=1000)
+    assert idx.min() >= 200 and idx.max() < 1200
+    # ~10 hits per item; a chi-square far above its 999 dof would mean a biased sampler.
+    chi2 = ((counts - counts.mean()) ** 2 / counts.mean()).sum()
+    assert chi2 < 1200
+
+
+def test_per_chunk_sampling_is_exact_and_uniform_marginally() -> None:
+    store = ReplayStore(300, SHAPE, K, A, chunk_len=8)
+    naive = fill(store, np.random.default_rng(3), 500)
+    idx = []
+    for s in range(300):
+        b = store.sample(64, np.random.default_rng(s), per_chunk=4)
+        check_batch(b, naive) if s < 5 else None
+        idx.append(b["index"])
+    idx = np.concatenate(idx)
+    assert idx.min() >= 200
+    counts = np.bincount(idx - 200, minlength=300)
+    # 64 hits expected per item; per-chunk grouping must not bias the marginal.
+    assert counts.min() > 25 and counts.max() < 115, (counts.min(), counts.max())
+    # Early-chunk and late-chunk transitions are hit equally often on average.
+    steps = store._step[np.arange(200, 500) % 300]
+    assert abs(counts[steps % 8 == 0].mean() - counts.mean()) < 8
+
+
+def test_intrinsic_slot_and_truncate() -> None:
+    store = ReplayStore(100, SHAPE, K, A)
+    naive = fill(store, np.random.default_rng(4), 80)
+    b = store.sample(16, np.random.default_rng(0))
+    assert np.isnan(b["intrinsic"]).all()
+    store.set_intrinsic(np.array([3, 5, 79]), np.array([0.5, 1.5, 2.5]))
+    store.set_intrinsic(np.array([0]), np.array([9.0]))
+    found = {}
+    for s in range(50):
+        b = store.sample(64, np.random.default_rng(s))
+        found.update(zip(b["index"].tolist(), b["intrinsic"].tolist(), strict=True))
+    assert found[3] == 0.5 and found[5] == 1.5 and found[79] == 2.5 and found[0] == 9.0
+    store.truncate(60)
+    assert store.num_inserted == 60 and len(store) == 60
+    for s in range(10):
+        b = store.sample(64, np.random.default_rng(s))
+        assert b["index"].max() < 60
+        check_batch(b, naive)
+    # Adding continues at index 60 in a new episode; stacks of old episodes untouched.
+    f0 = np.zeros(SHAPE, np.uint8)
+    ep = store.begin_episode(f0, actor_id=0, incarnation=5)
+    assert store.add(ep, np.zeros(A), 0.0, 1.0, f0 + 1, False) == 60
+
+
+def test_dead_actor_episode_is_closed() -> None:
+    store = ReplayStore(100, SHAPE, K, A)
+    f = [np.full(SHAPE, i, np.uint8) for i in range(10)]
+    ep1 = store.begin_episode(f[0], actor_id=1, incarnation=0)
+    store.add(ep1, np.zeros(A), 0.0, 1.0, f[1], False)
+    # Actor 1 restarts (new incarnation) and begins again: ep1 is closed, not continued.
+    ep2 = store.begin_episode(f[5], actor_id=1, incarnation=1)
+    assert ep2 != ep1
+    with pytest.raises(ValueError, match="closed"):
+        store.add(ep1, np.zeros(A), 0.0, 1.0, f[2], False)
+    store.add(ep2, np.zeros(A), 0.0, 1.0, f[6], False)
+    with pytest.raises(ValueError, match="older than incarnation"):
+        store.begin_episode(f[0], actor_id=1, incarnation=0)
+    b = store.sample(32, np.random.default_rng(0))
+    for i in range(32):
+        frames = set(np.unique(b["next_obs"][i]).tolist()) | set(np.unique(b["obs"][i]).tolist())
+        # A stack holds frames of one episode only: {0,1} for ep1, {5,6} for ep2.
+        assert frames <= {0, 1} or frames <= {5, 6}, frames
+    assert store.stats()["open_episodes"] == 1
+
+
+def test_bad_input_rejected_and_nothing_lost() -> None:
+    store = ReplayStore(100, SHAPE, K, A)
+    naive = fill(store, np.random.default_rng(9), 30, actors=1, max_len=1000)
+    ep = max(r["episode_id"] for r in naive.values())
+    ok = np.zeros(SHAPE, np.uint8)
+    before = store.stats()
+    bad_calls = [
+        (dict(next_frame=np.zeros((3, 16, 15), np.uint8)), "shape"),
+        (dict(next_frame=np.zeros(SHAPE, np.float32)), "uint8"),
+        (dict(reward=float("nan")), "reward must be finite"),
+        (dict(reward=float("inf")), "reward must be finite"),
+        (dict(episode_id=12345), "unknown"),
+        (dict(action=np.array([0.0, 1.5])), "outside"),
+        (dict(action=np.array([0.0, np.nan])), "non-finite"),
+        (dict(action=np.zeros(3)), "shape"),
+        (dict(discount=1.5), "discount"),
+        (dict(intrinsic=float("inf")), "intrinsic"),
+        (dict(policy_version=-1), "policy_version"),
+    ]
+    for override, msg in bad_calls:
+        kw = dict(episode_id=ep, action=np.zeros(A), reward=0.0, discount=1.0, next_frame=ok,
+                  last=False)
+        kw.update(override)
+        with pytest.raises(ValueError, match=msg):
+            store.add(**kw)
+    with pytest.raises(ValueError, match="shape"):
+        store.begin_episode(np.zeros((16, 16, 3), np.uint8))
+    after = store.stats()
+    for key in ("size", "num_inserted", "frames", "frame_bytes", "episodes"):
+        assert after[key] == before[key], key
+    for s in range(5):
+        check_batch(store.sample(64, np.random.default_rng(s)), naive)
+    # The open episode continues normally after the rejected calls.
+    g = store.add(ep, np.zeros(A), 0.0, 1.0, ok, True)
+    assert g == 30
+
+
+def test_prioritized_sampling() -> None:
+    store = ReplayStore(200, SHAPE, K, A, prioritized=True)
+    naive = fill(store, np.random.default_rng(2), 300)
+    b = store.sample(64, np.random.default_rng(0))
+    check_batch(b, naive)
+    assert b["index"].min() >= 100 and "weight" in b
+    live = np.arange(100, 300)
+    pr = np.full(200, 1e-9)
+    pr[live == 150] = 100.0
+    store.update_priorities(live, pr)
+    b = store.sample(64, np.random.default_rng(1))
+    assert (b["index"] == 150).mean() > 0.9
+    with pytest.raises(ValueError):
+        ReplayStore(10, SHAPE, K, A).update_priorities(np.array([0]), np.array([1.0]))
+
+
+def test_concurrent_writer_and_sampler() -> None:
+    import threading
+
+    store = ReplayStore(500, SHAPE, K, A)
+    naive = fill(store, np.random.default_rng(0), 100)
+    errors = []
+
+    def sampler() -> None:
+        try:
+            for s in range(60):
+                b = store.sample(32, np.random.default_rng(s))
+                assert b["obs"].shape[0] == 32
+        except Exception as e:  # surfaced below
+            errors.append(e)
+
+    t = threading.Thread(target=sampler)
+    t.start()
+    more = fill(store, np.random.default_rng(1), 1500, first_actor=10)
+    t.join()
+    assert not errors, errors
+    naive.update(more)
+    check_batch(store.sample(128, np.random.default_rng(0)), naive)
+
+
+def test_real_rendered_frames() -> None:
+    from shared.envs import make
+
+    env = make("cartpole-balance", 0, render_quality="fast")
+    rng = np.random.default_rng(0)
+    store = ReplayStore(1000, (3, 84, 84), 3, env.action_dim, chunk_len=8)
+    ts = env.reset()
+    ep = store.begin_episode(ts.frame)
+    stacks = {}
+    for _ in range(60):
+        obs = ts.obs
+        a = rng.uniform(-1, 1, env.action_dim)
+        ts = env.step(a)
+        g = store.add(ep, a, ts.reward, ts.discount, ts.frame, ts.last)
+        stacks[g] = (obs, ts.obs)
+    b = store.sample(128, np.random.default_rng(0))
+    for i, g in enumerate(b["index"].tolist()):
+        np.testing.assert_array_equal(b["obs"][i], stacks[g][0])
+        np.testing.assert_array_equal(b["next_obs"][i], stacks[g][1])
+    st = store.stats()
+    assert st["frame_bytes"] / st["frames"] < 21168 / 3  # compression is doing something
