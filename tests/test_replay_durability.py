@@ -1,0 +1,210 @@
+"""Durability: kill -9 of a real writer process, torn tails, snapshots, incompatible dirs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.replay import ReplayStore, StoreFormatError
+
+SHAPE = (3, 16, 16)
+EP_LEN = 37
+ROOT = Path(__file__).resolve().parents[1]
+
+FRAME_SRC = """
+def frame(e, t):
+    c = e * 1000 + t
+    base = (np.arange(768) * (c % 7 + 1) + c) % 256
+    return base.astype(np.uint8).reshape(3, 16, 16)
+"""
+exec(FRAME_SRC)  # the writer process and the checks share one frame function
+
+
+def expected(g: int) -> tuple[np.ndarray, np.ndarray]:
+    e, t = divmod(g, EP_LEN)
+    fr = [frame(e, max(i, 0)) for i in range(t - 2, t + 2)]  # noqa: F821
+    return np.concatenate(fr[:3]), np.concatenate(fr[1:])
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    from services.replay import ReplayStore
+    """
+) + FRAME_SRC + textwrap.dedent(
+    """
+    store = ReplayStore(100_000, (3, 16, 16), 3, 2, data_dir=sys.argv[1], chunk_len=8,
+                        fsync_interval_s=0.05)
+    snap_every = int(sys.argv[2])
+    e = store.num_inserted // 37
+    store.truncate(e * 37)  # restart at a whole episode so index g maps to (g // 37, g % 37)
+    while True:
+        ep = store.begin_episode(frame(e, 0), actor_id=0, incarnation=e)
+        for t in range(37):
+            g = store.add(ep, np.array([t / 37, -t / 37]), float(e + t), 1.0, frame(e, t + 1),
+                          t == 36, policy_version=e)
+            print(g, flush=True)  # acknowledged: add() returned
+            if snap_every and g % snap_every == snap_every - 1:
+                store.snapshot(block=False)
+        e += 1
+    """
+)
+
+
+def run_and_kill(data_dir: Path, n_acks: int, snap_every: int) -> int:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, str(data_dir), str(snap_every)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    last = -1
+    try:
+        for line in proc.stdout:
+            last = int(line)
+            if last + 1 >= n_acks:
+                break
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(10)
+        if last < 0:
+            pytest.fail(f"writer produced nothing: {proc.stderr.read()}")
+    return last
+
+
+def check_store(store: ReplayStore, last_acked: int) -> None:
+    assert store.num_inserted >= last_acked + 1
+    n = store.num_inserted
+    for s in range(6):
+        b = store.sample(128, np.random.default_rng(s))
+        for i, g in enumerate(b["index"].tolist()):
+            obs, nxt = expected(g)
+            np.testing.assert_array_equal(b["obs"][i], obs)
+            np.testing.assert_array_equal(b["next_obs"][i], nxt)
+            e, t = divmod(g, EP_LEN)
+            assert b["reward"][i] == e + t and b["step"][i] == t and b["policy_version"][i] == e
+    assert store.sample(1, np.random.default_rng(0))["index"][0] < n
+
+
+@pytest.mark.parametrize("snap_every", [0, 150])
+def test_sigkill_loses_no_acknowledged_insert(tmp_path: Path, snap_every: int) -> None:
+    d = tmp_path / "replay"
+    last = run_and_kill(d, 400, snap_every)
+    with ReplayStore(100_000, SHAPE, 3, 2, data_dir=d) as store:
+        check_store(store, last)
+        n1 = store.num_inserted
+        assert len(store) == n1  # nothing evicted, nothing lost in the middle
+    # A second life continues the same directory; killed again, mid-snapshot or not.
+    last2 = run_and_kill(d, n1 + 300, snap_every)
+    assert last2 >= n1
+    with ReplayStore(100_000, SHAPE, 3, 2, data_dir=d) as store:
+        check_store(store, last2)
+        if snap_every:
+            assert any(p.name.startswith("snapshot-") for p in d.iterdir())
+
+
+def fill(store: ReplayStore, episodes: range) -> None:
+    for e in episodes:
+        ep = store.begin_episode(frame(e, 0), incarnation=e)  # noqa: F821
+        for t in range(EP_LEN):
+            store.add(ep, np.array([t / 37, -t / 37]), float(e + t), 1.0, frame(e, t + 1),  # noqa: F821
+                      t == EP_LEN - 1, policy_version=e)
+
+
+def test_torn_tail_is_dropped(tmp_path: Path) -> None:
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(3))
+    seg = sorted(tmp_path.glob("log-*.bin"))[-1]
+    size = seg.stat().st_size
+    with open(seg, "r+b") as f:  # the last record half written
+        f.truncate(size - 7)
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        assert store.num_inserted == 3 * EP_LEN - 1
+        check_store(store, 3 * EP_LEN - 2)
+        fill(store, range(3, 4))  # appending after the cut works (episode 3 reuses e)
+    with open(sorted(tmp_path.glob("log-*.bin"))[-1], "ab") as f:
+        f.write(b"\x10\x00\x00\x00garbage")  # a header with a bad payload
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        assert store.num_inserted == 4 * EP_LEN - 1
+
+
+def test_corruption_in_middle_is_an_error(tmp_path: Path) -> None:
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(2))
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(2, 3))  # second segment
+    first = sorted(tmp_path.glob("log-*.bin"))[0]
+    data = bytearray(first.read_bytes())
+    data[100] ^= 0xFF
+    first.write_bytes(bytes(data))
+    with pytest.raises(StoreFormatError, match="corrupt"):
+        ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path)
+
+
+def test_snapshot_roundtrip_intrinsic_truncate_eviction(tmp_path: Path) -> None:
+    with ReplayStore(200, SHAPE, 3, 2, data_dir=tmp_path, prioritized=True) as store:
+        fill(store, range(8))  # 296 added, 96 evicted
+        store.set_intrinsic(np.array([100, 150, 5]), np.array([1.0, 2.0, 3.0]))
+        store.snapshot()
+        fill(store, range(8, 9))
+        store.set_intrinsic(np.array([300]), np.array([4.0]))
+        store.truncate(320)
+        before = store.sample(64, np.random.default_rng(0))
+        stats = store.stats()
+    assert len(list(tmp_path.glob("log-*.bin"))) == 1  # compacted
+    with ReplayStore(200, SHAPE, 3, 2, data_dir=tmp_path, prioritized=True) as store:
+        # 333 added, head 133 when truncated to 320: evicted items stay evicted
+        assert store.num_inserted == 320 and len(store) == 187
+        after_stats = store.stats()
+        for key in ("size", "frames", "frame_bytes", "episodes", "chunks"):
+            assert after_stats[key] == stats[key], key
+        b = store.sample(64, np.random.default_rng(0))
+        check_store(store, 319)
+        ints = dict(zip(b["index"].tolist(), b["intrinsic"].tolist(), strict=True))
+        assert ints.get(150, 2.0) == 2.0 and ints.get(300, 4.0) == 4.0
+    # Same contents and priorities after reopen: the same rng draws the same batch.
+    for key in ("index", "obs", "intrinsic", "weight"):
+        np.testing.assert_array_equal(b[key], before[key])
+
+
+def test_snapshot_does_not_stall_inserts(tmp_path: Path) -> None:
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(60))
+        latencies = []
+        snap = threading.Thread(target=store.snapshot)
+        snap.start()
+        e = 60
+        while snap.is_alive() or len(latencies) < 50:
+            ep = store.begin_episode(frame(e, 0), incarnation=e)  # noqa: F821
+            for t in range(EP_LEN):
+                t0 = time.perf_counter()
+                store.add(ep, np.zeros(2), 0.0, 1.0, frame(e, t + 1), t == EP_LEN - 1)  # noqa: F821
+                latencies.append(time.perf_counter() - t0)
+            e += 1
+        snap.join()
+    assert max(latencies) < 0.5, max(latencies)
+
+
+def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:
+    with ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(1))
+    with pytest.raises(StoreFormatError, match="differs"):
+        ReplayStore(100, SHAPE, 3, 4, data_dir=tmp_path)
+    m = tmp_path / "MANIFEST.json"
+    body = json.loads(m.read_text())
+    body["version"] = 0
+    m.write_text(json.dumps(body))
+    with pytest.raises(StoreFormatError, match="version 0"):
+        ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path)
+    os.remove(m)
+    with pytest.raises(StoreFormatError, match="no MANIFEST"):
+        ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path)

@@ -1,0 +1,120 @@
+"""SampleToInsertRatio: blocks whichever side runs ahead, releases it, never deadlocks."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from services.replay import RateLimiterClosed, SampleToInsertRatio
+
+
+def test_min_size_blocks_samples_not_inserts() -> None:
+    rl = SampleToInsertRatio(samples_per_insert=2.0, min_size_to_sample=3, error_buffer=2.0)
+    assert not rl.await_sample(timeout=0.01)
+    for _ in range(3):
+        assert rl.await_insert(timeout=0.01)
+        rl.insert()
+    assert rl.await_sample(timeout=0.01)
+
+
+def test_inserts_block_when_ahead_and_release_on_sample() -> None:
+    rl = SampleToInsertRatio(samples_per_insert=2.0, min_size_to_sample=1, error_buffer=2.0)
+    rl.insert()  # diff = 2 = center
+    rl.insert()  # diff = 4 = max
+    assert not rl.await_insert(timeout=0.02)  # another would overshoot
+    released = threading.Event()
+
+    def writer() -> None:
+        rl.await_insert(timeout=5)
+        released.set()
+
+    t = threading.Thread(target=writer)
+    t.start()
+    time.sleep(0.05)
+    assert not released.is_set()
+    rl.sample(2)  # diff = 2: room for one more insert
+    t.join(2)
+    assert released.is_set()
+
+
+def test_samples_block_when_ahead_and_release_on_insert() -> None:
+    rl = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=2, error_buffer=1.0)
+    rl.insert(2)  # diff 2 = center, min 1
+    assert rl.await_sample(timeout=0.01)
+    rl.sample()
+    assert not rl.await_sample(timeout=0.02)  # diff 1 - 1 < min
+    got = []
+    t = threading.Thread(target=lambda: got.append(rl.await_sample(timeout=5)))
+    t.start()
+    time.sleep(0.05)
+    assert not got
+    rl.insert()
+    t.join(2)
+    assert got == [True]
+
+
+def test_ratio_is_kept_by_concurrent_sides() -> None:
+    g = 5
+    rl = SampleToInsertRatio(samples_per_insert=g, min_size_to_sample=10, error_buffer=g * 2)
+    stop = threading.Event()
+    worst = [0.0]
+
+    def writer() -> None:
+        for _ in range(400):
+            rl.await_insert(timeout=5)
+            rl.insert()
+        stop.set()
+
+    def learner() -> None:
+        while not stop.is_set():
+            if rl.await_sample(timeout=0.05):
+                rl.sample()
+                s = rl.stats()
+                worst[0] = max(worst[0], abs(s["diff"] - g * 10))
+
+    ts = [threading.Thread(target=writer), threading.Thread(target=learner)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(20)
+    assert stop.is_set()
+    s = rl.stats()
+    # updates track G per insert within the error buffer (+1 call of overshoot)
+    assert worst[0] <= 2 * g + g
+    assert abs(s["samples"] - g * (s["inserts"] - 10)) <= 2 * g + g
+
+
+def test_close_releases_all_waiters() -> None:
+    rl = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
+    results = []
+
+    def waiter(fn) -> None:
+        try:
+            fn()
+            results.append("returned")
+        except RateLimiterClosed:
+            results.append("closed")
+
+    rl.insert(6)  # diff 6 > max 6? max = 5 + 1 = 6: one more insert blocks
+    threads = [threading.Thread(target=waiter, args=(rl.await_insert,)) for _ in range(3)]
+    rl2 = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
+    threads += [threading.Thread(target=waiter, args=(rl2.await_sample,)) for _ in range(3)]
+    for t in threads:
+        t.start()
+    time.sleep(0.05)
+    assert results == []
+    rl.close()
+    rl2.close()
+    for t in threads:
+        t.join(2)
+        assert not t.is_alive()
+    assert results == ["closed"] * 6
+    with pytest.raises(RateLimiterClosed):
+        rl.await_sample(timeout=0)
+
+
+def test_rejects_window_that_could_deadlock() -> None:
+    with pytest.raises(ValueError, match="error_buffer"):
+        SampleToInsertRatio(samples_per_insert=5.0, min_size_to_sample=1, error_buffer=2.0)
