@@ -1,0 +1,153 @@
+"""Replay store benchmark on real frames of the six paper tasks.
+
+    python -m bench.replay [--frames 2000] [--store 100000] [--seconds 3]
+
+Rendering 100k frames per task is too slow here (~60-160 renders/s), so each
+task renders `--frames` real frames (random actions, render_quality "fast")
+and the 100k-transition store is built by re-inserting those real episodes.
+Prints human-readable lines; the last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.replay import ReplayStore
+from shared.envs import PAPER_TASKS, make
+
+GOAL_BYTES = 4096
+GOAL_SAMPLES = 20_000
+
+
+def render_episodes(task: str, frames: int, seed: int) -> tuple[list[list[np.ndarray]], int]:
+    env = make(task, seed, render_quality="fast")
+    rng = np.random.default_rng(seed)
+    episodes, n = [], 0
+    while n < frames:
+        ts = env.reset()
+        ep = [ts.frame]
+        while not ts.last and n < frames:
+            ts = env.step(rng.uniform(-1, 1, env.action_dim))
+            ep.append(ts.frame)
+            n += 1
+        episodes.append(ep)
+    return episodes, env.action_dim
+
+
+def sample_rate(store: ReplayStore, seconds: float, per_chunk: int) -> float:
+    rng = np.random.default_rng(0)
+    store.sample(128, rng, per_chunk=per_chunk)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        store.sample(128, rng, per_chunk=per_chunk)
+        n += 1
+    return n * 128 / (time.perf_counter() - t0)
+
+
+def bench_task(task: str, args: argparse.Namespace, workdir: Path) -> dict:
+    t0 = time.perf_counter()
+    episodes, action_dim = render_episodes(task, args.frames, args.seed)
+    render_s = time.perf_counter() - t0
+    data_dir = workdir / task
+    store = ReplayStore(
+        args.store, (3, 84, 84), 3, action_dim, data_dir=data_dir, chunk_len=args.chunk_len
+    )
+    rng = np.random.default_rng(1)
+    t0 = time.perf_counter()
+    frames_in = 0
+    while store.num_inserted < args.store:
+        for ep_frames in episodes:
+            ep = store.begin_episode(ep_frames[0])
+            frames_in += 1
+            for j, f in enumerate(ep_frames[1:], start=1):
+                a = rng.uniform(-1, 1, action_dim)
+                store.add(ep, a, 0.5, 1.0, f, j == len(ep_frames) - 1)
+                frames_in += 1
+                if store.num_inserted >= args.store:
+                    break
+            if store.num_inserted >= args.store:
+                break
+    store.flush()
+    insert_fps = frames_in / (time.perf_counter() - t0)
+    log_bytes = store.stats()["bytes_on_disk"]
+    t0 = time.perf_counter()
+    store.snapshot()
+    snapshot_s = time.perf_counter() - t0
+    st = store.stats()
+    n = len(store)
+    iid = sample_rate(store, args.seconds, 1)
+    grouped = sample_rate(store, args.seconds, args.per_chunk)
+    store.close()
+    shutil.rmtree(data_dir)
+    row = {
+        "rendered_frames": sum(len(e) for e in episodes),
+        "render_fps": round(sum(len(e) for e in episodes) / render_s, 1),
+        "transitions": n,
+        "bytes_per_transition_ram": round(st["bytes_in_ram"] / n, 1),
+        "frame_bytes_per_transition": round(st["frame_bytes"] / n, 1),
+        "bytes_per_transition_disk_log": round(log_bytes / n, 1),
+        "bytes_per_transition_disk_snapshot": round(st["bytes_on_disk"] / n, 1),
+        "insert_frames_per_s": round(insert_fps),
+        "snapshot_s": round(snapshot_s, 2),
+        "sampled_per_s_b128_uniform_iid": round(iid),
+        f"sampled_per_s_b128_per_chunk_{args.per_chunk}": round(grouped),
+    }
+    print(f"{task}: {row}", flush=True)
+    return row
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=2000, help="real frames rendered per task")
+    p.add_argument("--store", type=int, default=100_000, help="transitions in the store")
+    p.add_argument("--seconds", type=float, default=3.0, help="sampling time per mode")
+    p.add_argument("--chunk-len", type=int, default=8)
+    p.add_argument("--per-chunk", type=int, default=8, help="transitions per decoded chunk")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tasks", default=",".join(PAPER_TASKS))
+    args = p.parse_args()
+    print(
+        f"replay bench: {args.frames} real frames per task (render_quality=fast, random actions), "
+        f"store of {args.store} transitions built by re-inserting those real episodes; batch 128",
+        flush=True,
+    )
+    rows = {}
+    with tempfile.TemporaryDirectory(prefix="replay-bench-") as tmp:
+        for task in args.tasks.split(","):
+            rows[task] = bench_task(task, args, Path(tmp))
+
+    def mean(key: str) -> float:
+        return round(float(np.mean([r[key] for r in rows.values()])), 1)
+
+    gk = f"sampled_per_s_b128_per_chunk_{args.per_chunk}"
+    summary = {
+        "tasks": rows,
+        "mean_bytes_per_transition_ram": mean("bytes_per_transition_ram"),
+        "mean_bytes_per_transition_disk_snapshot": mean("bytes_per_transition_disk_snapshot"),
+        "mean_bytes_per_transition_disk_log": mean("bytes_per_transition_disk_log"),
+        "mean_sampled_per_s_uniform_iid": mean("sampled_per_s_b128_uniform_iid"),
+        f"mean_{gk}": mean(gk),
+        "min_sampled_per_s_uniform_iid": min(r["sampled_per_s_b128_uniform_iid"] for r in rows.values()),
+        "goal_bytes_met": mean("bytes_per_transition_ram") <= GOAL_BYTES,
+        "goal_samples_iid_met": mean("sampled_per_s_b128_uniform_iid") >= GOAL_SAMPLES,
+        f"goal_samples_per_chunk_{args.per_chunk}_met": mean(gk) >= GOAL_SAMPLES,
+        "render_quality": "fast",
+        "chunk_len": args.chunk_len,
+        "note": (
+            f"{args.frames} real rendered frames per task re-inserted to {args.store} transitions; "
+            "uniform_iid = i.i.d. uniform draws; per_chunk = each decoded chunk serves several "
+            "uniform-marginal draws (correlated within a batch)"
+        ),
+    }
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
