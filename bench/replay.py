@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import tempfile
 import time
@@ -41,14 +42,20 @@ def render_episodes(task: str, frames: int, seed: int) -> tuple[list[list[np.nda
     return episodes, env.action_dim
 
 
-def sample_rate(store: ReplayStore, seconds: float, per_chunk: int) -> float:
+def sample_rate(store: ReplayStore, seconds: float, per_chunk: int) -> tuple[float, float]:
+    """(transitions per wall second, per CPU second of this process).
+
+    The CPU-time figure is what the machine could do unshared: the wall figure
+    drops when other processes compete for the two cores.
+    """
     rng = np.random.default_rng(0)
     store.sample(128, rng, per_chunk=per_chunk)
-    n, t0 = 0, time.perf_counter()
+    n, t0, c0 = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - t0 < seconds:
         store.sample(128, rng, per_chunk=per_chunk)
         n += 1
-    return n * 128 / (time.perf_counter() - t0)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return n * 128 / wall, n * 128 / max(cpu, 1e-9)
 
 
 def bench_task(task: str, args: argparse.Namespace, workdir: Path) -> dict:
@@ -82,8 +89,8 @@ def bench_task(task: str, args: argparse.Namespace, workdir: Path) -> dict:
     snapshot_s = time.perf_counter() - t0
     st = store.stats()
     n = len(store)
-    iid = sample_rate(store, args.seconds, 1)
-    grouped = sample_rate(store, args.seconds, args.per_chunk)
+    iid, iid_cpu = sample_rate(store, args.seconds, 1)
+    grouped, grouped_cpu = sample_rate(store, args.seconds, args.per_chunk)
     store.close()
     shutil.rmtree(data_dir)
     row = {
@@ -98,6 +105,9 @@ def bench_task(task: str, args: argparse.Namespace, workdir: Path) -> dict:
         "snapshot_s": round(snapshot_s, 2),
         "sampled_per_s_b128_uniform_iid": round(iid),
         f"sampled_per_s_b128_per_chunk_{args.per_chunk}": round(grouped),
+        "sampled_per_cpu_s_uniform_iid": round(iid_cpu),
+        f"sampled_per_cpu_s_per_chunk_{args.per_chunk}": round(grouped_cpu),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     print(f"{task}: {row}", flush=True)
     return row
@@ -134,6 +144,11 @@ def main() -> None:
         "mean_bytes_per_transition_disk_log": mean("bytes_per_transition_disk_log"),
         "mean_sampled_per_s_uniform_iid": mean("sampled_per_s_b128_uniform_iid"),
         f"mean_{gk}": mean(gk),
+        "mean_sampled_per_cpu_s_uniform_iid": mean("sampled_per_cpu_s_uniform_iid"),
+        f"mean_sampled_per_cpu_s_per_chunk_{args.per_chunk}": mean(
+            f"sampled_per_cpu_s_per_chunk_{args.per_chunk}"
+        ),
+        "cpu_count": os.cpu_count(),
         "min_sampled_per_s_uniform_iid": min(r["sampled_per_s_b128_uniform_iid"] for r in rows.values()),
         "goal_bytes_met": mean("bytes_per_transition_ram") <= GOAL_BYTES,
         "goal_samples_iid_met": mean("sampled_per_s_b128_uniform_iid") >= GOAL_SAMPLES,

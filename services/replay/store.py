@@ -634,6 +634,8 @@ class ReplayStore:
         existed = rlog.check_manifest(self._dir, self._config())
         if not existed:
             rlog.write_manifest(self._dir, self._config())
+        for tmp in self._dir.glob("snapshot-*.tmp"):
+            tmp.unlink()  # a snapshot a crash interrupted; it was never renamed, so never read
         segs, snaps = rlog.list_numbered(self._dir)
         start = 1
         if snaps:
