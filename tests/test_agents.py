@@ -1,0 +1,222 @@
+"""Gradient routing, targets, updates and state round trips of every agent."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from shared.agents import make_agent
+from shared.config import ALGOS, agent_defaults
+
+OBS_SHAPE = (9, 48, 48)
+ACTION_DIM = 2
+# Small widths keep these tests fast; the routing does not depend on them.
+SMALL = {"latent_dim": 32, "hidden_dim": 64, "ensemble_hidden_dim": 32, "num_filters": 16}
+
+
+def make(algo: str, obs_shape=OBS_SHAPE, small: bool = True, **overrides):
+    config = agent_defaults(algo)
+    for key, value in ({**SMALL, **overrides} if small else overrides).items():
+        setattr(config, key, value)
+    return make_agent(algo, obs_shape, ACTION_DIM, config, torch.device("cpu"))
+
+
+def random_batch(batch_size: int = 8, seed: int = 0, obs_shape=OBS_SHAPE) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "obs": torch.randint(0, 256, (batch_size, *obs_shape), dtype=torch.uint8, generator=g),
+        "next_obs": torch.randint(0, 256, (batch_size, *obs_shape), dtype=torch.uint8, generator=g),
+        "action": torch.rand(batch_size, ACTION_DIM, generator=g) * 2 - 1,
+        "reward": torch.rand(batch_size, generator=g),
+        "discount": torch.ones(batch_size),
+        "intrinsic": torch.rand(batch_size, generator=g),
+    }
+
+
+def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {name: p.detach().clone() for name, p in module.named_parameters()}
+
+
+def changed(before: dict[str, torch.Tensor], module: torch.nn.Module) -> set[str]:
+    return {name for name, p in module.named_parameters() if not torch.equal(before[name], p)}
+
+
+def encoder_groups(names: set[str]) -> set[str]:
+    """conv / fc / ln: which parts of an encoder a set of parameter names touches."""
+    return {"conv" if n.startswith("convs") else n.split(".")[0] for n in names}
+
+
+@pytest.mark.parametrize("algo", ["nasa_td3", "td3_ae", "pixel_td3"])
+def test_critic_loss_moves_whole_encoder_and_q_heads_only(algo):
+    agent = make(algo)
+    batch = random_batch()
+    q_target = agent.td_target(batch["reward"].view(-1, 1), batch["discount"].view(-1, 1), batch["next_obs"])
+    enc, critic, actor = snapshot(agent.encoder), snapshot(agent.critic), snapshot(agent.actor)
+    targets = snapshot(agent.critic_target)
+    agent.update_critic(batch["obs"], batch["action"], q_target)
+    assert encoder_groups(changed(enc, agent.encoder)) == {"conv", "fc", "ln"}
+    assert changed(critic, agent.critic) == set(critic)
+    assert changed(actor, agent.actor) == set()
+    assert changed(targets, agent.critic_target) == set()
+
+
+@pytest.mark.parametrize("algo", ["nasa_td3", "td3_ae", "pixel_td3"])
+def test_actor_loss_leaves_every_encoder_parameter(algo):
+    agent = make(algo)
+    batch = random_batch()
+    enc, critic, actor = snapshot(agent.encoder), snapshot(agent.critic), snapshot(agent.actor)
+    agent.update_actor(agent.encoder(batch["obs"]))  # not detached here: the method must detach
+    assert changed(enc, agent.encoder) == set()
+    assert changed(critic, agent.critic) == set()
+    assert changed(actor, agent.actor) == set(actor)
+    assert all(p.grad is None for p in agent.encoder.parameters()) or all(
+        p.grad is None or not p.grad.any() for p in agent.encoder.parameters()
+    )
+
+
+@pytest.mark.parametrize("algo", ["nasa_td3", "td3_ae"])
+def test_autoencoder_loss_moves_encoder_and_decoder_not_heads(algo):
+    agent = make(algo)
+    batch = random_batch()
+    enc, dec, critic = snapshot(agent.encoder), snapshot(agent.decoder), snapshot(agent.critic)
+    agent.update_autoencoder(batch["obs"])
+    assert encoder_groups(changed(enc, agent.encoder)) == {"conv", "fc", "ln"}
+    assert changed(dec, agent.decoder) == set(dec)
+    assert changed(critic, agent.critic) == set()
+
+
+def test_ensemble_loss_moves_ensemble_only():
+    agent = make("nasa_td3")
+    batch = random_batch()
+    enc, ens = snapshot(agent.encoder), snapshot(agent.ensemble)
+    agent.update_ensemble(batch["obs"], batch["action"], batch["next_obs"])
+    assert changed(enc, agent.encoder) == set()
+    assert changed(ens, agent.ensemble) == set(ens)
+
+
+def test_one_adam_over_members_equals_one_per_member():
+    agent = make("nasa_td3")
+    batch = random_batch()
+    reference = copy.deepcopy(agent.ensemble)
+    opts = [
+        torch.optim.Adam(m.parameters(), lr=1e-4, weight_decay=1e-3) for m in reference.members
+    ]
+    with torch.no_grad():
+        z = agent.encoder(batch["obs"])
+        z_next = agent.encoder(batch["next_obs"])
+    for member, opt in zip(reference.members, opts, strict=True):
+        loss = torch.nn.functional.mse_loss(member(torch.cat([z, batch["action"]], 1)), z_next)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    agent.update_ensemble(batch["obs"], batch["action"], batch["next_obs"])
+    for a, b in zip(reference.parameters(), agent.ensemble.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+
+
+def test_targets_hold_no_encoder_and_read_the_online_one():
+    agent = make("nasa_td3")
+    for target in (agent.actor_target, agent.critic_target):
+        assert not any(isinstance(m, torch.nn.Conv2d) for m in target.modules())
+    batch = random_batch()
+    args = (batch["reward"].view(-1, 1), batch["discount"].view(-1, 1), batch["next_obs"])
+    torch.manual_seed(0)
+    before = agent.td_target(*args)
+    with torch.no_grad():
+        # change only the online encoder (not by a scale: LayerNorm would undo it)
+        agent.encoder.fc.weight.add_(0.1 * torch.randn_like(agent.encoder.fc.weight))
+    torch.manual_seed(0)
+    assert not torch.allclose(before, agent.td_target(*args))
+
+
+def test_soft_update_moves_heads_at_policy_delay_only():
+    agent = make("td3_ae")
+    batch = random_batch()
+    target_actor = snapshot(agent.actor_target)
+    agent.update(batch)  # update 1: no actor step, no target update
+    assert changed(target_actor, agent.actor_target) == set()
+    metrics = agent.update(batch)  # update 2: actor + targets
+    assert "actor_loss" in metrics
+    assert changed(target_actor, agent.actor_target) == set(target_actor)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_one_update_of_every_agent(algo):
+    """At the reference's full size: 84x84 stacks, its widths."""
+    agent = make(algo, obs_shape=(9, 84, 84), small=False)
+    batch = random_batch(batch_size=4, obs_shape=(9, 84, 84))
+    for _ in range(2):
+        metrics = agent.update(batch)
+    assert agent.num_updates == 2
+    assert all(np.isfinite(v) for v in metrics.values())
+    expected = {"critic_loss", "actor_loss"}
+    if algo != "pixel_td3":
+        expected.add("ae_loss")
+    if algo == "nasa_td3":
+        expected.add("ensemble_loss")
+    assert expected <= set(metrics)
+
+
+def test_sac_ae_actor_loss_leaves_critic_convs():
+    agent = make("sac_ae")
+    batch = random_batch()
+    agent.num_updates = 1  # the next update runs the actor
+    conv = snapshot(agent.critic_encoder.convs)
+    agent.critic_opt.step = lambda *a, **k: None  # isolate: the critic step would move convs
+    agent.encoder_opt.step = lambda *a, **k: None
+    actor_fc = snapshot(agent.actor_encoder.fc)
+    agent.update(batch)
+    assert changed(conv, agent.critic_encoder.convs) == set()
+    assert changed(actor_fc, agent.actor_encoder.fc) == set(actor_fc)  # the actor's own fc learns
+    assert agent.actor_encoder.convs[0].weight is agent.critic_encoder.convs[0].weight
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_state_round_trip_gives_same_action_and_update(algo):
+    agent = make(algo)
+    batch = random_batch()
+    agent.update(batch)
+    clone = make(algo)
+    clone.load_state_dict(copy.deepcopy(agent.state_dict()))
+    obs = batch["obs"][0].numpy()
+    rng_a, rng_b = np.random.default_rng(1), np.random.default_rng(1)
+    torch.manual_seed(3)
+    a = agent.act(obs, explore=True, rng=rng_a)
+    torch.manual_seed(3)
+    b = clone.act(obs, explore=True, rng=rng_b)
+    np.testing.assert_array_equal(a, b)
+    torch.manual_seed(5)
+    metrics_a = agent.update(random_batch(seed=1))
+    torch.manual_seed(5)
+    metrics_b = clone.update(random_batch(seed=1))
+    assert metrics_a == metrics_b
+    for (name, p), q in zip(agent.state_dict().items(), clone.state_dict().values(), strict=True):
+        if isinstance(p, dict) and "state" not in p:
+            for k in p:
+                torch.testing.assert_close(p[k], q[k], rtol=0, atol=0, msg=f"{name}.{k}")
+
+
+def test_policy_weights_round_trip():
+    agent, actor_copy = make("nasa_td3"), make("nasa_td3")
+    actor_copy.load_policy_state_dict(agent.policy_state_dict())
+    obs = random_batch()["obs"][0].numpy()
+    rng = np.random.default_rng(0)
+    np.testing.assert_array_equal(
+        agent.act(obs, explore=False, rng=rng), actor_copy.act(obs, explore=False, rng=rng)
+    )
+
+
+def test_actions_are_bounded():
+    agent = make("nasa_td3", exploration_noise=5.0)
+    obs = random_batch()["obs"][0].numpy()
+    action = agent.act(obs, explore=True, rng=np.random.default_rng(0))
+    assert action.shape == (ACTION_DIM,) and np.all(np.abs(action) <= 1.0)
+
+
+def test_fresh_timing_rescores_and_collect_reads_the_batch():
+    fresh, collect = make("nasa_td3", intrinsic_timing="fresh"), make("nasa_td3")
+    batch = random_batch()
+    batch["intrinsic"] = torch.full((8,), 123.0)
+    assert collect.update(batch)["intrinsic_batch_mean"] == pytest.approx(123.0)
+    assert fresh.update(batch)["intrinsic_batch_mean"] != pytest.approx(123.0)

@@ -1,0 +1,83 @@
+"""Novelty matches scikit-image's SSIM (the reference's) on real frames; surprise is the ensemble MSE."""
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from shared import envs, intrinsic
+from shared.agents import make_agent
+from shared.config import agent_defaults
+
+
+@pytest.fixture(scope="module")
+def rendered_stacks() -> np.ndarray:
+    env = envs.make("cheetah-run", seed=0, render_quality="fast")
+    rng = np.random.default_rng(0)
+    ts = env.reset()
+    stacks = [ts.obs]
+    for _ in range(5):
+        ts = env.step(rng.uniform(-1, 1, env.action_dim))
+        stacks.append(ts.obs)
+    return np.stack(stacks)
+
+
+def reference_novelty(obs: np.ndarray, reconstruction: np.ndarray) -> float:
+    """The reference's call, per transition."""
+    target = obs / 255
+    value = structural_similarity(
+        target, reconstruction, data_range=target.max() - target.min(), channel_axis=0
+    )
+    return 1 - value
+
+
+def test_novelty_matches_scikit_image_on_rendered_frames_and_reconstructions(rendered_stacks):
+    agent = make_agent("nasa_td3", (9, 84, 84), 6, agent_defaults("nasa_td3"), torch.device("cpu"))
+    obs = torch.from_numpy(rendered_stacks)
+    with torch.no_grad():
+        reconstruction = agent.decoder(agent.encoder(obs))
+    ours = intrinsic.novelty(obs, reconstruction).numpy()
+    expected = [
+        reference_novelty(o.astype(np.float64), r.astype(np.float64))
+        for o, r in zip(rendered_stacks, reconstruction.numpy(), strict=True)
+    ]
+    np.testing.assert_allclose(ours, expected, atol=1e-4)
+
+
+def test_ssim_matches_scikit_image_on_near_copies(rendered_stacks):
+    rng = np.random.default_rng(1)
+    x = rendered_stacks.astype(np.float64) / 255
+    y = np.clip(x + rng.normal(0, 0.02, x.shape), 0, 1)
+    ours = intrinsic.ssim(torch.from_numpy(x), torch.from_numpy(y)).numpy()
+    expected = [
+        structural_similarity(a, b, data_range=a.max() - a.min(), channel_axis=0)
+        for a, b in zip(x, y, strict=True)
+    ]
+    np.testing.assert_allclose(ours, expected, atol=1e-4)
+    assert np.all(np.asarray(expected) > 0.5)  # near copies: the comparison is not trivially at 0
+
+
+def test_ssim_of_an_image_with_itself_is_one(rendered_stacks):
+    x = torch.from_numpy(rendered_stacks).float() / 255
+    torch.testing.assert_close(intrinsic.ssim(x, x), torch.ones(len(x)))
+
+
+def test_ssim_rejects_mismatched_shapes():
+    with pytest.raises(ValueError, match="one shape"):
+        intrinsic.ssim(torch.zeros(1, 3, 16, 16), torch.zeros(1, 3, 16, 8))
+
+
+def test_surprise_is_mse_of_the_ensemble_mean():
+    predictions = torch.tensor([[[1.0, 2.0]], [[3.0, 4.0]]])  # K=2, B=1, D=2; mean (2, 3)
+    next_latent = torch.tensor([[0.0, 0.0]])
+    torch.testing.assert_close(intrinsic.surprise(predictions, next_latent), torch.tensor([6.5]))
+
+
+def test_score_weights_novelty_and_surprise():
+    config = agent_defaults("nasa_td3")
+    config.novelty_weight, config.surprise_weight = 2.0, 3.0
+    config.latent_dim, config.hidden_dim, config.ensemble_hidden_dim = 16, 32, 16
+    agent = make_agent("nasa_td3", (9, 32, 32), 2, config, torch.device("cpu"))
+    obs = torch.randint(0, 256, (4, 9, 32, 32), dtype=torch.uint8)
+    scores = agent.score(obs, torch.zeros(4, 2), obs)
+    torch.testing.assert_close(scores["intrinsic"], 2.0 * scores["novelty"] + 3.0 * scores["surprise"])
