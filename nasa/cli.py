@@ -64,7 +64,19 @@ def train(argv: list[str]) -> None:
     Trainer.create(c, out).run()
 
 
-COMMANDS = {"train": train}
+def up(argv: list[str]) -> None:
+    from nasa.up import up as run_up  # the launcher imports zenoh; keep `nasa train --help` light
+
+    run_up(argv)
+
+
+def status(argv: list[str]) -> None:
+    from nasa.up import status as print_status
+
+    print_status(argv)
+
+
+COMMANDS = {"train": train, "up": up, "status": status}
 
 
 def main(argv: list[str] | None = None) -> None:

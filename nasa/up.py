@@ -1,0 +1,264 @@
+"""`nasa up`: the whole distributed system on this host, one OS process per service.
+
+The launcher runs the Zenoh router in its own process (a session in router
+mode) and starts replay, learner, evaluator and N actors as child processes
+(`python -m services.<role>`, the same commands the deployment files run). A
+child that dies is restarted (a restarted actor draws a new incarnation); the
+run ends when the learner finishes the step budget (it publishes Stop and
+every service exits), on Ctrl-C, or on SIGTERM. Children are stopped in
+order (actors, evaluator, learner, replay), killed if they do not exit in
+time, and die with the launcher (PR_SET_PDEATHSIG), so no process is left.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+STOP_ORDER = ("actor", "evaluator", "learner", "replay")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: get SIGTERM when the launcher dies (Linux)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    name: str
+    role: str
+    argv: list[str]
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    exited: int | None = None  # exit code once it ended for good
+    pids: list[int] = field(default_factory=list)
+
+
+class Supervisor:
+    """Starts services as child processes, restarts the ones that die, stops them all in order."""
+
+    def __init__(self, env: dict[str, str], log_dir: Path | None, max_restarts: int = 20,
+                 restart_delay_s: float = 1.0, cwd: str | None = None) -> None:
+        self.env = env
+        self.log_dir = log_dir
+        self.max_restarts = max_restarts
+        self.restart_delay_s = restart_delay_s
+        self.cwd = cwd
+        self.children: dict[str, Child] = {}
+        self.stopping = False
+        self._dead_since: dict[str, float] = {}
+        if log_dir is not None:
+            log_dir.mkdir(parents=True, exist_ok=True)
+
+    def add(self, name: str, role: str, argv: list[str]) -> Child:
+        child = Child(name, role, argv)
+        self.children[name] = child
+        self._spawn(child)
+        return child
+
+    def _spawn(self, child: Child) -> None:
+        out = None
+        if self.log_dir is not None:
+            out = open(self.log_dir / f"{child.name}.log", "ab")  # noqa: SIM115 (owned by the child)
+        try:
+            child.proc = subprocess.Popen(
+                [sys.executable, "-m", f"services.{child.role}", *child.argv],
+                env=self.env, stdout=out, stderr=subprocess.STDOUT if out else None,
+                stdin=subprocess.DEVNULL, start_new_session=True, preexec_fn=_die_with_parent,
+                cwd=self.cwd,
+            )
+        finally:
+            if out is not None:
+                out.close()
+        child.pids.append(child.proc.pid)
+
+    def poll(self, on_event=print) -> None:  # noqa: ANN001
+        """Restart children that died (not when they exited 0, and not while stopping)."""
+        now = time.monotonic()
+        for child in self.children.values():
+            if child.proc is None or child.exited is not None:
+                continue
+            code = child.proc.poll()
+            if code is None:
+                continue
+            if code == 0 or self.stopping:
+                child.exited = code
+                continue
+            since = self._dead_since.setdefault(child.name, now)
+            if child.restarts >= self.max_restarts:
+                child.exited = code
+                on_event(f"{child.name} exited with {code}; not restarted after {child.restarts} restarts")
+            elif now - since >= self.restart_delay_s:
+                del self._dead_since[child.name]
+                child.restarts += 1
+                on_event(f"{child.name} exited with {code}: restarting it ({child.restarts})")
+                self._spawn(child)
+
+    def running(self) -> list[Child]:
+        return [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
+
+    def stop_all(self, timeout_s: float = 20.0) -> None:
+        """SIGTERM role by role in STOP_ORDER, SIGKILL what is left after the timeout."""
+        self.stopping = True
+        for role in STOP_ORDER:
+            group = [c for c in self.children.values() if c.role == role and c.proc is not None]
+            for c in group:
+                if c.proc.poll() is None:
+                    c.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + timeout_s
+            for c in group:
+                try:
+                    c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    c.proc.kill()
+                    c.proc.wait()
+        for c in self.children.values():  # anything with a role outside STOP_ORDER
+            if c.proc is not None and c.proc.poll() is None:
+                c.proc.kill()
+                c.proc.wait()
+
+
+@dataclass
+class UpCommand:
+    """Run the distributed system on this host: router, replay, learner, evaluator and N actors.
+
+    Config flags after `--` (e.g. `-- --image-size 48 --warmup-steps 100`) go to every service.
+    """
+
+    task: str = "cartpole-balance"
+    algo: str = "nasa_td3"
+    actors: int = 2
+    steps: int | None = None
+    """Env steps of the run (default: the preset's)."""
+    device: str = "auto"
+    """Learner device: cpu, cuda, cuda:N or auto."""
+    data: Path | None = None
+    """Run folder (default runs/<task>-<algo>-up); an existing one is resumed."""
+    preset: str = "auto"
+    """`paper`, `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
+    port: int = 8000
+    """Port of the learner's status API."""
+    router_port: int = 7447
+    """Port of the embedded Zenoh router (0: a free one)."""
+    run_id: str | None = None
+    """Key prefix nasa/<run_id>/ (default: from the run folder's name)."""
+    seed: int = 0
+    evaluator: bool = True
+    learner_threads: int = 0
+    """torch threads of the learner; 0: the cores left after actors, evaluator and replay (at least 1)."""
+    logs: bool = False
+    """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
+
+
+def service_argv(cmd: UpCommand, preset: str, data: Path, extra: list[str]) -> dict[str, list[str]]:
+    common = ["--preset", preset, "--task", cmd.task, "--algo", cmd.algo, "--seed", str(cmd.seed)]
+    if cmd.steps is not None:
+        common += ["--steps", str(cmd.steps)]
+    common += extra
+    # Oversubscribed torch threads cost several times their speed on a small CPU.
+    threads = cmd.learner_threads or max(1, (os.cpu_count() or 1) - cmd.actors - 2)
+    out = {
+        "replay": [*common, "--data", str(data)],
+        "learner": [*common, "--data", str(data), "--device", cmd.device, "--port", str(cmd.port),
+                    "--threads", str(threads)],
+    }
+    if cmd.evaluator:
+        out["evaluator"] = list(common)
+    for i in range(cmd.actors):
+        out[f"actor-{i}"] = [*common, "--actor-id", str(i)]
+    return out
+
+
+def up(argv: list[str]) -> None:
+    import tyro
+
+    from shared.config import PRESET_NAMES, ConfigError, auto_preset
+    from shared.device import resolve_device
+
+    extra: list[str] = []
+    if "--" in argv:
+        i = argv.index("--")
+        argv, extra = argv[:i], argv[i + 1 :]
+    cmd = tyro.cli(UpCommand, args=argv, prog="nasa up")
+    if cmd.preset not in PRESET_NAMES:
+        raise ConfigError(f"unknown preset {cmd.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
+    if cmd.actors < 1:
+        raise ConfigError(f"--actors must be >= 1, got {cmd.actors}")
+    device = resolve_device(cmd.device)
+    preset = auto_preset(device.type) if cmd.preset == "auto" else cmd.preset
+    how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
+        else f"device {device}"
+    print(f"nasa up: preset {preset} ({how}); {cmd.algo} on {cmd.task}, {cmd.actors} actor(s)", flush=True)
+    data = cmd.data or Path("runs") / f"{cmd.task}-{cmd.algo}-up"
+    run_id = cmd.run_id or re.sub(r"[^A-Za-z0-9_.\-]", "-", data.resolve().name)
+    router_port = cmd.router_port or free_port()
+    endpoint = f"tcp/127.0.0.1:{router_port}"
+    env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": run_id}
+    from shared.zenoh_session import open_router
+
+    stop = {"reason": ""}
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop["reason"] = signal.Signals(signum).name
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    with open_router(endpoint):
+        sup = Supervisor(env, data / "logs" if cmd.logs else None)
+        try:
+            for name, args in service_argv(cmd, preset, data, extra).items():
+                sup.add(name, name.split("-")[0], args)
+            print(f"nasa up: run {run_id} in {data}; router {endpoint}; "
+                  f"status http://127.0.0.1:{cmd.port}/status", flush=True)
+            learner = sup.children["learner"]
+            while not stop["reason"]:
+                sup.poll(lambda msg: print(f"nasa up: {msg}", flush=True))
+                if learner.exited is not None:
+                    stop["reason"] = f"learner exited ({learner.exited})"
+                    break
+                time.sleep(0.2)
+        finally:
+            print(f"nasa up: stopping ({stop['reason'] or 'error'})", flush=True)
+            sup.stop_all()
+    print("nasa up: stopped", flush=True)
+
+
+def status(argv: list[str]) -> None:
+    """`nasa status [--url URL]`: print the learner's /status."""
+    import json
+
+    import httpx
+    import tyro
+
+    @dataclass
+    class StatusCommand:
+        """Print the status of a running system (the learner's GET /status)."""
+
+        url: str = "http://127.0.0.1:8000/status"
+
+    cmd = tyro.cli(StatusCommand, args=argv, prog="nasa status")
+    try:
+        response = httpx.get(cmd.url, timeout=5.0)
+        response.raise_for_status()
+    except httpx.HTTPError as err:
+        print(f"nasa status: cannot read {cmd.url}: {err}", file=sys.stderr)
+        sys.exit(1)
+    print(json.dumps(response.json(), indent=2))

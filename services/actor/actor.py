@@ -1,0 +1,278 @@
+"""The actor service: steps one environment with a local policy copy and streams transitions.
+
+- Acting: uniform random while the global env step count (from the replay's
+  acknowledgements and stats) is below warmup_steps, then the local policy
+  with exploration noise (config.agent.exploration_noise). Acting never waits
+  for weights: the weights subscriber only parks the newest message, and the
+  loop loads it between steps (latest wins).
+- Streaming: each new frame is sent once, in batches of `batch` transitions
+  (or fewer at an episode end), delta-coded and zstd-compressed, on a
+  publisher with congestion control BLOCK. At most `max_in_flight` batches
+  wait for the replay's acknowledgement: when the replay's rate limiter holds
+  inserts back, the actor waits here (backpressure).
+- Identity: `actor_id` (stable for a slot, e.g. the launcher's index) and a new
+  incarnation at each start (tenths of a second since 2025, so it grows across
+  restarts, as the replay requires). The env and exploration seeds derive from
+  (config.seed, actor_id, incarnation). A liveliness token
+  alive/actor/<id>/<incarnation> announces it; a status heartbeat every second.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import numpy as np
+import torch
+import tyro
+import zenoh
+
+from shared import envs, wire
+from shared.agents import make_agent
+from shared.config import TrainConfig
+from shared.service import Log, StopFlag
+from shared.zenoh_session import env_connect, env_run_id, open_client
+
+BLOCK = zenoh.CongestionControl.BLOCK
+_EPOCH_2025 = 1_735_689_600.0
+
+
+def new_incarnation() -> int:
+    """Tenths of a second since 2025-01-01: grows across restarts (fits 31 bits until 2031)."""
+    return int((time.time() - _EPOCH_2025) * 10) % 2**31
+
+
+def _default_actor_id() -> int:
+    env = os.environ.get("NASA_ACTOR_ID")
+    return int(env) if env else -1
+
+
+@dataclass
+class ActorArgs:
+    """An actor: steps its environment with the latest policy and streams transitions to the replay."""
+
+    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
+    preset: str = "auto"
+    """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
+    connect: str = field(default_factory=env_connect)
+    """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
+    run_id: str = field(default_factory=env_run_id)
+    """Run id: the key prefix nasa/<run_id>/ (env NASA_RUN_ID)."""
+    actor_id: int = field(default_factory=_default_actor_id)
+    """This actor's id (env NASA_ACTOR_ID); -1: a random one (replicas of a scaled service)."""
+    actor_device: str = "cpu"
+    """Device the local policy runs on."""
+    send_batch: int = 8
+    """Transitions per message."""
+    max_in_flight: int = 4
+    """Unacknowledged batches before the actor waits for the replay."""
+    status_every_s: float = 1.0
+    threads: int = 1
+    """torch threads for acting."""
+
+
+class ActorService:
+    def __init__(self, args: ActorArgs, session: zenoh.Session, stop: StopFlag) -> None:
+        c = args.config
+        self.args, self.config, self.session, self.stop = args, c, session, stop
+        self.keys = wire.Keys(args.run_id)
+        self.actor_id = args.actor_id if args.actor_id >= 0 else random.SystemRandom().randrange(1000, 2**31)
+        self.incarnation = new_incarnation()
+        self.log = Log(f"actor {self.actor_id}")
+        seeds = np.random.SeedSequence([c.seed, self.actor_id, self.incarnation]).generate_state(2)
+        self.env = envs.from_config(c.env, int(seeds[0]) % 2**31)
+        self.rng = np.random.default_rng(int(seeds[1]))
+        torch.manual_seed(int(seeds[1]))
+        torch.set_num_threads(max(1, args.threads))
+        self.agent = make_agent(
+            c.algo, self.env.obs_shape, self.env.action_dim, c.agent, torch.device(args.actor_device)
+        )
+        self.policy_version = 0
+        self.env_steps = 0
+        self.episodes = 0
+        self.global_steps = 0  # newest replay count seen
+        self.replay_done = False
+        self.invalid = 0
+        self._finished: list[list[float]] = []
+        self._pending_weights: bytes | None = None
+        self._cv = threading.Condition()
+        self._in_flight = 0
+        self._seq = 0
+        self._rate = (time.monotonic(), 0)
+        self.steps_per_s = 0.0
+
+    # -- callbacks ------------------------------------------------------------------------
+
+    def _on_weights(self, sample: zenoh.Sample) -> None:
+        self._pending_weights = sample.payload.to_bytes()  # latest wins; decoded by the loop
+
+    def _on_weights_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None and self._pending_weights is None and self.policy_version == 0:
+            self._pending_weights = reply.ok.payload.to_bytes()
+
+    def _on_ack(self, sample: zenoh.Sample) -> None:
+        try:
+            ack = wire.decode(sample.payload.to_bytes(), wire.InsertAck)
+        except wire.WireError as err:
+            return self._invalid(f"ack: {err}")
+        if ack.incarnation != self.incarnation:
+            return
+        with self._cv:
+            self._in_flight = max(0, self._in_flight - 1)
+            self.global_steps = max(self.global_steps, ack.num_inserted)
+            self._cv.notify_all()
+
+    def _on_stats(self, sample: zenoh.Sample) -> None:
+        try:
+            stats = wire.decode(sample.payload.to_bytes(), wire.ReplayStats)
+        except wire.WireError as err:
+            return self._invalid(f"replay stats: {err}")
+        self.global_steps = max(self.global_steps, stats.num_inserted)
+        self.replay_done = stats.done
+
+    def _on_stop(self, sample: zenoh.Sample) -> None:
+        try:
+            self.stop.set("stop message: " + wire.decode(sample.payload.to_bytes(), wire.Stop).reason)
+        except wire.WireError as err:
+            self._invalid(f"stop: {err}")
+        with self._cv:
+            self._cv.notify_all()
+
+    def _invalid(self, what: str) -> None:
+        self.invalid += 1
+        self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
+
+    # -- weights ----------------------------------------------------------------------------
+
+    def maybe_load_weights(self) -> None:
+        data, self._pending_weights = self._pending_weights, None
+        if data is None:
+            return
+        try:
+            msg = wire.decode(data, wire.Weights)
+            if msg.version < self.policy_version:
+                return
+            self.agent.load_policy_state_dict(wire.unpack_tensors(msg.tensors))
+        except (wire.WireError, RuntimeError, KeyError) as err:  # torch raises RuntimeError on bad shapes
+            return self._invalid(f"weights: {err}")
+        self.policy_version = msg.version
+        self.global_steps = max(self.global_steps, msg.env_steps)
+
+    # -- streaming --------------------------------------------------------------------------
+
+    def _send(self, publisher: zenoh.Publisher, episode: int, start: int, first: np.ndarray | None,
+              steps: list[tuple]) -> None:
+        with self._cv:
+            waited = time.monotonic()
+            while self._in_flight >= self.args.max_in_flight and not self.stop:
+                self._cv.wait(0.5)
+                if time.monotonic() - waited > 60.0:  # the replay restarted and lost them
+                    self.log("no acknowledgement for 60 s: assuming the in-flight batches lost")
+                    self._in_flight = 0
+            if self.stop:
+                return
+            self._in_flight += 1
+        actions, rewards, discounts, frames, lasts, versions = zip(*steps, strict=True)
+        msg = wire.TransitionBatch(
+            actor_id=self.actor_id,
+            incarnation=self.incarnation,
+            episode=episode,
+            start=start,
+            seq=self._seq,
+            n=len(steps),
+            frame_shape=list(frames[0].shape),
+            frames=wire.encode_frames(np.stack(frames)),
+            first_frame=wire.encode_frames(first[None]) if first is not None else None,
+            actions=np.asarray(actions, "<f4").tobytes(),
+            rewards=np.asarray(rewards, "<f4").tobytes(),
+            discounts=np.asarray(discounts, "<f4").tobytes(),
+            lasts=np.asarray(lasts, "u1").tobytes(),
+            policy_versions=np.asarray(versions, "<i8").tobytes(),
+        )
+        self._seq += 1
+        publisher.put(wire.encode(msg))
+
+    def _publish_status(self) -> None:
+        now = time.monotonic()
+        t0, s0 = self._rate
+        if now - t0 >= 1.0:
+            self.steps_per_s = (self.env_steps - s0) / (now - t0)
+            self._rate = (now, self.env_steps)
+        finished, self._finished = self._finished, []
+        status = wire.ActorStatus(
+            self.actor_id, self.incarnation, self.env_steps, self.episodes, self.policy_version,
+            self.steps_per_s, finished,
+        )
+        self.session.put(self.keys.actor_status(self.actor_id), wire.encode(status))
+
+    def _status_loop(self) -> None:
+        while not self.stop.wait(self.args.status_every_s):
+            self._publish_status()
+
+    # -- the loop -----------------------------------------------------------------------------
+
+    def run(self) -> None:
+        s, k, c = self.session, self.keys, self.config
+        with (
+            s.declare_subscriber(k.weights, self._on_weights),
+            s.declare_subscriber(k.ack(self.actor_id), self._on_ack),
+            s.declare_subscriber(k.replay_stats, self._on_stats),
+            s.declare_subscriber(k.stop, self._on_stop),
+            s.declare_publisher(k.insert(self.actor_id), congestion_control=BLOCK) as publisher,
+            s.liveliness().declare_token(k.alive("actor", self.actor_id, self.incarnation)),
+        ):
+            s.get(k.weights_latest, self._on_weights_reply, timeout=10.0)
+            self.log(f"incarnation {self.incarnation} acting on {c.env.task} (run {k.run_id})")
+            status = threading.Thread(target=self._status_loop, daemon=True)
+            status.start()
+            self._act_loop(publisher)
+            self._publish_status()
+            self.log(f"stopping after {self.env_steps} steps ({self.stop.reason})")
+            status.join(timeout=2.0)
+
+    def _act_loop(self, publisher: zenoh.Publisher) -> None:
+        c, env, agent = self.config, self.env, self.agent
+        episode = -1
+        while not self.stop:
+            if self.replay_done:  # the run's step budget is reached: wait for the stop
+                self.stop.wait(0.2)
+                continue
+            ts = env.reset()
+            episode += 1
+            first: np.ndarray | None = ts.frame
+            start, steps, total = 0, [], 0.0
+            while not self.stop and not self.replay_done:
+                self.maybe_load_weights()
+                if self.global_steps < c.warmup_steps:
+                    action = self.rng.uniform(-1.0, 1.0, env.action_dim).astype(np.float32)
+                else:
+                    action = agent.act(ts.obs, explore=True, rng=self.rng)
+                ts = env.step(action)
+                self.env_steps += 1
+                total += ts.reward
+                steps.append((
+                    action, ts.reward, envs.stored_discount(ts, c.env.time_limit), ts.frame, ts.last,
+                    self.policy_version,
+                ))
+                if len(steps) >= self.args.send_batch or ts.last:
+                    self._send(publisher, episode, start, first, steps)
+                    start += len(steps)
+                    first, steps = None, []
+                if ts.last:
+                    self.episodes += 1
+                    self._finished.append([total, start])
+                    break
+
+
+def main(argv: list[str] | None = None) -> None:
+    from shared.service import parse
+
+    args, _ = parse(ActorArgs, argv, "python -m services.actor")
+    stop = StopFlag()
+    stop.install_signal_handlers()
+    with open_client(args.connect) as session:
+        ActorService(args, session, stop).run()

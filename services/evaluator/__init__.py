@@ -1,0 +1,1 @@
+"""The evaluator service: deterministic evaluation episodes every eval_every global env steps."""

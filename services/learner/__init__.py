@@ -1,0 +1,1 @@
+"""The learner service: replay batches in, agent updates, weights out, FastAPI status."""

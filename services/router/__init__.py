@@ -1,0 +1,1 @@
+"""A Zenoh router for a run: `python -m services.router --listen tcp/0.0.0.0:7447`."""

@@ -1,0 +1,99 @@
+"""The thin shell every service shares: typed flags with presets, stop signals, logging.
+
+Each service (`python -m services.<role>`) is configured by flags (a
+`TrainConfig` under the same names as `nasa train`, with a preset) and by
+environment variables for what a deployment sets per host: NASA_ZENOH_CONNECT
+and NASA_RUN_ID. All services of a run must get the same config flags;
+`nasa up` and deploy/docker-compose.yml pass them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from typing import TypeVar
+
+import tyro
+
+from shared.config import PRESET_NAMES, ConfigError, auto_preset, default_config, validate
+
+T = TypeVar("T")
+
+
+def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
+    """Parse a service's dataclass (fields `config` and `preset`); returns it and the preset used.
+
+    --preset, --algo and --device are read first: they choose the defaults every other flag overrides.
+    """
+    argv = sys.argv[1:] if argv is None else argv
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--preset", default="auto")
+    pre.add_argument("--algo", default="nasa_td3")
+    pre.add_argument("--device", default="auto")
+    known, _ = pre.parse_known_args(argv)
+    if known.preset not in PRESET_NAMES:
+        raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
+    preset = known.preset
+    if preset == "auto":
+        # Only the device's type matters here; do not import torch for --help.
+        preset = auto_preset(_device_type(known.device))
+    default = cls(config=default_config(known.algo, preset), preset=known.preset)  # type: ignore[call-arg]
+    args = tyro.cli(cls, args=argv, default=default, prog=prog)
+    validate(args.config)  # type: ignore[attr-defined]
+    return args, preset
+
+
+def _device_type(name: str) -> str:
+    if name.startswith("cuda"):
+        return "cuda"
+    if name == "auto":
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return "cpu"
+
+
+class StopFlag:
+    """Set by SIGINT/SIGTERM or by a Stop message; services poll it or wait on it."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.reason = ""
+
+    def set(self, reason: str) -> None:
+        if not self.event.is_set():
+            self.reason = reason
+            self.event.set()
+
+    def __bool__(self) -> bool:
+        return self.event.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self.event.wait(timeout)
+
+    def install_signal_handlers(self) -> None:
+        def handler(signum: int, _frame: object) -> None:
+            self.set(signal.Signals(signum).name)
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+
+
+class Log:
+    """One-line, prefixed, flushed log messages on stderr; repeated warnings are rate limited."""
+
+    def __init__(self, role: str) -> None:
+        self.role = role
+        self._last: dict[str, float] = {}
+
+    def __call__(self, msg: str) -> None:
+        print(f"[{self.role}] {msg}", file=sys.stderr, flush=True)
+
+    def every(self, key: str, seconds: float, msg: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) >= seconds:
+            self._last[key] = now
+            self(msg)

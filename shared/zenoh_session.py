@@ -1,0 +1,58 @@
+"""Opening Zenoh sessions from flags and environment variables.
+
+Services connect as clients to a router (`NASA_ZENOH_CONNECT`, e.g.
+tcp/127.0.0.1:7447); `nasa up` and `python -m services.router` run that
+router. Multicast scouting is off: a service talks only to the router it is
+told about, so runs on one host never find each other by accident.
+Use the returned session as a context manager: a process holding a callback
+subscriber hangs at exit unless its session is closed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import zenoh
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+def env_connect() -> str:
+    return os.environ.get("NASA_ZENOH_CONNECT", DEFAULT_CONNECT)
+
+
+def env_run_id() -> str:
+    return os.environ.get("NASA_RUN_ID", "default")
+
+
+def _base_config(mode: str) -> zenoh.Config:
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return config
+
+
+def open_client(connect: str, timeout_s: float = 30.0) -> zenoh.Session:
+    """A client session to the router(s) in `connect` (comma-separated endpoints), retried until up."""
+    endpoints = [e.strip() for e in connect.split(",") if e.strip()]
+    if not endpoints:
+        raise ValueError("no Zenoh endpoint to connect to (set --connect or NASA_ZENOH_CONNECT)")
+    config = _base_config("client")
+    config.insert_json5("connect/endpoints", json.dumps(endpoints))
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.2)
+
+
+def open_router(listen: str) -> zenoh.Session:
+    """A session in router mode listening on `listen` (e.g. tcp/127.0.0.1:7447): the run's router."""
+    config = _base_config("router")
+    config.insert_json5("listen/endpoints", json.dumps([listen]))
+    return zenoh.open(config)
