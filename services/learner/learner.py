@@ -112,7 +112,8 @@ class Learner:
 
         self._lock = threading.Lock()
         self.env_steps = 0
-        self.replay = {"size": 0, "bytes": 0, "done": False, "invalid": 0, "dropped": 0}
+        self.replay = {"size": 0, "bytes": 0, "done": False, "invalid": 0, "dropped": 0, "inserts": 0,
+                       "samples": 0}
         self.policy_version = 0
         self.invalid = 0
         self.actors: dict[int, dict] = {}
@@ -150,6 +151,7 @@ class Learner:
                 "episodes": self.episodes,
                 "wall_s": self.wall_s,
                 "policy_version": self.policy_version,
+                "updates": self.agent.num_updates,
             },
         )
         self.last_checkpoint_step = self.env_steps
@@ -178,7 +180,7 @@ class Learner:
         with self._lock:
             self.env_steps = max(self.env_steps, s.num_inserted)
             self.replay = {"size": s.size, "bytes": s.bytes, "done": s.done, "invalid": s.invalid,
-                           "dropped": s.dropped}
+                           "dropped": s.dropped, "inserts": s.inserts, "samples": s.samples}
 
     def _on_actor_status(self, sample: zenoh.Sample) -> None:
         try:
@@ -498,7 +500,8 @@ class Learner:
             "env_steps_per_s": round(env_rate, 3),
             "updates_per_s": round(upd_rate, 3),
             "replay": {"size": replay["size"], "bytes": replay["bytes"], "done": replay["done"],
-                       "dropped": replay["dropped"], "invalid_messages": replay["invalid"]},
+                       "dropped": replay["dropped"], "invalid_messages": replay["invalid"],
+                       "limiter_inserts": replay["inserts"], "limiter_samples": replay["samples"]},
             "policy_version": self.policy_version,
             "actors": actors,
             "eval": dict(self.eval),

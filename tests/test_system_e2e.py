@@ -1,0 +1,62 @@
+"""End to end: router, replay, learner, evaluator and two actors as real processes on loopback."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+from system_harness import ERROR_BUFFER, WARMUP, System
+
+from shared.runlog import read_rows
+
+STEPS = 300
+EVAL_EVERY = 100
+
+
+@pytest.mark.timeout(300)
+def test_system_end_to_end(tmp_path):
+    system = System(tmp_path / "run", actors=2, steps=STEPS,
+                    extra=["--eval-every", str(EVAL_EVERY), "--eval-episodes", "1"])
+    try:
+        # Both actors appear and act with weights the learner published after learning started.
+        s = system.wait_for(
+            "both actors with learned weights",
+            lambda s: len(s["actors"]) == 2
+            and all(a["alive"] and a["policy_version"] > 0 for a in s["actors"]),
+        )
+        assert {a["id"] for a in s["actors"]} == {0, 1}
+        assert all(a["env_steps"] > 0 for a in s["actors"])
+
+        # The replay holds samples (= updates) to inserts (= env steps) at G = 1 within its error buffer.
+        checks = 0
+        while not s["replay"]["done"] and checks < 20:
+            r = s["replay"]
+            inserts, samples = r["limiter_inserts"], r["limiter_samples"]
+            if inserts > WARMUP + 1:
+                assert abs(samples - (inserts - WARMUP - 1)) <= ERROR_BUFFER + 2, r
+                checks += 1
+            s = system.wait_for("progress", lambda x, u=s["updates"]: x["updates"] > u or x["replay"]["done"])
+        assert checks >= 2
+
+        metrics = httpx.get(system.url + "/metrics", timeout=5).text
+        assert "# TYPE nasa_env_steps_total counter" in metrics
+        assert 'nasa_actor_alive{run_id="' in metrics
+        assert httpx.get(system.url + "/healthz", timeout=5).status_code == 200
+
+        # The run ends by itself after STEPS env steps with exactly G * (STEPS - warm-up) updates.
+        final = system.wait_for("the run to finish", lambda s: s["updates"] >= STEPS - WARMUP)
+        assert final["updates"] == STEPS - WARMUP
+        assert final["env_steps"] == STEPS
+        assert final["intrinsic"]["scored"] > 0 and final["intrinsic"]["novelty_mean"] > 0
+        assert final["invalid_messages"] == 0 and final["replay"]["invalid_messages"] == 0
+        system.wait_exit(timeout=90)
+        assert all(c.exited == 0 and c.restarts == 0 for c in system.sup.children.values()), system.logs()
+    finally:
+        system.close()
+    assert system.leftover_pids() == []
+
+    rows = read_rows(tmp_path / "run" / "eval.csv")
+    assert [int(r["step"]) for r in rows] == list(range(0, STEPS + 1, EVAL_EVERY))
+    assert all(r["mean"] != "" for r in rows)
+    train = read_rows(tmp_path / "run" / "train.csv")
+    assert len(train) >= 1 and all(float(r["length"]) > 0 for r in train)
+    assert (tmp_path / "run" / "learner" / "checkpoint.pt").exists()

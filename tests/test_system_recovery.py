@@ -1,0 +1,65 @@
+"""Failures: an actor and the learner killed with SIGKILL; the supervisor restarts them."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+import torch
+from system_harness import System
+
+
+@pytest.mark.timeout(300)
+def test_actor_and_learner_survive_sigkill(tmp_path):
+    data = tmp_path / "run"
+    system = System(data, actors=2, steps=1_000_000, evaluator=False,
+                    extra=["--checkpoint-every", "40", "--eval-every", "100000"])
+    try:
+        s = system.wait_for(
+            "two live actors and a learner checkpoint",
+            lambda s: len(s["actors"]) == 2 and all(a["alive"] for a in s["actors"]) and s["updates"] > 0
+            and (data / "learner" / "checkpoint.pt").exists(),
+        )
+        old = {a["id"]: a["incarnation"] for a in s["actors"]}
+
+        # An actor dies: it is seen as not alive, the other goes on, and its restart rejoins
+        # with a new incarnation.
+        actor0 = system.sup.children["actor-0"]
+        os.kill(actor0.proc.pid, signal.SIGKILL)
+        dead = system.wait_for(
+            "actor 0 not alive",
+            lambda s: any(a["id"] == 0 and not a["alive"] for a in s["actors"]),
+            timeout=30, poll_supervisor=False,
+        )
+        other = next(a for a in dead["actors"] if a["id"] == 1)
+        assert other["alive"]
+        system.wait_for(
+            "actor 1 and the learner going on",
+            lambda s: s["updates"] > dead["updates"] and s["env_steps"] > dead["env_steps"]
+            and next(a for a in s["actors"] if a["id"] == 1)["env_steps"] > other["env_steps"],
+            poll_supervisor=False,
+        )
+        back = system.wait_for(
+            "actor 0 back with a new incarnation",
+            lambda s: any(a["id"] == 0 and a["alive"] and a["incarnation"] > old[0] and a["env_steps"] > 0
+                          for a in s["actors"]),
+        )
+        assert actor0.restarts == 1
+        assert next(a for a in back["actors"] if a["id"] == 1)["incarnation"] == old[1]
+
+        # The learner dies: it resumes from its checkpoint; the replay kept every transition.
+        learner = system.sup.children["learner"]
+        before = system.status()
+        os.kill(learner.proc.pid, signal.SIGKILL)
+        saved = torch.load(data / "learner" / "checkpoint.pt", weights_only=True)
+        resumed = system.wait_for("the learner resumed", lambda s: s["resumed"] and s["replay"]["size"] > 0)
+        assert learner.restarts == 1
+        assert resumed["updates"] >= saved["updates"] > 0
+        assert resumed["env_steps"] >= before["env_steps"]
+        assert resumed["replay"]["size"] >= before["replay"]["size"]
+        system.wait_for("learning to go on", lambda s: s["updates"] > resumed["updates"] + 5)
+    finally:
+        system.close()
+    assert all(c.proc.poll() is not None for c in system.sup.children.values())
+    assert system.leftover_pids() == []

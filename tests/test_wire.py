@@ -1,0 +1,112 @@
+"""The wire schema: round trips, validation that rejects bad messages, frame and tensor payloads."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+from shared import wire
+
+
+def test_every_message_round_trips():
+    msgs = [
+        wire.TransitionBatch(1, 2, 3, 0, 4, 1, [3, 8, 8], b"f", b"first", b"a" * 4, b"r" * 4, b"d" * 4,
+                             b"\x01", b"v" * 8),
+        wire.InsertAck(1, 2, 3, 8, 100),
+        wire.SampleRequest(64, 1.5),
+        wire.SampleReply(False, "rate limited", 10),
+        wire.SetIntrinsic(b"i" * 8, b"v" * 4),
+        wire.ReplayStats(1, 2, 3, 4, 5, 6, 7, False),
+        wire.Weights(5, 100, {"w": ["<f4", [1], b"\0\0\0\0"]}),
+        wire.ActorStatus(0, 1, 10, 1, 5, 3.5, [[1.0, 125]]),
+        wire.EvalResult(1000, 7, [1.0, 2.0]),
+        wire.Stop("done"),
+    ]
+    assert {type(m) for m in msgs} == set(wire.MESSAGES.values())
+    for m in msgs:
+        assert wire.decode(wire.encode(m), type(m)) == m
+
+
+def test_sample_request_default_is_filled():
+    body = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "sample_request", "batch_size": 8})
+    assert wire.decode(body, wire.SampleRequest).wait_s == 2.0
+
+
+@pytest.mark.parametrize(
+    "body, match",
+    [
+        (b"\xc1garbage", "not msgpack"),
+        (msgpack.packb([1, 2]), "not a map"),
+        (msgpack.packb({"v": 999, "t": "stop", "reason": "x"}), "schema version"),
+        (msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "insert_ack", "reason": "x"}), "message type"),
+        (msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "stop"}), "missing field"),
+        (msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "stop", "reason": 5}), "reason"),
+    ],
+)
+def test_bad_messages_raise_wire_error(body, match):
+    with pytest.raises(wire.WireError, match=match):
+        wire.decode(body, wire.Stop)
+
+
+def test_field_types_are_checked():
+    good = wire.encode(wire.InsertAck(1, 2, 3, 4, 5))
+    body = msgpack.unpackb(good)
+    for field, bad in (("seq", "3"), ("accepted", 1.5), ("num_inserted", True), ("actor_id", None)):
+        with pytest.raises(wire.WireError, match=field):
+            wire.decode(msgpack.packb({**body, field: bad}), wire.InsertAck)
+    # int where float is declared is fine; None only where declared optional
+    status = msgpack.unpackb(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, 5.0, [])))
+    assert wire.decode(msgpack.packb({**status, "steps_per_s": 5}), wire.ActorStatus).steps_per_s == 5
+    batch = wire.TransitionBatch(1, 2, 3, 8, 4, 1, [3, 8, 8], b"f", None, b"", b"", b"", b"", b"")
+    assert wire.decode(wire.encode(batch), wire.TransitionBatch).first_frame is None
+
+
+def test_frames_round_trip_and_compress():
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 256, (3, 32, 32), dtype=np.uint8)
+    moved = base.copy()
+    moved[:, :4] = 255 - moved[:, :4]  # a small part changes; wrapping deltas included
+    frames = np.stack([base, base, moved, moved])
+    blob = wire.encode_frames(frames)
+    np.testing.assert_array_equal(wire.decode_frames(blob, 4, (3, 32, 32)), frames)
+    assert len(blob) < frames.nbytes * 0.5  # unchanged pixels cost ~nothing
+    with pytest.raises(wire.WireError, match="expected"):
+        wire.decode_frames(blob, 3, (3, 32, 32))
+    with pytest.raises(wire.WireError, match="decompress"):
+        wire.decode_frames(b"not zstd", 1, (3, 32, 32))
+
+
+def test_arrays_and_tensors():
+    a = np.arange(6, dtype="<f4").reshape(2, 3)
+    np.testing.assert_array_equal(wire.array(a.tobytes(), "<f4", (2, 3)), a)
+    with pytest.raises(wire.WireError, match="expected"):
+        wire.array(a.tobytes(), "<f4", (3, 3))
+    state = {"w": torch.randn(4, 5), "n": torch.tensor([3], dtype=torch.int64)}
+    back = wire.unpack_tensors(wire.pack_tensors(state))
+    assert back.keys() == state.keys()
+    for k in state:
+        assert torch.equal(back[k], state[k]) and back[k].dtype == state[k].dtype
+    with pytest.raises(wire.WireError):
+        wire.unpack_tensors({"w": ["<f4", [2], "notbytes"]})
+
+
+def test_keys_live_under_the_run_prefix():
+    k = wire.Keys("run-1")
+    for key in (k.insert(3), k.ack(3), k.sample, k.intrinsic, k.replay_stats, k.weights, k.weights_latest,
+                k.actor_status(3), k.eval_result, k.stop, k.alive("actor", 3, 9)):
+        assert key.startswith("nasa/run-1/")
+    assert k.parse_alive(k.alive("actor", 3, 9)) == ("actor", "3", 9)
+    assert k.parse_alive(k.alive("learner", 0)) == ("learner", "0", None)
+    with pytest.raises(ValueError):
+        wire.Keys("bad/id")
+    with pytest.raises(wire.WireError):
+        k.parse_alive("nasa/other/alive/actor/1/2")
+
+
+def test_nan_survives_float_fields():
+    r = wire.decode(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, math.nan, [])), wire.ActorStatus)
+    assert math.isnan(r.steps_per_s)
