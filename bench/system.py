@@ -1,0 +1,263 @@
+"""`python -m bench.system`: the services against the in-process loops they are built from.
+
+- actor: env steps/s of one actor process (policy acting, streaming to a replay
+  over Zenoh) against the same env + policy loop run in-process;
+- actors: aggregate env steps/s with 1 and 2 actor processes;
+- learner: updates/s of the learner service (batches from the replay process
+  over Zenoh) against the single-process trainer's update loop (sample from
+  a ReplayStore, batch_to_device, agent.update) on the same device, both with
+  the same torch thread count.
+
+The replay runs without its rate limiter (--no-rate-limit) so each side is
+measured at its own speed. Transitions are marked as warm-up ones (intrinsic
+0), so neither learner scores intrinsic rewards here. The last line is one
+JSON object. CPU load from other processes on the machine skews every figure:
+`load_avg_1m` is reported with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+GOALS = {"actor_vs_inprocess": 0.90, "two_actor_scaling": 1.7, "learner_vs_inprocess": 0.95}
+
+
+def preset_config(args: argparse.Namespace):  # noqa: ANN201
+    from shared.config import default_config
+
+    c = default_config(args.algo, "cpu-small")
+    c.env.task = args.task
+    c.env.render_quality = "fast"
+    return c
+
+
+def inprocess_actor_loop(args: argparse.Namespace) -> float:
+    """The actor's loop without Zenoh: env.step + agent.act(explore=True), steps/s."""
+    import torch
+
+    from shared import envs
+    from shared.agents import make_agent
+
+    torch.set_num_threads(1)
+    c = preset_config(args)
+    env = envs.from_config(c.env, 0)
+    agent = make_agent(c.algo, env.obs_shape, env.action_dim, c.agent, torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    ts = env.reset()
+    for _ in range(20):  # warm up GL and torch
+        ts = env.step(agent.act(ts.obs, True, rng))
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < args.seconds:
+        ts = env.step(agent.act(ts.obs, True, rng))
+        steps += 1
+        if ts.last:
+            ts = env.reset()
+    return steps / (time.perf_counter() - start)
+
+
+def inprocess_update_loop(args: argparse.Namespace) -> float:
+    """The trainer's update step: ReplayStore.sample -> batch_to_device -> agent.update, updates/s."""
+    import torch
+
+    from nasa.train import batch_to_device
+    from services.replay.store import ReplayStore
+    from shared import envs
+    from shared.agents import make_agent
+
+    torch.set_num_threads(args.learner_threads)
+    c = preset_config(args)
+    env = envs.from_config(c.env, 0)
+    device = torch.device(args.device)
+    agent = make_agent(c.algo, env.obs_shape, env.action_dim, c.agent, device)
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        store = ReplayStore(c.replay_capacity, (3, c.env.image_size, c.env.image_size), c.env.frame_stack,
+                            env.action_dim, data_dir=Path(tmp) / "replay")
+        ts = env.reset()
+        ep = store.begin_episode(ts.frame)
+        for _ in range(args.fill):
+            action = rng.uniform(-1, 1, env.action_dim).astype(np.float32)
+            ts = env.step(action)
+            store.add(ep, action, ts.reward, ts.discount, ts.frame, ts.last, intrinsic=0.0)
+            if ts.last:
+                ts = env.reset()
+                ep = store.begin_episode(ts.frame)
+        for _ in range(3):
+            agent.update(batch_to_device(store.sample(c.batch_size, rng), device))
+        n, start = 0, time.perf_counter()
+        while time.perf_counter() - start < args.seconds:
+            agent.update(batch_to_device(store.sample(c.batch_size, rng), device))
+            n += 1
+        rate = n / (time.perf_counter() - start)
+        store.close()
+    return rate
+
+
+class Cluster:
+    """A router in this process and services as child processes (nasa.up's Supervisor)."""
+
+    def __init__(self, args: argparse.Namespace, data: Path) -> None:
+        from nasa.up import Supervisor, free_port
+        from shared import wire
+        from shared.zenoh_session import open_client, open_router
+
+        self.args = args
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.router = open_router(self.endpoint)
+        run_id = f"bench{free_port()}"
+        env = {**os.environ, "NASA_ZENOH_CONNECT": self.endpoint, "NASA_RUN_ID": run_id,
+               "PYTHONPATH": str(REPO)}
+        self.sup = Supervisor(env, data / "logs", cwd=str(REPO))
+        self.data = data
+        self.common = ["--preset", "cpu-small", "--task", args.task, "--algo", args.algo,
+                       "--render-quality", "fast", "--steps", "100000000"]
+        self.inserted: list[tuple[float, int]] = []
+        self.session = open_client(self.endpoint)
+        keys = wire.Keys(run_id)
+
+        def on_stats(sample) -> None:  # noqa: ANN001
+            s = wire.decode(sample.payload.to_bytes(), wire.ReplayStats)
+            self.inserted.append((time.monotonic(), s.num_inserted))
+
+        self.sub = self.session.declare_subscriber(keys.replay_stats, on_stats)
+
+    def start(self, name: str, role: str, extra: list[str]) -> None:
+        self.sup.add(name, role, [*self.common, *extra])
+
+    def insert_rate(self, seconds: float, settle_s: float = 3.0, timeout: float = 120.0) -> float:
+        """Steps/s into the replay over `seconds`, after inserts start and `settle_s` more."""
+        deadline = time.monotonic() + timeout
+        while not (self.inserted and self.inserted[-1][1] > 0):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no inserts; see {self.data / 'logs'}")
+            time.sleep(0.2)
+        time.sleep(settle_s)
+        t0, n0 = self.inserted[-1]
+        time.sleep(seconds)
+        t1, n1 = self.inserted[-1]
+        return (n1 - n0) / (t1 - t0)
+
+    def close(self) -> None:
+        self.sup.stop_all(timeout_s=15.0)
+        self.sub.undeclare()
+        self.session.close()
+        self.router.close()
+
+
+def service_actor_rate(args: argparse.Namespace, actors: int) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        cluster = Cluster(args, Path(tmp))
+        try:
+            # warm-up 0: actors act with their (initial) policy, as the in-process loop does
+            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", "--warmup-steps", "0"])
+            for i in range(actors):
+                cluster.start(f"actor-{i}", "actor", ["--actor-id", str(i), "--warmup-steps", "0"])
+            return cluster.insert_rate(args.seconds)
+        finally:
+            cluster.close()
+
+
+def service_learner_rate(args: argparse.Namespace) -> float:
+    import httpx
+
+    from nasa.up import free_port
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cluster = Cluster(args, Path(tmp))
+        # every stored transition is a warm-up one (intrinsic 0): no scoring on either side
+        warm = ["--warmup-steps", "100000000"]
+        try:
+            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *warm])
+            cluster.start("actor-0", "actor", ["--actor-id", "0", *warm])
+            deadline = time.monotonic() + 180
+            while not (cluster.inserted and cluster.inserted[-1][1] >= args.fill):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("replay did not fill")
+                time.sleep(0.2)
+            actor = cluster.sup.children["actor-0"]
+            cluster.sup.stopping = True
+            actor.proc.terminate()
+            actor.proc.wait(timeout=30)
+            cluster.sup.stopping = False
+            port = free_port()
+            cluster.start("learner", "learner", [
+                "--data", tmp, "--device", args.device, "--port", str(port),
+                "--threads", str(args.learner_threads), *warm,
+            ])
+            url = f"http://127.0.0.1:{port}/status"
+
+            def updates() -> int | None:
+                try:
+                    return httpx.get(url, timeout=2.0).json()["updates"]
+                except (httpx.HTTPError, KeyError, ValueError):
+                    return None
+
+            deadline = time.monotonic() + 180
+            while (u := updates()) is None or u < 3:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"learner made no updates; see {tmp}/logs")
+                time.sleep(0.2)
+            t0, u0 = time.monotonic(), updates()
+            time.sleep(args.seconds)
+            t1, u1 = time.monotonic(), updates()
+            return (u1 - u0) / (t1 - t0)
+        finally:
+            cluster.close()
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m bench.system", description=__doc__.split("\n\n")[0])
+    p.add_argument("--task", default="cartpole-balance")
+    p.add_argument("--algo", default="nasa_td3")
+    p.add_argument("--seconds", type=float, default=10.0, help="measuring window of each figure")
+    p.add_argument("--fill", type=int, default=600, help="transitions in the replay for the learner figures")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--learner-threads", type=int, default=1)
+    args = p.parse_args(argv)
+
+    def report(name: str, value: float) -> float:
+        print(f"{name}: {value:.2f}", file=sys.stderr, flush=True)
+        return value
+
+    load = [os.getloadavg()[0]]
+    inproc_actor = report("in-process env+policy steps/s", inprocess_actor_loop(args))
+    one = report("1 actor process steps/s", service_actor_rate(args, 1))
+    two = report("2 actor processes steps/s (aggregate)", service_actor_rate(args, 2))
+    load.append(os.getloadavg()[0])
+    inproc_learner = report("in-process trainer update loop updates/s", inprocess_update_loop(args))
+    service_learner = report("learner service updates/s", service_learner_rate(args))
+    load.append(os.getloadavg()[0])
+    result = {
+        "task": args.task,
+        "algo": args.algo,
+        "preset": "cpu-small",
+        "render_quality": "fast",
+        "device": args.device,
+        "learner_threads": args.learner_threads,
+        "inprocess_actor_steps_per_s": round(inproc_actor, 2),
+        "actor_service_steps_per_s": round(one, 2),
+        "actor_vs_inprocess": round(one / inproc_actor, 3),
+        "aggregate_steps_per_s_1_actor": round(one, 2),
+        "aggregate_steps_per_s_2_actors": round(two, 2),
+        "two_actor_scaling": round(two / one, 3),
+        "inprocess_trainer_updates_per_s": round(inproc_learner, 3),
+        "learner_service_updates_per_s": round(service_learner, 3),
+        "learner_vs_inprocess": round(service_learner / inproc_learner, 3),
+        "cpu_count": os.cpu_count(),
+        "load_avg_1m": [round(x, 2) for x in load],
+    }
+    result["goals_met"] = {k: result[k] >= v for k, v in GOALS.items()}
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
