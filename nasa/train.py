@@ -43,13 +43,13 @@ class Trainer:
         self.config = validate(config)
         self.out = Path(out)
         self.device = resolve_device(config.device)
+        torch.manual_seed(config.seed)  # before any network is built
         self.env = envs.from_config(config.env, config.seed)
         self.eval_env = envs.from_config(config.env, config.seed + 1_000_000)
         self.agent: Agent = make_agent(
             config.algo, self.env.obs_shape, self.env.action_dim, config.agent, self.device
         )
         self.rng = np.random.default_rng(config.seed)
-        torch.manual_seed(config.seed)
         self.out.mkdir(parents=True, exist_ok=True)
         self.replay = ReplayStore(
             capacity=config.replay_capacity,

@@ -1,0 +1,91 @@
+"""The single-process trainer: run folder, determinism, exact resume, CLI errors."""
+
+import subprocess
+import sys
+
+import pytest
+
+from nasa.train import CHECKPOINT_FILE, Trainer
+from shared.config import default_config
+from shared.runlog import read_rows
+
+VOLATILE = {"steps_per_s", "wall_s"}  # timing columns differ between runs by nature
+
+
+def tiny_config(algo: str = "nasa_td3", steps: int = 80):
+    config = default_config(algo, "cpu-small")
+    config.steps = steps
+    config.warmup_steps = 15
+    config.batch_size = 8
+    config.eval_every = 40
+    config.eval_episodes = 1
+    config.checkpoint_every = 1  # at every episode end
+    config.replay_capacity = 1000
+    config.device = "cpu"
+    config.env.image_size = 32
+    config.env.action_repeat = 25  # 40-step cartpole episodes
+    config.agent.latent_dim = 16
+    config.agent.hidden_dim = 32
+    config.agent.ensemble_hidden_dim = 16
+    config.agent.num_filters = 8
+    return config
+
+
+def stable_rows(path):
+    return [{k: v for k, v in row.items() if k not in VOLATILE} for row in read_rows(path)]
+
+
+def test_seeded_run_is_deterministic_and_writes_the_run_folder(tmp_path):
+    for name in ("a", "b"):
+        Trainer.create(tiny_config(), tmp_path / name).run()
+    for name in ("config.json", "eval.csv", "train.csv", CHECKPOINT_FILE):
+        assert (tmp_path / "a" / name).is_file()
+    train = stable_rows(tmp_path / "a" / "train.csv")
+    assert [r["step"] for r in train] == ["40", "80"]
+    assert train[1]["critic_loss"] and train[1]["novelty_mean"] and train[1]["ensemble_loss"]
+    assert [r["step"] for r in read_rows(tmp_path / "a" / "eval.csv")] == ["0", "40", "80"]
+    assert train == stable_rows(tmp_path / "b" / "train.csv")
+    assert stable_rows(tmp_path / "a" / "eval.csv") == stable_rows(tmp_path / "b" / "eval.csv")
+
+
+@pytest.mark.parametrize("algo", ["nasa_td3", "sac_ae"])
+def test_resume_continues_exactly(tmp_path, algo):
+    Trainer.create(tiny_config(algo, steps=80), tmp_path / "straight").run()
+    # Stop mid-episode at 60: the checkpoint at 40 is the last, so resuming must
+    # drop replay items and log rows written after it.
+    Trainer.create(tiny_config(algo, steps=60), tmp_path / "resumed").run()
+    Trainer.resume(tmp_path / "resumed", steps=80).run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
+
+
+def test_existing_run_folder_is_not_overwritten(tmp_path):
+    Trainer.create(tiny_config(steps=40), tmp_path / "run").run()
+    with pytest.raises(FileExistsError, match="--resume"):
+        Trainer.create(tiny_config(steps=40), tmp_path / "run")
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "nasa.cli", "train", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--task", "cartpole-juggle"], "unknown task 'cartpole-juggle'; valid tasks are"),
+        (["--batch-size", "0"], "batch_size must be >= 1"),
+        (["--device", "cuda"], "CUDA is not available"),
+        (["--preset", "huge"], "unknown preset 'huge'"),
+    ],
+)
+def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, args, message):
+    import torch
+
+    if args[:2] == ["--device", "cuda"] and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    result = run_cli("--out", str(tmp_path / "run"), *args)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
