@@ -7,12 +7,12 @@ child that dies is restarted (a restarted actor draws a new incarnation); the
 run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), on Ctrl-C, or on SIGTERM. Children are stopped in
 order (actors, evaluator, learner, replay), killed if they do not exit in
-time, and die with the launcher (PR_SET_PDEATHSIG), so no process is left.
+time, and get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG, set by
+each service at start), so no process is left.
 """
 
 from __future__ import annotations
 
-import ctypes
 import os
 import re
 import signal
@@ -30,15 +30,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _die_with_parent() -> None:
-    """In the child before exec: get SIGTERM when the launcher dies (Linux)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
 
 
 @dataclass
@@ -81,9 +72,11 @@ class Supervisor:
         try:
             child.proc = subprocess.Popen(
                 [sys.executable, "-m", f"services.{child.role}", *child.argv],
-                env=self.env, stdout=out, stderr=subprocess.STDOUT if out else None,
-                stdin=subprocess.DEVNULL, start_new_session=True, preexec_fn=_die_with_parent,
-                cwd=self.cwd,
+                # Each service asks for SIGTERM when this process dies (shared.service.die_with_parent):
+                # no preexec_fn, which is unsafe in a process with threads (Zenoh's).
+                env={**self.env, "NASA_PARENT_PID": str(os.getpid())}, stdout=out,
+                stderr=subprocess.STDOUT if out else None, stdin=subprocess.DEVNULL,
+                start_new_session=True, cwd=self.cwd,
             )
         finally:
             if out is not None:

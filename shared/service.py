@@ -10,6 +10,8 @@ and NASA_RUN_ID. All services of a run must get the same config flags;
 from __future__ import annotations
 
 import argparse
+import ctypes
+import os
 import signal
 import sys
 import threading
@@ -29,6 +31,7 @@ def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
     --preset, --algo and --device are read first: they choose the defaults every other flag overrides.
     """
     argv = sys.argv[1:] if argv is None else argv
+    die_with_parent()
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default="auto")
     pre.add_argument("--algo", default="nasa_td3")
@@ -44,6 +47,19 @@ def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
     args = tyro.cli(cls, args=argv, default=default, prog=prog)
     validate(args.config)  # type: ignore[attr-defined]
     return args, preset
+
+
+def die_with_parent() -> None:
+    """Under a launcher (NASA_PARENT_PID set): get SIGTERM when it dies, so no process is left (Linux)."""
+    parent = os.environ.get("NASA_PARENT_PID")
+    if not parent:
+        return
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        return
+    if os.getppid() != int(parent):  # the launcher died before prctl took effect
+        sys.exit(1)
 
 
 def _device_type(name: str) -> str:

@@ -191,9 +191,15 @@ class ReplayStats(Message):
 
 @dataclass
 class Weights(Message):
-    """Policy weights: name -> [dtype, shape, raw bytes]; version = the learner's update count."""
+    """Policy weights: name -> [dtype, shape, raw bytes]; version = the learner's update count.
+
+    `epoch` is the learner process's start (ms since 2025): a learner resumed from
+    a checkpoint may publish versions lower than ones already seen, and
+    (epoch, version) still orders them.
+    """
 
     TYPE: ClassVar[str] = "weights"
+    epoch: int
     version: int
     env_steps: int
     tensors: dict
@@ -317,6 +323,11 @@ def array(data: bytes, dtype: str | np.dtype, shape: tuple[int, ...]) -> np.ndar
     if len(data) != expected:
         raise WireError(f"array of {len(data)} bytes, expected {expected} for {dtype} {shape}")
     return np.frombuffer(data, dt).reshape(shape)
+
+
+def newer_weights(msg: Weights, held: tuple[int, int] | None) -> bool:
+    """Whether weights `msg` are newer than the (epoch, version) a process holds."""
+    return held is None or (msg.epoch, msg.version) >= held
 
 
 def pack_tensors(state: dict) -> dict:

@@ -21,7 +21,7 @@ def test_every_message_round_trips():
         wire.SampleReply(False, "rate limited", 10),
         wire.SetIntrinsic(b"i" * 8, b"v" * 4),
         wire.ReplayStats(1, 2, 3, 4, 5, 6, 7, False),
-        wire.Weights(5, 100, {"w": ["<f4", [1], b"\0\0\0\0"]}),
+        wire.Weights(1, 5, 100, {"w": ["<f4", [1], b"\0\0\0\0"]}),
         wire.ActorStatus(0, 1, 10, 1, 5, 3.5, [[1.0, 125]]),
         wire.EvalResult(1000, 7, [1.0, 2.0]),
         wire.Stop("done"),
@@ -110,3 +110,12 @@ def test_keys_live_under_the_run_prefix():
 def test_nan_survives_float_fields():
     r = wire.decode(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, math.nan, [])), wire.ActorStatus)
     assert math.isnan(r.steps_per_s)
+
+
+def test_weights_of_a_resumed_learner_are_newer():
+    old = wire.Weights(epoch=10, version=500, env_steps=0, tensors={})
+    resumed = wire.Weights(epoch=20, version=400, env_steps=0, tensors={})
+    assert wire.newer_weights(old, None)
+    assert wire.newer_weights(resumed, (10, 500))
+    assert not wire.newer_weights(old, (20, 400))
+    assert not wire.newer_weights(wire.Weights(10, 499, 0, {}), (10, 500))

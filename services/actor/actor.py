@@ -92,6 +92,7 @@ class ActorService:
             c.algo, self.env.obs_shape, self.env.action_dim, c.agent, torch.device(args.actor_device)
         )
         self.policy_version = 0
+        self._held: tuple[int, int] | None = None  # (learner epoch, version) of the loaded weights
         self.env_steps = 0
         self.episodes = 0
         self.global_steps = 0  # newest replay count seen
@@ -111,7 +112,7 @@ class ActorService:
         self._pending_weights = sample.payload.to_bytes()  # latest wins; decoded by the loop
 
     def _on_weights_reply(self, reply: zenoh.Reply) -> None:
-        if reply.ok is not None and self._pending_weights is None and self.policy_version == 0:
+        if reply.ok is not None and self._pending_weights is None and self._held is None:
             self._pending_weights = reply.ok.payload.to_bytes()
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
@@ -154,11 +155,12 @@ class ActorService:
             return
         try:
             msg = wire.decode(data, wire.Weights)
-            if msg.version < self.policy_version:
+            if not wire.newer_weights(msg, self._held):
                 return
             self.agent.load_policy_state_dict(wire.unpack_tensors(msg.tensors))
         except (wire.WireError, RuntimeError, KeyError) as err:  # torch raises RuntimeError on bad shapes
             return self._invalid(f"weights: {err}")
+        self._held = (msg.epoch, msg.version)
         self.policy_version = msg.version
         self.global_steps = max(self.global_steps, msg.env_steps)
 

@@ -56,6 +56,7 @@ class EvaluatorService:
             c.algo, self.env.obs_shape, self.env.action_dim, c.agent, torch.device(args.eval_device)
         )
         self.policy_version: int | None = None
+        self._held: tuple[int, int] | None = None
         self.global_steps: int | None = None
         self.invalid = 0
         self._pending: bytes | None = None
@@ -90,11 +91,12 @@ class EvaluatorService:
             return
         try:
             msg = wire.decode(data, wire.Weights)
-            if self.policy_version is not None and msg.version < self.policy_version:
+            if not wire.newer_weights(msg, self._held):
                 return
             self.agent.load_policy_state_dict(wire.unpack_tensors(msg.tensors))
         except (wire.WireError, RuntimeError, KeyError) as err:
             return self._invalid(f"weights: {err}")
+        self._held = (msg.epoch, msg.version)
         self.policy_version = msg.version
         self.global_steps = max(self.global_steps or 0, msg.env_steps)
 

@@ -131,6 +131,7 @@ class Learner:
         self._rates: deque[tuple[float, int, int]] = deque(maxlen=64)
         self._weights_msg: bytes | None = None
         self._started = time.monotonic()
+        self.epoch = int((time.time() - 1_735_689_600.0) * 1000) % 2**62  # orders weights across restarts
         self.resumed = False
         if (self.out / CHECKPOINT).exists():
             self.restore(checkpoint.load(self.out / CHECKPOINT, self.device))
@@ -255,10 +256,12 @@ class Learner:
             except wire.WireError as err:
                 self._invalid(f"sample reply: {err}")
                 continue
-            except zenoh.ZError:
+            except zenoh.ZError as err:
                 if self.stop:
                     return
-                raise
+                self.log.every("get", 5.0, f"sample request failed: {err}")
+                self.stop.wait(0.5)
+                continue
             if batch is None:  # not ready yet (warm-up, rate limit) or no replay: ask again
                 if self.replay["done"]:
                     self.starved_when_done = True
@@ -338,7 +341,7 @@ class Learner:
     def publish_weights(self, publisher: zenoh.Publisher) -> None:
         self.policy_version = self.agent.num_updates
         tensors = wire.pack_tensors(self.agent.policy_state_dict())
-        msg = wire.Weights(self.policy_version, self.env_steps, tensors)
+        msg = wire.Weights(self.epoch, self.policy_version, self.env_steps, tensors)
         self._weights_msg = wire.encode(msg)
         publisher.put(self._weights_msg)
 

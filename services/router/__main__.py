@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import tyro
 
-from shared.service import Log, StopFlag
+from shared.service import Log, StopFlag, die_with_parent
 from shared.zenoh_session import open_router
 
 
@@ -24,6 +24,7 @@ class RouterArgs:
 
 
 def main(argv: list[str] | None = None) -> None:
+    die_with_parent()
     args = tyro.cli(RouterArgs, args=argv, prog="python -m services.router")
     stop = StopFlag()
     stop.install_signal_handlers()
