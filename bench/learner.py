@@ -1,0 +1,128 @@
+"""Learner throughput: updates/s of every agent at batch 128 and intrinsic scoring time.
+
+Reference settings (84x84x9 stacks, the reference's widths) on the current device.
+The reference implementation's figures on this 2-core CPU (../shared/DESIGN.md):
+0.38 updates/s at batch 128 and 20-25 ms to score one transition.
+
+    python -m bench.learner [--device cpu] [--updates 6] [--batch 128]
+
+The last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+import torch
+
+from shared import envs
+from shared.agents import make_agent
+from shared.config import ALGOS, agent_defaults
+from shared.device import resolve_device
+
+REFERENCE_UPDATES_PER_S = 0.38
+REFERENCE_SCORE_MS = 22.5  # midpoint of 20-25 ms
+
+
+def rendered_stacks(count: int, seed: int = 0) -> np.ndarray:
+    """Real frame stacks from the suite (cheetah-run, random actions)."""
+    env = envs.make("cheetah-run", seed, render_quality="fast")
+    rng = np.random.default_rng(seed)
+    ts = env.reset()
+    stacks = []
+    while len(stacks) < count:
+        ts = env.step(rng.uniform(-1, 1, env.action_dim))
+        stacks.append(ts.obs)
+        if ts.last:
+            ts = env.reset()
+    return np.stack(stacks)
+
+
+def make_batch(stacks: np.ndarray, batch: int, action_dim: int, device: torch.device, rng) -> dict:
+    idx = rng.integers(0, len(stacks) - 1, batch)
+    return {
+        "obs": torch.from_numpy(stacks[idx]).to(device),
+        "next_obs": torch.from_numpy(stacks[idx + 1]).to(device),
+        "action": torch.from_numpy(rng.uniform(-1, 1, (batch, action_dim)).astype(np.float32)).to(device),
+        "reward": torch.from_numpy(rng.random(batch).astype(np.float32)).to(device),
+        "discount": torch.ones(batch, device=device),
+        "intrinsic": torch.from_numpy(rng.random(batch).astype(np.float32)).to(device),
+    }
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_updates(algo: str, batch: dict, updates: int, device: torch.device, **overrides) -> float:
+    config = agent_defaults(algo)
+    for key, value in overrides.items():
+        setattr(config, key, value)
+    torch.manual_seed(0)
+    agent = make_agent(algo, (9, 84, 84), batch["action"].shape[1], config, device)
+    for _ in range(2):  # warm-up: allocator, kernels, one actor step
+        agent.update(batch)
+    sync(device)
+    start = time.perf_counter()
+    for _ in range(updates):
+        agent.update(batch)
+    sync(device)
+    return updates / (time.perf_counter() - start)
+
+
+def time_scoring(batch: dict, repeats: int, device: torch.device) -> float:
+    """Milliseconds per transition to score novelty + surprise in one batch."""
+    torch.manual_seed(0)
+    agent = make_agent("nasa_td3", (9, 84, 84), batch["action"].shape[1], agent_defaults("nasa_td3"), device)
+    agent.score(batch["obs"], batch["action"], batch["next_obs"])
+    sync(device)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        agent.score(batch["obs"], batch["action"], batch["next_obs"])
+    sync(device)
+    return (time.perf_counter() - start) / repeats / len(batch["obs"]) * 1000
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--batch", type=int, default=128)
+    parser.add_argument("--updates", type=int, default=6)
+    parser.add_argument("--score-repeats", type=int, default=5)
+    args = parser.parse_args()
+    device = resolve_device(args.device)
+    rng = np.random.default_rng(0)
+    stacks = rendered_stacks(args.batch * 2)
+    batch = make_batch(stacks, args.batch, 6, device, rng)
+    print(f"device {device}, torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.2f}")
+
+    result: dict = {"device": str(device), "batch": args.batch, "updates_per_s": {}}
+    for algo in ALGOS:
+        rate = time_updates(algo, batch, args.updates, device)
+        result["updates_per_s"][algo] = round(rate, 3)
+        print(f"{algo:10s} {rate:6.3f} updates/s  ({rate / REFERENCE_UPDATES_PER_S:.2f}x the reference)")
+    for algo in ("nasa_td3", "td3_ae"):
+        rate = time_updates(algo, batch, args.updates, device, shared_encoder_pass=True)
+        result["updates_per_s"][f"{algo}+shared_encoder_pass"] = round(rate, 3)
+        print(f"{algo:10s} {rate:6.3f} updates/s with shared_encoder_pass (not the reference's order)")
+    score_ms = time_scoring(batch, args.score_repeats, device)
+    print(f"scoring: {score_ms:.3f} ms per transition in batches of {args.batch}")
+    result["score_ms_per_transition"] = round(score_ms, 3)
+    result["speedup_vs_reference"] = {
+        "nasa_td3_updates": round(result["updates_per_s"]["nasa_td3"] / REFERENCE_UPDATES_PER_S, 2),
+        "scoring": round(REFERENCE_SCORE_MS / score_ms, 1),
+    }
+    result["reference"] = {"updates_per_s": REFERENCE_UPDATES_PER_S, "score_ms": REFERENCE_SCORE_MS}
+    result["load_avg_1m"] = round(os.getloadavg()[0], 2)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
