@@ -11,8 +11,10 @@
 The replay runs without its rate limiter (--no-rate-limit) so each side is
 measured at its own speed. Transitions are marked as warm-up ones (intrinsic
 0), so neither learner scores intrinsic rewards here. The last line is one
-JSON object. CPU load from other processes on the machine skews every figure:
-`load_avg_1m` is reported with them.
+JSON object. CPU load from other processes on the machine (and, for one actor,
+the replay and router sharing its cores) skews wall-clock figures:
+`load_avg_1m` is reported with them, and the actor's steps per CPU-second
+(its own process time) next to the in-process loop's isolate its overhead.
 """
 
 from __future__ import annotations
@@ -40,8 +42,14 @@ def preset_config(args: argparse.Namespace):  # noqa: ANN201
     return c
 
 
-def inprocess_actor_loop(args: argparse.Namespace) -> float:
-    """The actor's loop without Zenoh: env.step + agent.act(explore=True), steps/s."""
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux /proc), children excluded."""
+    fields = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def inprocess_actor_loop(args: argparse.Namespace) -> tuple[float, float]:
+    """The actor's loop without Zenoh: env.step + agent.act(explore=True); steps/s and steps/CPU-s."""
     import torch
 
     from shared import envs
@@ -55,13 +63,13 @@ def inprocess_actor_loop(args: argparse.Namespace) -> float:
     ts = env.reset()
     for _ in range(20):  # warm up GL and torch
         ts = env.step(agent.act(ts.obs, True, rng))
-    steps, start = 0, time.perf_counter()
+    steps, start, cpu = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - start < args.seconds:
         ts = env.step(agent.act(ts.obs, True, rng))
         steps += 1
         if ts.last:
             ts = env.reset()
-    return steps / (time.perf_counter() - start)
+    return steps / (time.perf_counter() - start), steps / (time.process_time() - cpu)
 
 
 def inprocess_update_loop(args: argparse.Namespace) -> float:
@@ -133,8 +141,10 @@ class Cluster:
     def start(self, name: str, role: str, extra: list[str]) -> None:
         self.sup.add(name, role, [*self.common, *extra])
 
-    def insert_rate(self, seconds: float, settle_s: float = 3.0, timeout: float = 120.0) -> float:
-        """Steps/s into the replay over `seconds`, after inserts start and `settle_s` more."""
+    def insert_rate(self, seconds: float, settle_s: float = 3.0, timeout: float = 120.0,
+                    pid: int | None = None) -> tuple[float, float | None]:
+        """Steps/s into the replay over `seconds`, after inserts start and `settle_s` more; and
+        steps per CPU-second of process `pid` (an actor) over the same window."""
         deadline = time.monotonic() + timeout
         while not (self.inserted and self.inserted[-1][1] > 0):
             if time.monotonic() > deadline:
@@ -142,9 +152,11 @@ class Cluster:
             time.sleep(0.2)
         time.sleep(settle_s)
         t0, n0 = self.inserted[-1]
+        c0 = cpu_seconds(pid) if pid else 0.0
         time.sleep(seconds)
         t1, n1 = self.inserted[-1]
-        return (n1 - n0) / (t1 - t0)
+        c1 = cpu_seconds(pid) if pid else 0.0
+        return (n1 - n0) / (t1 - t0), ((n1 - n0) / (c1 - c0) if pid and c1 > c0 else None)
 
     def close(self) -> None:
         self.sup.stop_all(timeout_s=15.0)
@@ -153,7 +165,7 @@ class Cluster:
         self.router.close()
 
 
-def service_actor_rate(args: argparse.Namespace, actors: int) -> float:
+def service_actor_rate(args: argparse.Namespace, actors: int) -> tuple[float, float | None]:
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp))
         try:
@@ -161,7 +173,8 @@ def service_actor_rate(args: argparse.Namespace, actors: int) -> float:
             cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", "--warmup-steps", "0"])
             for i in range(actors):
                 cluster.start(f"actor-{i}", "actor", ["--actor-id", str(i), "--warmup-steps", "0"])
-            return cluster.insert_rate(args.seconds)
+            pid = cluster.sup.children["actor-0"].proc.pid if actors == 1 else None
+            return cluster.insert_rate(args.seconds, pid=pid)
         finally:
             cluster.close()
 
@@ -229,9 +242,11 @@ def main(argv: list[str] | None = None) -> None:
         return value
 
     load = [os.getloadavg()[0]]
-    inproc_actor = report("in-process env+policy steps/s", inprocess_actor_loop(args))
-    one = report("1 actor process steps/s", service_actor_rate(args, 1))
-    two = report("2 actor processes steps/s (aggregate)", service_actor_rate(args, 2))
+    inproc_actor, inproc_cpu = inprocess_actor_loop(args)
+    report("in-process env+policy steps/s", inproc_actor)
+    one, one_cpu = service_actor_rate(args, 1)
+    report("1 actor process steps/s", one)
+    two = report("2 actor processes steps/s (aggregate)", service_actor_rate(args, 2)[0])
     load.append(os.getloadavg()[0])
     inproc_learner = report("in-process trainer update loop updates/s", inprocess_update_loop(args))
     service_learner = report("learner service updates/s", service_learner_rate(args))
@@ -246,6 +261,9 @@ def main(argv: list[str] | None = None) -> None:
         "inprocess_actor_steps_per_s": round(inproc_actor, 2),
         "actor_service_steps_per_s": round(one, 2),
         "actor_vs_inprocess": round(one / inproc_actor, 3),
+        "inprocess_actor_steps_per_cpu_s": round(inproc_cpu, 2),
+        "actor_service_steps_per_cpu_s": round(one_cpu, 2) if one_cpu else None,
+        "actor_vs_inprocess_per_cpu_s": round(one_cpu / inproc_cpu, 3) if one_cpu else None,
         "aggregate_steps_per_s_1_actor": round(one, 2),
         "aggregate_steps_per_s_2_actors": round(two, 2),
         "two_actor_scaling": round(two / one, 3),
