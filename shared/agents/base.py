@@ -65,3 +65,47 @@ def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) 
     loss.backward()
     for opt in optimizers:
         opt.step()
+
+
+class ModuleStateMixin:
+    """state_dict / policy_state_dict from the named modules and optimizers an agent lists.
+
+    An agent lists its parts once (`_modules`, `_optimizers`, `_policy_modules`);
+    saving, loading and the weights actors receive all follow from that list.
+    """
+
+    num_updates: int
+
+    def _modules(self) -> dict[str, torch.nn.Module]:
+        raise NotImplementedError
+
+    def _optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        raise NotImplementedError
+
+    def _policy_modules(self) -> dict[str, torch.nn.Module]:
+        raise NotImplementedError
+
+    def state_dict(self) -> dict:
+        state = {name: m.state_dict() for name, m in self._modules().items()}
+        state |= {name: o.state_dict() for name, o in self._optimizers().items()}
+        state["num_updates"] = self.num_updates
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        for name, module in self._modules().items():
+            module.load_state_dict(state[name])
+        for name, opt in self._optimizers().items():
+            opt.load_state_dict(state[name])
+        self.num_updates = int(state["num_updates"])
+
+    def policy_state_dict(self) -> dict[str, torch.Tensor]:
+        return {
+            f"{prefix}.{key}": value
+            for prefix, module in self._policy_modules().items()
+            for key, value in module.state_dict().items()
+        }
+
+    def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        for prefix, module in self._policy_modules().items():
+            head = prefix + "."
+            module.load_state_dict({k[len(head) :]: v for k, v in state.items() if k.startswith(head)})

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.agents.base import adam, optimizer_step, soft_update, to_obs_tensor
+from shared.agents.base import ModuleStateMixin, adam, optimizer_step, soft_update, to_obs_tensor
 from shared.config import AgentConfig
 from shared.nets import Decoder, Encoder, GaussianActor, TwinQ
 
@@ -27,7 +27,7 @@ def preprocess_obs(obs: torch.Tensor, bits: int = 5) -> torch.Tensor:
     return x + torch.rand_like(x) / bins - 0.5
 
 
-class SACAE:
+class SACAE(ModuleStateMixin):
     def __init__(
         self,
         obs_shape: tuple[int, int, int],
@@ -48,16 +48,20 @@ class SACAE:
         self.actor_encoder = make_encoder().to(device)
         self.actor_encoder.copy_conv_weights_from(self.critic_encoder)
         self.critic = TwinQ(c.latent_dim, action_dim, c.hidden_dim).to(device)
-        self.actor = GaussianActor(
-            c.latent_dim, action_dim, c.hidden_dim, c.log_std_min, c.log_std_max
-        ).to(device)
+        self.actor = GaussianActor(c.latent_dim, action_dim, c.hidden_dim, c.log_std_min, c.log_std_max).to(
+            device
+        )
         self.critic_encoder_target = copy.deepcopy(self.critic_encoder)
         self.critic_target = copy.deepcopy(self.critic)
         for p in [*self.critic_encoder_target.parameters(), *self.critic_target.parameters()]:
             p.requires_grad_(False)
         self.decoder = Decoder(
-            obs_shape, self.critic_encoder.conv_shape, c.latent_dim, c.num_filters,
-            c.num_conv_layers, sigmoid_output=False,
+            obs_shape,
+            self.critic_encoder.conv_shape,
+            c.latent_dim,
+            c.num_filters,
+            c.num_conv_layers,
+            sigmoid_output=False,
         ).to(device)
         self.log_alpha = torch.tensor(math.log(c.init_temperature), device=device, requires_grad=True)
         self.target_entropy = -float(action_dim)
@@ -65,10 +69,14 @@ class SACAE:
         # The actor's fc/LayerNorm are its own; its convolutions are the critic's and
         # get no gradient from the actor loss (detached), so listing them is harmless.
         actor_params = [*self.actor_encoder.fc.parameters(), *self.actor_encoder.ln.parameters()]
-        self.actor_opt = adam([*actor_params, *self.actor.parameters()], c.actor_lr,
-                              betas=(c.actor_beta, 0.999))
-        self.critic_opt = adam([*self.critic_encoder.parameters(), *self.critic.parameters()],
-                               c.critic_lr, betas=(c.critic_beta, 0.999))
+        self.actor_opt = adam(
+            [*actor_params, *self.actor.parameters()], c.actor_lr, betas=(c.actor_beta, 0.999)
+        )
+        self.critic_opt = adam(
+            [*self.critic_encoder.parameters(), *self.critic.parameters()],
+            c.critic_lr,
+            betas=(c.critic_beta, 0.999),
+        )
         self.alpha_opt = adam([self.log_alpha], c.alpha_lr, betas=(c.alpha_beta, 0.999))
         self.encoder_opt = adam(self.critic_encoder.parameters(), c.encoder_lr)
         self.decoder_opt = adam(self.decoder.parameters(), c.decoder_lr, c.decoder_weight_decay)
@@ -148,31 +156,13 @@ class SACAE:
             "decoder_opt": self.decoder_opt,
         }
 
+    def _policy_modules(self) -> dict[str, torch.nn.Module]:
+        return {"encoder": self.actor_encoder, "actor": self.actor}
+
     def state_dict(self) -> dict:
-        state = {name: m.state_dict() for name, m in self._modules().items()}
-        state |= {name: o.state_dict() for name, o in self._optimizers().items()}
-        state["log_alpha"] = self.log_alpha.detach().clone()
-        state["num_updates"] = self.num_updates
-        return state
+        return super().state_dict() | {"log_alpha": self.log_alpha.detach().clone()}
 
     def load_state_dict(self, state: dict) -> None:
-        for name, module in self._modules().items():
-            module.load_state_dict(state[name])
-        for name, opt in self._optimizers().items():
-            opt.load_state_dict(state[name])
+        super().load_state_dict(state)
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
-        self.num_updates = int(state["num_updates"])
-
-    def policy_state_dict(self) -> dict[str, torch.Tensor]:
-        return {
-            **{f"encoder.{k}": v for k, v in self.actor_encoder.state_dict().items()},
-            **{f"actor.{k}": v for k, v in self.actor.state_dict().items()},
-        }
-
-    def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        for prefix, module in (("encoder.", self.actor_encoder), ("actor.", self.actor)):
-            module.load_state_dict(
-                {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-            )
-

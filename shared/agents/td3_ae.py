@@ -18,12 +18,12 @@ import torch
 import torch.nn.functional as F
 
 from shared import intrinsic
-from shared.agents.base import adam, optimizer_step, soft_update, to_obs_tensor
+from shared.agents.base import ModuleStateMixin, adam, optimizer_step, soft_update, to_obs_tensor
 from shared.config import AgentConfig
 from shared.nets import Decoder, DeterministicActor, Encoder, Ensemble, TwinQ
 
 
-class TD3AE:
+class TD3AE(ModuleStateMixin):
     def __init__(
         self,
         algo: str,
@@ -223,25 +223,5 @@ class TD3AE:
             opts["ensemble_opt"] = self.ensemble_opt
         return opts
 
-    def state_dict(self) -> dict:
-        state = {name: m.state_dict() for name, m in self._modules().items()}
-        state |= {name: o.state_dict() for name, o in self._optimizers().items()}
-        state["num_updates"] = self.num_updates
-        return state
-
-    def load_state_dict(self, state: dict) -> None:
-        for name, module in self._modules().items():
-            module.load_state_dict(state[name])
-        for name, opt in self._optimizers().items():
-            opt.load_state_dict(state[name])
-        self.num_updates = int(state["num_updates"])
-
-    def policy_state_dict(self) -> dict[str, torch.Tensor]:
-        return {
-            **{f"encoder.{k}": v for k, v in self.encoder.state_dict().items()},
-            **{f"actor.{k}": v for k, v in self.actor.state_dict().items()},
-        }
-
-    def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        for prefix, module in (("encoder.", self.encoder), ("actor.", self.actor)):
-            module.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
+    def _policy_modules(self) -> dict[str, torch.nn.Module]:
+        return {"encoder": self.encoder, "actor": self.actor}
