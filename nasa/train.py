@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from services.replay.store import ReplayStore
 from tqdm import tqdm
 
+from services.replay.store import ReplayStore
 from shared import checkpoint, envs
-from shared.agents import Agent, make_agent
+from shared.agents import Agent, collect_action, make_agent
 from shared.config import TrainConfig, from_dict, to_dict, validate
 from shared.device import resolve_device
 from shared.evaluation import evaluate
@@ -138,10 +138,7 @@ class Trainer:
         started = time.monotonic()
         wall_at_start = self.wall_s
         while self.step < c.steps:
-            if self.step < c.warmup_steps:
-                action = self.rng.uniform(-1.0, 1.0, env.action_dim).astype(np.float32)
-            else:
-                action = agent.act(ts.obs, explore=True, rng=self.rng)
+            action = collect_action(agent, ts.obs, self.step < c.warmup_steps, self.rng, env.action_dim)
             next_ts = env.step(action)
             self.step += 1
             bonus = self.score_transition(ts.obs, action, next_ts.obs, episode)

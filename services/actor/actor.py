@@ -32,7 +32,7 @@ import tyro
 import zenoh
 
 from shared import envs, wire
-from shared.agents import make_agent
+from shared.agents import collect_action, make_agent
 from shared.config import TrainConfig
 from shared.service import Log, StopFlag
 from shared.zenoh_session import env_connect, env_run_id, open_client
@@ -249,10 +249,8 @@ class ActorService:
             start, steps, total = 0, [], 0.0
             while not self.stop and not self.replay_done:
                 self.maybe_load_weights()
-                if self.global_steps < c.warmup_steps:
-                    action = self.rng.uniform(-1.0, 1.0, env.action_dim).astype(np.float32)
-                else:
-                    action = agent.act(ts.obs, explore=True, rng=self.rng)
+                warming_up = self.global_steps < c.warmup_steps
+                action = collect_action(agent, ts.obs, warming_up, self.rng, env.action_dim)
                 ts = env.step(action)
                 self.env_steps += 1
                 total += ts.reward

@@ -47,6 +47,15 @@ def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
     return torch.as_tensor(obs, device=device).unsqueeze(0)
 
 
+def collect_action(
+    agent: Agent, obs: np.ndarray, warming_up: bool, rng: np.random.Generator, action_dim: int
+) -> np.ndarray:
+    """The action an actor takes while collecting: uniform during warm-up, then policy + noise."""
+    if warming_up:
+        return rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+    return agent.act(obs, explore=True, rng=rng)
+
+
 def soft_update(target: torch.nn.Module, online: torch.nn.Module, tau: float) -> None:
     with torch.no_grad():
         for t, o in zip(target.parameters(), online.parameters(), strict=True):
