@@ -76,10 +76,9 @@ def inprocess_update_loop(args: argparse.Namespace) -> float:
     """The trainer's update step: ReplayStore.sample -> batch_to_device -> agent.update, updates/s."""
     import torch
 
-    from nasa.train import batch_to_device
     from services.replay.store import ReplayStore
     from shared import envs
-    from shared.agents import make_agent
+    from shared.agents import batch_to_device, make_agent
 
     torch.set_num_threads(args.learner_threads)
     c = preset_config(args)

@@ -18,24 +18,13 @@ from tqdm import tqdm
 
 from services.replay.store import ReplayStore
 from shared import checkpoint, envs
-from shared.agents import Agent, collect_action, make_agent
+from shared.agents import Agent, batch_to_device, collect_action, make_agent
 from shared.config import TrainConfig, from_dict, to_dict, validate
 from shared.device import resolve_device
 from shared.evaluation import evaluate
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 
 CHECKPOINT_FILE = "checkpoint.pt"
-
-
-def batch_to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
-    """Move a sampled batch to the device; uint8 frames travel as uint8 and are cast there."""
-    keys = ("obs", "next_obs", "action", "reward", "discount", "intrinsic")
-    pin = device.type == "cuda"
-    out = {}
-    for key in keys:
-        t = torch.from_numpy(batch[key])
-        out[key] = (t.pin_memory() if pin else t).to(device, non_blocking=pin)
-    return out
 
 
 class Trainer:

@@ -45,9 +45,8 @@ import torch
 import tyro
 import zenoh
 
-from nasa.train import batch_to_device
 from shared import checkpoint, envs, wire
-from shared.agents import make_agent
+from shared.agents import batch_to_device, make_agent
 from shared.config import TrainConfig, to_dict
 from shared.device import resolve_device
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields, read_rows

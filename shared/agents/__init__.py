@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from shared.agents.base import Agent, collect_action
+from shared.agents.base import Agent, batch_to_device, collect_action
 from shared.agents.sac_ae import SACAE
 from shared.agents.td3_ae import TD3AE
 from shared.config import AgentConfig, check_algo
@@ -23,4 +23,4 @@ def make_agent(
     return TD3AE(algo, obs_shape, action_dim, config, device)
 
 
-__all__ = ["Agent", "collect_action", "make_agent"]
+__all__ = ["Agent", "batch_to_device", "collect_action", "make_agent"]

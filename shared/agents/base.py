@@ -47,6 +47,17 @@ def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
     return torch.as_tensor(obs, device=device).unsqueeze(0)
 
 
+def batch_to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+    """Move a sampled batch to the device; uint8 frames travel as uint8 and are cast there."""
+    keys = ("obs", "next_obs", "action", "reward", "discount", "intrinsic")
+    pin = device.type == "cuda"
+    out = {}
+    for key in keys:
+        t = torch.from_numpy(batch[key])
+        out[key] = (t.pin_memory() if pin else t).to(device, non_blocking=pin)
+    return out
+
+
 def collect_action(
     agent: Agent, obs: np.ndarray, warming_up: bool, rng: np.random.Generator, action_dim: int
 ) -> np.ndarray:
