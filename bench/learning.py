@@ -7,7 +7,7 @@ over steps. Goal on the 2-core CPU: a mean evaluation return of at least 700
 within 30 minutes, against about 0-200 (here ~300, see step 0) for the
 untrained policy.
 
-    python -m bench.learning [--minutes 30] [--out bench-results/learning] [--only train|up]
+    python -m bench.learning [--minutes 30] [--up-minutes M] [--out bench-results/learning] [--only train|up]
 
 The last line is one JSON object. `nasa plot <out>` draws the curves.
 """
@@ -69,7 +69,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock bound of the nasa train run")
+    parser.add_argument(
+        "--up-minutes", type=float, default=None, help="bound of the nasa up run (default: --minutes)"
+    )
     parser.add_argument(
         "--steps", type=int, default=100_000, help="step budget; the clock usually ends first"
     )
@@ -109,7 +112,7 @@ def main() -> None:
             "--port", str(free_port()), "--router-port", str(free_port()), "--logs",
         ]  # fmt: skip
         print("running:", " ".join(argv[2:]), flush=True)
-        wall = run_bounded(argv, args.minutes, args.out / "up.log")
+        wall = run_bounded(argv, args.up_minutes or args.minutes, args.out / "up.log")
         result["up"] = summarize(out / "eval.csv", wall)
         print("nasa up:", json.dumps(result["up"]), flush=True)
     print(json.dumps(result))

@@ -213,6 +213,7 @@ PRESETS: dict[str, dict[str, object]] = {
         "agent.hidden_dim": 256,
         "agent.ensemble_hidden_dim": 128,
         "agent.num_conv_layers": 2,
+        "agent.num_filters": 16,
     },
 }
 PRESET_NAMES = ("auto", *PRESETS)
