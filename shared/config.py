@@ -199,6 +199,7 @@ def from_dict(data: dict) -> TrainConfig:
 PRESETS: dict[str, dict[str, object]] = {
     "paper": {},
     "cpu-small": {
+        "steps": 50_000,
         "updates_per_step": 1,
         "batch_size": 64,
         "warmup_steps": 500,
