@@ -33,36 +33,64 @@ GOAL = 700.0
 
 
 def run_bounded(argv: list[str], minutes: float, log: Path) -> float:
-    """Run a command until it ends or the time is up (then Ctrl-C it); returns the wall-clock used."""
+    """Run a command until it ends or the time is up; returns the wall-clock used.
+
+    At the bound it gets SIGINT (a user's Ctrl-C), then SIGTERM: a process
+    started in the background by a non-interactive shell ignores SIGINT.
+    """
     start = time.monotonic()
     with open(log, "w") as out:
         proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
         try:
             proc.wait(timeout=minutes * 60)
         except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGINT)  # a clean stop, as a user's Ctrl-C
-            try:
-                proc.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+            for sig, grace in ((signal.SIGINT, 20), (signal.SIGTERM, 60), (signal.SIGKILL, None)):
+                os.killpg(proc.pid, sig)
+                try:
+                    proc.wait(timeout=grace)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
     return time.monotonic() - start
 
 
-def summarize(eval_csv: Path, wall_s: float) -> dict:
-    rows = read_rows(eval_csv) if eval_csv.exists() else []
-    curve = [[int(r["step"]), round(float(r["mean"]), 1)] for r in rows]
-    means = [m for _, m in curve]
-    reached = next((s for s, m in curve if m >= GOAL), None)
+def summarize(run: Path, wall_s: float, bound_s: float) -> dict:
+    """Evaluation returns over steps, each with the run's wall-clock when it was reached.
+
+    The wall-clock of an evaluation step is read from train.csv (the first
+    episode that ends at or after it); the goal counts only within the bound.
+    """
+    rows = read_rows(run / "eval.csv") if (run / "eval.csv").exists() else []
+    episodes = read_rows(run / "train.csv") if (run / "train.csv").exists() else []
+    ends = [(int(e["step"]), float(e["wall_s"])) for e in episodes if e.get("wall_s")]
+
+    def wall_at(step: int) -> float | None:
+        return next((round(w, 1) for s, w in ends if s >= step), None) if step else 0.0
+
+    curve = [[int(r["step"]), round(float(r["mean"]), 1), wall_at(int(r["step"]))] for r in rows]
+    within = [(s, m, w) for s, m, w in curve if w is not None and w <= bound_s]
+    reached = next(((s, w) for s, m, w in within if m >= GOAL), None)
     return {
-        "evals": curve,
+        "evals_step_mean_wall_s": curve,
         "wall_s": round(wall_s, 1),
-        "untrained": means[0] if means else None,
-        "final": means[-1] if means else None,
-        "best": max(means) if means else None,
-        "first_step_at_goal": reached,
+        "untrained": curve[0][1] if curve else None,
+        "best_within_bound": max((m for _, m, _ in within), default=None),
+        "final_within_bound": within[-1][1] if within else None,
+        "first_goal_step": reached[0] if reached else None,
+        "first_goal_wall_s": reached[1] if reached else None,
         "goal_met": reached is not None,
     }
+
+
+def launch(argv: list[str], out: Path, minutes: float, log: Path, report_only: bool) -> float:
+    """Start a fresh run in `out` (or, with --report, only read the wall-clock of the last one)."""
+    if report_only:
+        episodes = read_rows(out / "train.csv")
+        return float(episodes[-1]["wall_s"]) if episodes else 0.0
+    shutil.rmtree(out, ignore_errors=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    print("running:", " ".join(argv[2:]), flush=True)
+    return run_bounded(argv, minutes, log)
 
 
 def main() -> None:
@@ -79,14 +107,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench-results/learning"))
     parser.add_argument("--only", choices=("train", "up"), default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--report", action="store_true", help="only summarize the runs already in --out")
     args = parser.parse_args()
     result: dict = {"task": TASK, "algo": ALGO, "preset": "cpu-small", "minutes": args.minutes, "goal": GOAL}
     nasa = [sys.executable, "-m", "nasa.cli"]
     common = ["--task", TASK, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu"]
     if args.only in (None, "train"):
         out = args.out / TASK / ALGO / f"seed{args.seed}"
-        shutil.rmtree(out, ignore_errors=True)
-        out.parent.mkdir(parents=True, exist_ok=True)
         argv = [
             *nasa,
             "train",
@@ -98,22 +125,19 @@ def main() -> None:
             "--out",
             str(out),
         ]
-        print("running:", " ".join(argv[2:]), flush=True)
-        wall = run_bounded(argv, args.minutes, args.out / "train.log")
-        result["train"] = summarize(out / "eval.csv", wall)
+        wall = launch(argv, out, args.minutes, args.out / "train.log", args.report)
+        result["train"] = summarize(out, wall, args.minutes * 60)
         print("nasa train:", json.dumps(result["train"]), flush=True)
     if args.only in (None, "up"):
         out = args.out / "up" / f"{TASK}-{ALGO}-2actors"
-        shutil.rmtree(out, ignore_errors=True)
-        out.parent.mkdir(parents=True, exist_ok=True)
         argv = [
             *nasa, "up", "--task", TASK, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu",
             "--actors", "2", "--steps", str(args.steps), "--data", str(out), "--seed", str(args.seed),
             "--port", str(free_port()), "--router-port", str(free_port()), "--logs",
         ]  # fmt: skip
-        print("running:", " ".join(argv[2:]), flush=True)
-        wall = run_bounded(argv, args.up_minutes or args.minutes, args.out / "up.log")
-        result["up"] = summarize(out / "eval.csv", wall)
+        minutes = args.up_minutes or args.minutes
+        wall = launch(argv, out, minutes, args.out / "up.log", args.report)
+        result["up"] = summarize(out, wall, minutes * 60)
         print("nasa up:", json.dumps(result["up"]), flush=True)
     print(json.dumps(result))
 
