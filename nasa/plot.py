@@ -1,0 +1,238 @@
+"""`nasa plot`: learning curves and a results table from a folder of runs.
+
+Finds every eval.csv under a results folder, names each run by its config.json
+("algo", "seed", "env"["task"]) or else by the layout `nasa reproduce` writes
+(<task>/<algo>/seed<S>), and writes:
+
+- curves.png, curves.svg: one panel per task, one line per algorithm: the mean
+  over seeds of the evaluation return, with a band of +-1 standard deviation
+  over seeds (population std). Seeds are aligned on the steps every seed was
+  evaluated at, so a curve stops where its shortest seed stops (no
+  interpolation: nothing is drawn that was not measured).
+- results.md: per task and algorithm, the final return (mean +- std over seeds
+  of each seed's last evaluation), the best return (mean over seeds of each
+  seed's best evaluation), the number of seeds, the last step, and the paper's
+  approximate figure at 1M steps where ../shared/DESIGN.md gives one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
+
+import numpy as np
+import tyro
+
+from shared.config import ALGOS
+from shared.envs import PAPER_TASKS
+from shared.runlog import read_rows
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+# Approximate final returns at 1M steps read off the reference's figure (DESIGN.md, section 1).
+# The paper gives no Pixel-TD3 figure.
+PAPER_FINAL: dict[str, dict[str, float]] = {
+    "ball_in_cup-catch": {"nasa_td3": 950, "sac_ae": 950, "td3_ae": 950},
+    "cartpole-balance": {"nasa_td3": 950, "sac_ae": 970, "td3_ae": 950},
+    "reacher-hard": {"nasa_td3": 600, "sac_ae": 80, "td3_ae": 80},
+    "finger-spin": {"nasa_td3": 970, "sac_ae": 980, "td3_ae": 910},
+    "walker-walk": {"nasa_td3": 950, "sac_ae": 950, "td3_ae": 450},
+    "cheetah-run": {"nasa_td3": 570, "sac_ae": 280, "td3_ae": 360},
+}
+BAND = "band: +-1 std over seeds"
+
+
+@dataclass
+class SeedCurve:
+    """One run's evaluation curve."""
+
+    task: str
+    algo: str
+    seed: int
+    steps: np.ndarray
+    means: np.ndarray
+    path: Path
+
+
+@dataclass
+class Summary:
+    """One task/algorithm row of the results table."""
+
+    task: str
+    algo: str
+    seeds: int
+    last_steps: tuple[int, int]
+    """(min, max) over seeds of each seed's last evaluated step."""
+    final_mean: float
+    final_std: float
+    best_mean: float
+    paper: float | None
+
+
+def run_identity(folder: Path) -> tuple[str, str, int] | None:
+    """(task, algo, seed) of a run folder: from config.json, else from <task>/<algo>/seed<S>."""
+    config_path = folder / "config.json"
+    if config_path.exists():
+        config = json.loads(config_path.read_text())
+        task = config.get("env", {}).get("task")
+        if task is not None and "algo" in config and "seed" in config:
+            return task, config["algo"], int(config["seed"])
+    if folder.name.startswith("seed") and folder.name[4:].isdigit():
+        return folder.parent.parent.name, folder.parent.name, int(folder.name[4:])
+    return None
+
+
+def find_runs(results_dir: Path) -> list[SeedCurve]:
+    """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed."""
+    runs: list[SeedCurve] = []
+    seen: dict[tuple[str, str, int], Path] = {}
+    for path in sorted(Path(results_dir).rglob("eval.csv")):
+        identity = run_identity(path.parent)
+        rows = read_rows(path)
+        if identity is None:
+            print(f"nasa plot: skipping {path}: no config.json and not under <task>/<algo>/seed<S>",
+                  file=sys.stderr)
+            continue
+        if not rows:
+            continue  # a run that has not evaluated yet
+        if identity in seen:
+            print(f"nasa plot: skipping {path}: same task/algo/seed as {seen[identity]}", file=sys.stderr)
+            continue
+        seen[identity] = path
+        steps = np.array([int(float(r["step"])) for r in rows])
+        means = np.array([float(r["mean"]) for r in rows])
+        runs.append(SeedCurve(*identity, steps=steps, means=means, path=path))
+    return runs
+
+
+def _order(names: set[str], preferred: tuple[str, ...]) -> list[str]:
+    """The paper's order first, then anything else alphabetically."""
+    return [n for n in preferred if n in names] + sorted(names - set(preferred))
+
+
+def group(runs: list[SeedCurve]) -> dict[str, dict[str, list[SeedCurve]]]:
+    """task -> algo -> seed curves, tasks and algorithms in the paper's order."""
+    out: dict[str, dict[str, list[SeedCurve]]] = {}
+    for task in _order({r.task for r in runs}, PAPER_TASKS):
+        of_task = [r for r in runs if r.task == task]
+        out[task] = {
+            algo: sorted((r for r in of_task if r.algo == algo), key=lambda r: r.seed)
+            for algo in _order({r.algo for r in of_task}, ALGOS)
+        }
+    return out
+
+
+def align(curves: list[SeedCurve]) -> tuple[np.ndarray, np.ndarray]:
+    """(steps, values[seed, step]) on the steps every seed was evaluated at."""
+    per_seed = [dict(zip(c.steps.tolist(), c.means.tolist(), strict=True)) for c in curves]
+    common = sorted(set.intersection(*(set(d) for d in per_seed)))
+    return np.array(common, dtype=int), np.array([[d[s] for s in common] for d in per_seed])
+
+
+def summarize(runs: list[SeedCurve]) -> list[Summary]:
+    rows = []
+    for task, by_algo in group(runs).items():
+        for algo, curves in by_algo.items():
+            final = np.array([c.means[-1] for c in curves])
+            best = np.array([c.means.max() for c in curves])
+            last = [int(c.steps[-1]) for c in curves]
+            rows.append(Summary(
+                task, algo, len(curves), (min(last), max(last)),
+                float(final.mean()), float(final.std()), float(best.mean()),
+                PAPER_FINAL.get(task, {}).get(algo),
+            ))
+    return rows
+
+
+def results_table(summaries: list[Summary]) -> str:
+    """The results as a markdown table."""
+    lines = [
+        "| task | algo | seeds | last step | final return | best return | paper @1M |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for s in summaries:
+        lo, hi = s.last_steps
+        last = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        paper = "n/a" if s.paper is None else f"~{s.paper:.0f}"
+        lines.append(
+            f"| {s.task} | {s.algo} | {s.seeds} | {last} | {s.final_mean:.1f} ± {s.final_std:.1f} "
+            f"| {s.best_mean:.1f} | {paper} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(runs: list[SeedCurve]) -> Figure:
+    """One panel per task, one line per algorithm (mean over seeds, +-1 std band)."""
+    # Imported here: `nasa` loads this module for every subcommand, matplotlib only plots.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    grouped = group(runs)
+    ncols = min(3, len(grouped))
+    nrows = math.ceil(len(grouped) / ncols)
+    fig = Figure(figsize=(4.5 * ncols, 3.4 * nrows + 0.8), layout="constrained")
+    FigureCanvasAgg(fig)  # draw with Agg: no display, no pyplot state
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax in axes[len(grouped):]:
+        fig.delaxes(ax)  # so the figure holds exactly one axes per task
+    all_algos = _order({r.algo for r in runs}, ALGOS)
+    colors = {algo: f"C{i}" for i, algo in enumerate(all_algos)}  # same color in every panel
+    for ax, (task, by_algo) in zip(axes, grouped.items(), strict=False):
+        for algo, curves in by_algo.items():
+            steps, values = align(curves)
+            mean, std = values.mean(axis=0), values.std(axis=0)
+            ax.plot(steps, mean, color=colors[algo], label=f"{algo} (n={len(curves)})")
+            ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2, linewidth=0)
+        ax.set_title(task)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("evaluation return")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    # Two short lines: one panel is narrow, and the caption must stay readable there.
+    fig.suptitle(f"line: mean over seeds; {BAND}\nseeds aligned on the steps all evaluated at",
+                 fontsize="medium")
+    return fig
+
+
+@dataclass
+class PlotCommand:
+    """Learning curves (curves.png, curves.svg) and a results table (results.md) from a results folder."""
+
+    results: tyro.conf.Positional[Path]
+    """Folder holding run folders (as `nasa reproduce` writes them, or any with a config.json)."""
+    out: Path | None = None
+    """Where to write the figures and table (default: the results folder)."""
+
+
+def plot(argv: list[str]) -> None:
+    cmd = tyro.cli(PlotCommand, args=argv, prog="nasa plot")
+    if not cmd.results.is_dir():
+        _fail(f"{cmd.results} is not a folder")
+    runs = find_runs(cmd.results)
+    if not runs:
+        _fail(f"no run with an evaluation under {cmd.results}")
+    out = cmd.out or cmd.results
+    out.mkdir(parents=True, exist_ok=True)
+    fig = plot_curves(runs)
+    fig.savefig(out / "curves.png", dpi=150)
+    fig.savefig(out / "curves.svg")
+    table = results_table(summarize(runs))
+    note = (
+        "Final return: mean ± std over seeds (population std) of each seed's last evaluation. "
+        "Best return: mean over seeds of each seed's best evaluation. "
+        "Paper: approximate final return at 1M steps read off the reference's figure.\n"
+    )
+    (out / "results.md").write_text(f"# Results: {cmd.results}\n\n{table}\n{note}")
+    print(table, end="")
+    written = ", ".join(str(out / name) for name in ("curves.png", "curves.svg", "results.md"))
+    print(f"nasa plot: {len(runs)} runs; wrote {written}")
+
+
+def _fail(message: str) -> NoReturn:
+    print(f"nasa plot: error: {message}", file=sys.stderr)
+    sys.exit(2)

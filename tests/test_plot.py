@@ -1,0 +1,154 @@
+"""nasa plot on synthetic eval.csv files: figures, one panel per task, a table that matches the inputs."""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nasa.plot import PAPER_FINAL, SeedCurve, align, find_runs, plot, plot_curves, summarize
+from shared.envs import PAPER_TASKS
+from shared.runlog import CsvLog, eval_fields
+
+TASKS = ("cartpole-balance", "cheetah-run")
+ALGOS = ("nasa_td3", "td3_ae")
+SEEDS = (0, 1, 2)
+STEPS = [0, 10, 20, 30, 40]
+
+
+def write_eval(folder: Path, steps: list[int], means: list[float]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    log = CsvLog(folder / "eval.csv", eval_fields(2))
+    for step, mean in zip(steps, means, strict=True):
+        log.append({"step": step, "mean": mean, "std": 1.0, "return_0": mean - 1, "return_1": mean + 1})
+
+
+@pytest.fixture
+def results(tmp_path: Path) -> tuple[Path, dict]:
+    """2 tasks x 2 algos x 3 seeds; returns the folder and {(task, algo, seed): (steps, means)}."""
+    rng = np.random.default_rng(0)
+    root = tmp_path / "results"
+    data = {}
+    for task in TASKS:
+        for algo in ALGOS:
+            for seed in SEEDS:
+                steps = list(STEPS)
+                if (task, algo, seed) == ("cartpole-balance", "nasa_td3", 2):
+                    steps = steps[:-1]  # a seed that stopped one evaluation early
+                means = [round(float(x), 3) for x in rng.uniform(0, 1000, len(steps))]
+                data[task, algo, seed] = (steps, means)
+                if task == "cheetah-run":
+                    # Named by config.json only, in a folder of another layout.
+                    folder = root / "other" / f"{algo}-{seed}"
+                    config = {"algo": algo, "seed": seed, "steps": 40, "env": {"task": task}}
+                    folder.mkdir(parents=True)
+                    (folder / "config.json").write_text(json.dumps(config))
+                else:
+                    folder = root / task / algo / f"seed{seed}"
+                write_eval(folder, steps, means)
+    return root, data
+
+
+def test_find_runs_reads_both_layouts(results: tuple[Path, dict]) -> None:
+    root, data = results
+    runs = find_runs(root)
+    assert {(r.task, r.algo, r.seed) for r in runs} == set(data)
+    for r in runs:
+        steps, means = data[r.task, r.algo, r.seed]
+        assert r.steps.tolist() == steps
+        assert r.means.tolist() == means
+
+
+def test_figure_has_one_panel_per_task(results: tuple[Path, dict]) -> None:
+    root, _ = results
+    fig = plot_curves(find_runs(root))
+    assert len(fig.axes) == len(TASKS)
+    assert [ax.get_title() for ax in fig.axes] == list(TASKS)
+    for ax in fig.axes:
+        assert len(ax.get_lines()) == len(ALGOS)
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert labels == [f"{a} (n=3)" for a in ALGOS]
+    assert "std over seeds" in fig.get_suptitle()
+
+
+def test_unused_grid_cells_are_not_panels() -> None:
+    # 4 tasks fill 4 cells of a 3 x 2 grid; the 2 empty cells must not count as panels.
+    tasks = PAPER_TASKS[:4]
+    runs = [SeedCurve(t, "nasa_td3", 0, np.array([0, 10]), np.array([1.0, 2.0]), Path("x")) for t in tasks]
+    fig = plot_curves(runs)
+    assert [ax.get_title() for ax in fig.axes] == list(tasks)
+
+
+def test_curve_is_the_mean_on_common_steps(results: tuple[Path, dict]) -> None:
+    root, data = results
+    runs = [r for r in find_runs(root) if (r.task, r.algo) == ("cartpole-balance", "nasa_td3")]
+    steps, values = align(sorted(runs, key=lambda r: r.seed))
+    assert steps.tolist() == STEPS[:-1]  # seed 2 has no step 40
+    fig = plot_curves(runs)
+    x, y = fig.axes[0].get_lines()[0].get_data()
+    means = [data["cartpole-balance", "nasa_td3", s][1] for s in SEEDS]
+    expected = [statistics.mean(m[i] for m in means) for i in range(4)]
+    assert list(x) == STEPS[:-1]
+    assert list(y) == pytest.approx(expected)
+
+
+def test_table_matches_inputs(results: tuple[Path, dict]) -> None:
+    root, data = results
+    summaries = {(s.task, s.algo): s for s in summarize(find_runs(root))}
+    assert set(summaries) == {(t, a) for t in TASKS for a in ALGOS}
+    for (task, algo), s in summaries.items():
+        finals = [data[task, algo, seed][1][-1] for seed in SEEDS]
+        bests = [max(data[task, algo, seed][1]) for seed in SEEDS]
+        assert s.seeds == 3
+        assert s.final_mean == pytest.approx(statistics.mean(finals))
+        assert s.final_std == pytest.approx(statistics.pstdev(finals))
+        assert s.best_mean == pytest.approx(statistics.mean(bests))
+    assert summaries["cartpole-balance", "nasa_td3"].last_steps == (30, 40)
+    assert summaries["cheetah-run", "td3_ae"].last_steps == (40, 40)
+
+
+def test_plot_command_writes_figures_and_table(
+    results: tuple[Path, dict], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root, data = results
+    out = tmp_path / "report"
+    plot([str(root), "--out", str(out)])
+    png, svg = (out / "curves.png").read_bytes(), (out / "curves.svg").read_text()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
+    assert "<svg" in svg and len(svg) > 10_000
+    table = (out / "results.md").read_text()
+    assert table.count("| cartpole-balance |") == 2 and table.count("| cheetah-run |") == 2
+    printed = capsys.readouterr().out
+    rows = {}
+    for line in table.splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if cells[0] in TASKS:
+            rows[cells[0], cells[1]] = cells
+            assert line in printed  # the same table is printed
+    paper = {"cartpole-balance": {"nasa_td3": "~950", "td3_ae": "~950"},
+             "cheetah-run": {"nasa_td3": "~570", "td3_ae": "~360"}}
+    for (task, algo), (_, _, seeds, last, final, best, paper_cell) in rows.items():
+        finals = [data[task, algo, s][1][-1] for s in SEEDS]
+        bests = [max(data[task, algo, s][1]) for s in SEEDS]
+        assert seeds == "3"
+        assert last == ("30-40" if (task, algo) == ("cartpole-balance", "nasa_td3") else "40")
+        assert final == f"{statistics.mean(finals):.1f} ± {statistics.pstdev(finals):.1f}"
+        assert best == f"{statistics.mean(bests):.1f}"
+        assert paper_cell == paper[task][algo]
+
+
+def test_paper_figures_cover_the_paper_tasks() -> None:
+    assert set(PAPER_FINAL) == set(PAPER_TASKS)
+    for by_algo in PAPER_FINAL.values():
+        assert set(by_algo) == {"nasa_td3", "sac_ae", "td3_ae"}
+    assert PAPER_FINAL["reacher-hard"] == {"nasa_td3": 600, "sac_ae": 80, "td3_ae": 80}
+
+
+def test_no_runs_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        plot([str(tmp_path)])
+    assert exc.value.code == 2
+    assert "no run with an evaluation" in capsys.readouterr().err
