@@ -10,6 +10,8 @@ from typing import Annotated
 
 import tyro
 
+from nasa.plot import plot
+from nasa.reproduce import reproduce
 from shared.config import PRESET_NAMES, ConfigError, TrainConfig, auto_preset, default_config
 from shared.device import DeviceError, resolve_device
 from shared.envs import UnknownTaskError
@@ -76,7 +78,7 @@ def status(argv: list[str]) -> None:
     print_status(argv)
 
 
-COMMANDS = {"train": train, "up": up, "status": status}
+COMMANDS = {"train": train, "reproduce": reproduce, "plot": plot, "up": up, "status": status}
 
 
 def main(argv: list[str] | None = None) -> None:

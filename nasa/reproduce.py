@@ -1,0 +1,229 @@
+"""`nasa reproduce`: the paper's protocol (tasks x algorithms x seeds) as one resumable command.
+
+Each task/algo/seed is one `nasa train` subprocess writing RESULTS/<task>/<algo>/seed<S>.
+Planning is a pure function of what the results folder holds (`plan_runs`), so
+running the command again after an interruption continues where it stopped:
+
+- skip:   eval.csv's last step reaches the run's step total (finished);
+- resume: the folder holds a started run (config.json or checkpoint.pt) that is not finished;
+- start:  nothing there yet.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from shared.config import ALGOS, PRESETS, ConfigError, check_algo
+from shared.envs import PAPER_TASKS, parse_task
+from shared.runlog import read_rows
+
+Action = Literal["start", "resume", "skip"]
+CUDA_PARALLEL = 4
+"""Default runs at a time on a GPU: the paper-scale agent leaves most of one GPU idle
+(env stepping and rendering are on the CPU), so a few runs share it well."""
+
+
+@dataclass(frozen=True)
+class Run:
+    task: str
+    algo: str
+    seed: int
+    out: Path
+    action: Action
+
+
+def run_folder(results_dir: Path, task: str, algo: str, seed: int) -> Path:
+    return Path(results_dir) / task / algo / f"seed{seed}"
+
+
+def last_eval_step(out: Path) -> int | None:
+    """The step of the last row of `out`/eval.csv, or None when there is none."""
+    path = out / "eval.csv"
+    if not path.exists():
+        return None
+    rows = read_rows(path)
+    return int(float(rows[-1]["step"])) if rows else None
+
+
+def run_state(out: Path, steps: int | None) -> Action:
+    """What to do with one run folder. `steps` is the wanted total (None: the run's own)."""
+    config_path = out / "config.json"
+    started = config_path.exists() or (out / "checkpoint.pt").exists()
+    if not started:
+        return "start"
+    total = steps
+    if total is None and config_path.exists():
+        total = int(json.loads(config_path.read_text())["steps"])
+    last = last_eval_step(out)
+    if total is not None and last is not None and last >= total:
+        return "skip"
+    # A config.json without a checkpoint is a run killed before its first checkpoint;
+    # `nasa train --resume` starts it over in place (a fresh start would refuse the folder).
+    return "resume"
+
+
+def plan_runs(
+    results_dir: Path, tasks: list[str], algos: list[str], seeds: list[int], steps: int | None
+) -> list[Run]:
+    """One Run per task/algo/seed with what to do with it; reads the folders, changes nothing."""
+    runs = []
+    for task in tasks:
+        for algo in algos:
+            for seed in seeds:
+                out = run_folder(results_dir, task, algo, seed)
+                runs.append(Run(task, algo, seed, out, run_state(out, steps)))
+    return runs
+
+
+def train_command(
+    run: Run, preset: str, device: str, steps: int | None, extra: list[str]
+) -> list[str]:
+    """The `nasa train` command line of one run (start or resume)."""
+    base = [sys.executable, "-m", "nasa.cli", "train"]
+    steps_flag = ["--steps", str(steps)] if steps is not None else []
+    if run.action == "resume":
+        # A resumed run keeps the settings in its config.json; only --steps changes it.
+        return [*base, "--resume", str(run.out), *steps_flag]
+    if run.action != "start":
+        raise ValueError(f"run {run.out} is to be skipped, it has no command")
+    return [
+        *base, "--algo", run.algo, "--task", run.task, "--seed", str(run.seed),
+        "--out", str(run.out), "--preset", preset, "--device", device, *steps_flag, *extra,
+    ]
+
+
+def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.0) -> list[Run]:
+    """Run the commands, at most `parallel` at a time; each run's output goes to <out>/train.log.
+
+    Returns the runs whose process failed. A failed run does not stop the others:
+    the next `nasa reproduce` resumes it.
+    """
+    pending = list(jobs)
+    running: list[tuple[Run, subprocess.Popen, object]] = []
+    failed: list[Run] = []
+    try:
+        while pending or running:
+            while pending and len(running) < parallel:
+                run, cmd = pending.pop(0)
+                run.out.mkdir(parents=True, exist_ok=True)
+                log = open(run.out / "train.log", "a")  # closed when the run ends
+                proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+                running.append((run, proc, log))
+                print(f"{run.action:6s} {run.out} (log {run.out / 'train.log'})", flush=True)
+            for item in list(running):
+                run, proc, log = item
+                code = proc.poll()
+                if code is None:
+                    continue
+                running.remove(item)
+                log.close()
+                if code == 0:
+                    print(f"done   {run.out}", flush=True)
+                else:
+                    failed.append(run)
+                    print(f"FAILED {run.out}: exit code {code}, see {run.out / 'train.log'}", flush=True)
+            if running:
+                time.sleep(poll_s)
+    except KeyboardInterrupt:
+        # Stop our own children and wait for them; the next invocation resumes them.
+        for _, proc, _log in running:
+            proc.terminate()
+        for _, proc, log in running:
+            proc.wait()
+            log.close()
+        raise
+    return failed
+
+
+@dataclass
+class ReproduceCommand:
+    """Run the paper's protocol: every task x algo x seed, one `nasa train` each, resumable.
+
+    Run it again after an interruption: finished runs are skipped, started ones
+    resumed from their checkpoint. Flags after `--` go to each new `nasa train`.
+    """
+
+    tasks: str = "paper"
+    """`paper` (the six tasks of the paper) or a comma list of dm_control tasks."""
+    algos: str = ",".join(ALGOS)
+    """Comma list of algorithms."""
+    seeds: int = 5
+    """Number of seeds: 5 means seeds 0..4."""
+    results: Path = Path("results")
+    """Results folder; each run goes to RESULTS/<task>/<algo>/seed<S>."""
+    steps: int | None = None
+    """Env steps per run (default: the preset's, 1M for paper). Finished means the last
+    evaluation reached this step, so use a multiple of the evaluation interval."""
+    preset: str = "paper"
+    """Settings preset of new runs: `paper` (the reference's) or `cpu-small`."""
+    device: str = "auto"
+    """Device for new runs (a resumed run keeps its config.json's)."""
+    parallel: int | None = None
+    """Runs at a time (default: 1 on a CPU, 4 on CUDA)."""
+    dry_run: bool = False
+    """Print the plan (start / resume / skip per run) and start nothing."""
+
+
+def parse_list(text: str) -> list[str]:
+    """A comma list without blanks or repeats, in the order given."""
+    return list(dict.fromkeys(item.strip() for item in text.split(",") if item.strip()))
+
+
+def reproduce(argv: list[str]) -> None:
+    argv, extra = (argv[: argv.index("--")], argv[argv.index("--") + 1 :]) if "--" in argv else (argv, [])
+    cmd = tyro.cli(ReproduceCommand, args=argv, prog="nasa reproduce")
+    tasks = list(PAPER_TASKS) if cmd.tasks == "paper" else parse_list(cmd.tasks)
+    algos = parse_list(cmd.algos)
+    if not tasks or not algos:
+        raise ConfigError("--tasks and --algos must each name at least one")
+    for task in tasks:
+        parse_task(task)  # UnknownTaskError lists the valid names
+    for algo in algos:
+        check_algo(algo)
+    if cmd.preset not in PRESETS:
+        raise ConfigError(f"unknown preset {cmd.preset!r}; choose one of {', '.join(PRESETS)}")
+    if cmd.seeds < 1:
+        raise ConfigError(f"--seeds must be >= 1, got {cmd.seeds}")
+    if cmd.steps is not None and cmd.steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {cmd.steps}")
+    from shared.device import resolve_device  # imports torch: after the cheap checks
+
+    device = resolve_device(cmd.device)
+    parallel = cmd.parallel or (CUDA_PARALLEL if device.type == "cuda" else 1)
+    if parallel < 1:
+        raise ConfigError(f"--parallel must be >= 1, got {parallel}")
+
+    runs = plan_runs(cmd.results, tasks, algos, list(range(cmd.seeds)), cmd.steps)
+    counts = {a: sum(r.action == a for r in runs) for a in ("start", "resume", "skip")}
+    print(
+        f"nasa reproduce: {len(runs)} runs ({len(tasks)} tasks x {len(algos)} algos x {cmd.seeds} seeds) "
+        f"in {cmd.results}: {counts['start']} to start, {counts['resume']} to resume, "
+        f"{counts['skip']} finished; preset {cmd.preset}, device {device}, {parallel} at a time",
+        flush=True,
+    )
+    todo = [r for r in runs if r.action != "skip"]
+    jobs = [(r, train_command(r, cmd.preset, cmd.device, cmd.steps, extra)) for r in todo]
+    if cmd.dry_run:
+        commands = {run.out: command for run, command in jobs}
+        for run in runs:
+            print(f"{run.action:6s} {run.task} {run.algo} seed {run.seed} -> {run.out}")
+            if run.out in commands:
+                print("       " + shlex.join(["nasa", *commands[run.out][3:]]))
+        return
+    if extra and counts["resume"]:
+        print("note: flags after -- apply to new runs only; resumed runs keep their config.json", flush=True)
+    failed = execute(jobs, parallel)
+    if failed:
+        print(f"nasa reproduce: {len(failed)} run(s) failed; run the same command again to resume them",
+              file=sys.stderr)
+        sys.exit(1)
+    print(f"nasa reproduce: all runs finished; plot them with `nasa plot {cmd.results}`")

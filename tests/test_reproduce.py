@@ -1,0 +1,181 @@
+"""nasa reproduce: planning from the results folder, the dry run, errors, and running fake jobs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import tyro
+
+from nasa import reproduce as rep
+from nasa.cli import TrainCommand, main
+from nasa.reproduce import Run, execute, plan_runs, run_folder, train_command
+from shared.config import default_config
+from shared.runlog import CsvLog, eval_fields
+
+TASKS = ["cartpole-balance", "walker-walk"]
+ALGOS = ["nasa_td3", "sac_ae"]
+SEEDS = [0, 1]
+
+
+def make_run(out: Path, task: str, algo: str, seed: int, total: int, last: int | None, ckpt: bool) -> None:
+    """A run folder as the trainer leaves it: config.json, eval rows up to `last`, maybe a checkpoint."""
+    out.mkdir(parents=True)
+    config = {"algo": algo, "seed": seed, "steps": total, "env": {"task": task}}
+    (out / "config.json").write_text(json.dumps(config))
+    log = CsvLog(out / "eval.csv", eval_fields(1))
+    for step in range(0, (last if last is not None else -1) + 1, 100):
+        log.append({"step": step, "mean": 1.0, "std": 0.0, "return_0": 1.0})
+    if ckpt:
+        (out / "checkpoint.pt").write_bytes(b"fake")
+
+
+@pytest.fixture
+def results(tmp_path: Path) -> Path:
+    root = tmp_path / "results"
+
+    def make(task: str, algo: str, seed: int, total: int, last: int | None, ckpt: bool) -> None:
+        make_run(run_folder(root, task, algo, seed), task, algo, seed, total, last, ckpt)
+
+    make("cartpole-balance", "nasa_td3", 0, total=1000, last=1000, ckpt=True)  # finished
+    make("cartpole-balance", "nasa_td3", 1, total=1000, last=500, ckpt=True)  # partial
+    make("cartpole-balance", "sac_ae", 0, total=500, last=500, ckpt=True)  # finished at its own total
+    make("walker-walk", "sac_ae", 1, total=1000, last=0, ckpt=False)  # killed before its first checkpoint
+    return root
+
+
+def actions(runs: list[Run]) -> dict[tuple[str, str, int], str]:
+    return {(r.task, r.algo, r.seed): r.action for r in runs}
+
+
+def test_plan_start_resume_skip(results: Path) -> None:
+    runs = plan_runs(results, TASKS, ALGOS, SEEDS, steps=None)
+    assert len(runs) == 8
+    assert all(r.out == results / r.task / r.algo / f"seed{r.seed}" for r in runs)
+    expected = {(t, a, s): "start" for t in TASKS for a in ALGOS for s in SEEDS}
+    expected |= {
+        ("cartpole-balance", "nasa_td3", 0): "skip",
+        ("cartpole-balance", "nasa_td3", 1): "resume",
+        ("cartpole-balance", "sac_ae", 0): "skip",
+        ("walker-walk", "sac_ae", 1): "resume",
+    }
+    assert actions(runs) == expected
+
+
+def test_plan_with_a_longer_total_extends_finished_runs(results: Path) -> None:
+    got = actions(plan_runs(results, TASKS, ALGOS, SEEDS, steps=1000))
+    assert got["cartpole-balance", "nasa_td3", 0] == "skip"
+    assert got["cartpole-balance", "sac_ae", 0] == "resume"  # reached 500, 1000 asked for
+    assert got["cartpole-balance", "nasa_td3", 1] == "resume"
+
+
+def test_plan_changes_nothing(results: Path) -> None:
+    before = sorted(p.relative_to(results) for p in results.rglob("*"))
+    plan_runs(results, TASKS, ALGOS, SEEDS, steps=None)
+    assert sorted(p.relative_to(results) for p in results.rglob("*")) == before
+
+
+def test_start_command_is_what_nasa_train_reads(tmp_path: Path) -> None:
+    run = Run("walker-walk", "sac_ae", 3, tmp_path / "walker-walk/sac_ae/seed3", "start")
+    cmd = train_command(run, "paper", "cpu", 20_000, ["--eval-every", "5000"])
+    assert cmd[:4] == [sys.executable, "-m", "nasa.cli", "train"]
+    default = TrainCommand(config=default_config("sac_ae", "paper"))
+    parsed = tyro.cli(TrainCommand, args=cmd[4:], default=default)
+    assert (parsed.config.algo, parsed.config.env.task, parsed.config.seed) == ("sac_ae", "walker-walk", 3)
+    assert (parsed.config.steps, parsed.config.eval_every, parsed.config.device) == (20_000, 5000, "cpu")
+    assert parsed.out == run.out and parsed.preset == "paper" and parsed.resume is None
+
+
+def test_resume_command(tmp_path: Path) -> None:
+    run = Run("walker-walk", "sac_ae", 0, tmp_path / "r", "resume")
+    assert train_command(run, "paper", "cpu", None, ["--x"])[4:] == ["--resume", str(run.out)]
+    assert train_command(run, "paper", "cpu", 500, [])[4:] == ["--resume", str(run.out), "--steps", "500"]
+    with pytest.raises(ValueError):
+        train_command(Run("walker-walk", "sac_ae", 0, tmp_path / "r", "skip"), "paper", "cpu", None, [])
+
+
+def base_args(results: Path) -> list[str]:
+    return ["reproduce", "--tasks", ",".join(TASKS), "--algos", ",".join(ALGOS), "--seeds", "2",
+            "--results", str(results), "--device", "cpu"]
+
+
+def test_dry_run_prints_the_plan_and_launches_nothing(
+    results: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def no_launch(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the dry run launched a process")
+
+    monkeypatch.setattr(subprocess, "Popen", no_launch)
+    before = sorted(results.rglob("*"))
+    main([*base_args(results), "--dry-run"])
+    out = capsys.readouterr().out
+    assert "8 runs" in out and "4 to start, 2 to resume, 2 finished" in out
+    assert f"skip   cartpole-balance nasa_td3 seed 0 -> {results}/cartpole-balance/nasa_td3/seed0" in out
+    assert f"resume cartpole-balance nasa_td3 seed 1 -> {results}/cartpole-balance/nasa_td3/seed1" in out
+    assert f"start  walker-walk nasa_td3 seed 0 -> {results}/walker-walk/nasa_td3/seed0" in out
+    assert f"nasa train --resume {results}/walker-walk/sac_ae/seed1" in out
+    assert out.count("nasa train --algo") == 4
+    assert sorted(results.rglob("*")) == before
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "message"),
+    [("--tasks", "cartpole-nope", "unknown task 'cartpole-nope'"),
+     ("--algos", "nasa_td3,td4", "unknown algo 'td4'"),
+     ("--seeds", "0", "--seeds must be >= 1")],
+)
+def test_bad_arguments_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flag: str, value: str, message: str
+) -> None:
+    args = base_args(tmp_path / "results")
+    args[args.index(flag) + 1] = value
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--dry-run"])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "results").exists()
+
+
+def test_execute_runs_jobs_and_reports_failures(tmp_path: Path) -> None:
+    ok = [Run("t", "a", s, tmp_path / f"ok{s}", "start") for s in range(3)]
+    bad = Run("t", "a", 9, tmp_path / "bad", "start")
+    jobs = [(r, [sys.executable, "-c", f"print('hello {r.seed}')"]) for r in ok]
+    jobs.append((bad, [sys.executable, "-c", "import sys; print('boom'); sys.exit(3)"]))
+    failed = execute(jobs, parallel=2, poll_s=0.02)
+    assert failed == [bad]
+    for r in ok:
+        assert (r.out / "train.log").read_text() == f"hello {r.seed}\n"
+    assert "boom" in (bad.out / "train.log").read_text()
+
+
+def test_second_invocation_skips_what_the_first_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The whole command with a fake trainer that writes a finished run folder."""
+    results = tmp_path / "results"
+    launched: list[Run] = []
+
+    def fake_train_command(run: Run, *args: object) -> list[str]:
+        launched.append(run)
+        config = json.dumps({"algo": run.algo, "seed": run.seed, "steps": 300, "env": {"task": run.task}})
+        script = (
+            "import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
+            "(out / 'config.json').write_text(sys.argv[2]); "
+            "(out / 'eval.csv').write_text('step,mean,std\\n0,1,0\\n300,2,0\\n')"
+        )
+        return [sys.executable, "-c", script, str(run.out), config]
+
+    monkeypatch.setattr(rep, "train_command", fake_train_command)
+    monkeypatch.setattr(rep.time, "sleep", lambda s: None)  # poll without waiting
+    args = ["reproduce", "--tasks", "cartpole-balance", "--algos", "td3_ae", "--seeds", "2",
+            "--results", str(results), "--device", "cpu", "--parallel", "2"]
+    main(args)
+    assert [(r.seed, r.action) for r in launched] == [(0, "start"), (1, "start")]
+    assert "all runs finished" in capsys.readouterr().out
+    launched.clear()
+    main(args)
+    assert launched == []
+    assert "0 to start, 0 to resume, 2 finished" in capsys.readouterr().out
