@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,9 +11,10 @@ import tyro
 
 from nasa.plot import plot
 from nasa.reproduce import reproduce
-from shared.config import PRESET_NAMES, ConfigError, TrainConfig, auto_preset, default_config
+from shared.config import ConfigError, TrainConfig
 from shared.device import DeviceError, resolve_device
 from shared.envs import UnknownTaskError
+from shared.service import parse_with_preset
 
 
 @dataclass
@@ -30,24 +30,9 @@ class TrainCommand:
     """`paper` (the reference settings), `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
 
 
-def _preparse(argv: list[str]) -> argparse.Namespace:
-    """Read --preset, --algo and --device first: they choose the defaults every other flag overrides."""
-    parser = argparse.ArgumentParser(add_help=False)
-    parser.add_argument("--preset", default="auto")
-    parser.add_argument("--algo", default="nasa_td3")
-    parser.add_argument("--device", default="auto")
-    known, _ = parser.parse_known_args(argv)
-    return known
-
-
 def train(argv: list[str]) -> None:
-    pre = _preparse(argv)
-    if pre.preset not in PRESET_NAMES:
-        raise ConfigError(f"unknown preset {pre.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
-    device = resolve_device(pre.device)
-    preset = auto_preset(device.type) if pre.preset == "auto" else pre.preset
-    default = TrainCommand(config=default_config(pre.algo, preset), preset=pre.preset)
-    cmd = tyro.cli(TrainCommand, args=argv, default=default, prog="nasa train")
+    cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train")
+    device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL
 
     if cmd.resume is not None:
@@ -57,7 +42,7 @@ def train(argv: list[str]) -> None:
         return
     c = cmd.config
     out = cmd.out or Path("runs") / f"{c.env.task}-{c.algo}-s{c.seed}"
-    how = f"{preset} (auto: {device.type})" if pre.preset == "auto" else preset
+    how = f"{preset} (auto: {device.type})" if cmd.preset == "auto" else preset
     print(
         f"nasa train: {c.algo} on {c.env.task}, seed {c.seed}, {c.steps} steps, "
         f"preset {how}, device {device}, out {out}",

@@ -26,12 +26,16 @@ T = TypeVar("T")
 
 
 def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
-    """Parse a service's dataclass (fields `config` and `preset`); returns it and the preset used.
+    """Parse a service's dataclass (fields `config` and `preset`); returns it and the preset used."""
+    die_with_parent()
+    return parse_with_preset(cls, sys.argv[1:] if argv is None else argv, prog)
+
+
+def parse_with_preset(cls: type[T], argv: list[str], prog: str) -> tuple[T, str]:
+    """Parse a dataclass with fields `config` and `preset`; returns it and the preset used.
 
     --preset, --algo and --device are read first: they choose the defaults every other flag overrides.
     """
-    argv = sys.argv[1:] if argv is None else argv
-    die_with_parent()
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default="auto")
     pre.add_argument("--algo", default="nasa_td3")

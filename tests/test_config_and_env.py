@@ -80,10 +80,19 @@ def test_presets_touch_only_existing_fields_and_round_trip():
 
 
 def test_every_config_field_has_a_cli_flag():
-    from nasa.cli import TrainCommand  # noqa: F401  (import proves the CLI builds on the config)
+    import subprocess
+    import sys
 
-    names = [f.name for f in dataclasses.fields(TrainConfig)]
-    assert {"env", "agent", "algo", "seed", "steps"} <= set(names)
+    from shared.config import AgentConfig, EnvConfig
+
+    help_text = subprocess.run(
+        [sys.executable, "-m", "nasa.cli", "train", "--help"], capture_output=True, text=True, check=True
+    ).stdout
+    for cls in (TrainConfig, EnvConfig, AgentConfig):
+        for f in dataclasses.fields(cls):
+            if f.name in ("env", "agent"):
+                continue
+            assert f"--{f.name.replace('_', '-')}" in help_text, f.name
 
 
 def test_device_errors_are_clear():
