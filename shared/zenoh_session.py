@@ -13,8 +13,13 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import dataclass, field
+from typing import Annotated
 
+import tyro
 import zenoh
+
+from shared.config import TrainConfig
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
@@ -56,3 +61,16 @@ def open_router(listen: str) -> zenoh.Session:
     config = _base_config("router")
     config.insert_json5("listen/endpoints", json.dumps([listen]))
     return zenoh.open(config)
+
+
+@dataclass
+class ServiceArgs:
+    """The flags every service of a run takes: the run's config and where the router is."""
+
+    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
+    preset: str = "auto"
+    """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
+    connect: str = field(default_factory=env_connect)
+    """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
+    run_id: str = field(default_factory=env_run_id)
+    """Run id: the key prefix nasa/<run_id>/ (env NASA_RUN_ID)."""

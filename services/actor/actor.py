@@ -24,18 +24,15 @@ import random
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Annotated
 
 import numpy as np
 import torch
-import tyro
 import zenoh
 
 from shared import envs, wire
 from shared.agents import collect_action, make_agent
-from shared.config import TrainConfig
 from shared.service import Log, StopFlag
-from shared.zenoh_session import env_connect, env_run_id, open_client
+from shared.zenoh_session import ServiceArgs, open_client
 
 BLOCK = zenoh.CongestionControl.BLOCK
 _EPOCH_2025 = 1_735_689_600.0
@@ -52,16 +49,9 @@ def _default_actor_id() -> int:
 
 
 @dataclass
-class ActorArgs:
+class ActorArgs(ServiceArgs):
     """An actor: steps its environment with the latest policy and streams transitions to the replay."""
 
-    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
-    preset: str = "auto"
-    """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
-    connect: str = field(default_factory=env_connect)
-    """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
-    run_id: str = field(default_factory=env_run_id)
-    """Run id: the key prefix nasa/<run_id>/ (env NASA_RUN_ID)."""
     actor_id: int = field(default_factory=_default_actor_id)
     """This actor's id (env NASA_ACTOR_ID); -1: a random one (replicas of a scaled service)."""
     actor_device: str = "cpu"

@@ -11,35 +11,25 @@ evaluates the newest multiple reached and skips those in between.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Annotated
+from dataclasses import dataclass
 
 import numpy as np
 import torch
-import tyro
 import zenoh
 
 from shared import envs, wire
 from shared.agents import make_agent
-from shared.config import TrainConfig
 from shared.evaluation import evaluate
 from shared.service import Log, StopFlag
-from shared.zenoh_session import env_connect, env_run_id, open_client
+from shared.zenoh_session import ServiceArgs, open_client
 
 BLOCK = zenoh.CongestionControl.BLOCK
 
 
 @dataclass
-class EvaluatorArgs:
+class EvaluatorArgs(ServiceArgs):
     """The evaluator: every eval_every global env steps, deterministic episodes with the newest weights."""
 
-    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
-    preset: str = "auto"
-    """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
-    connect: str = field(default_factory=env_connect)
-    """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
-    run_id: str = field(default_factory=env_run_id)
-    """Run id: the key prefix nasa/<run_id>/ (env NASA_RUN_ID)."""
     eval_device: str = "cpu"
     threads: int = 1
 

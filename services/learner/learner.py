@@ -38,38 +38,29 @@ import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
 
 import numpy as np
 import torch
-import tyro
 import zenoh
 
 from shared import checkpoint, envs, wire
 from shared.agents import batch_to_device, make_agent
-from shared.config import TrainConfig, to_dict
+from shared.config import to_dict
 from shared.device import resolve_device
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields, read_rows
 from shared.service import Log, StopFlag
-from shared.zenoh_session import env_connect, env_run_id, open_client
+from shared.zenoh_session import ServiceArgs, open_client
 
 BLOCK = zenoh.CongestionControl.BLOCK
 CHECKPOINT = "learner/checkpoint.pt"
 
 
 @dataclass
-class LearnerArgs:
+class LearnerArgs(ServiceArgs):
     """The learner: updates the agent from replay batches, publishes weights, serves /status."""
 
-    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
-    preset: str = "auto"
-    """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
     data: Path = field(default_factory=lambda: Path(os.environ.get("NASA_DATA", "runs/default")))
     """Run folder: config.json, eval.csv, train.csv, learner/checkpoint.pt (env NASA_DATA)."""
-    connect: str = field(default_factory=env_connect)
-    """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
-    run_id: str = field(default_factory=env_run_id)
-    """Run id: the key prefix nasa/<run_id>/ (env NASA_RUN_ID)."""
     host: str = field(default_factory=lambda: os.environ.get("NASA_STATUS_HOST", "127.0.0.1"))
     """Address of the status API (env NASA_STATUS_HOST; 0.0.0.0 in a container)."""
     port: int = field(default_factory=lambda: int(os.environ.get("NASA_STATUS_PORT", "8000")))

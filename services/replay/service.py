@@ -34,36 +34,26 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
 
 import numpy as np
-import tyro
 import zenoh
 
 from services.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from services.replay.store import ReplayStore
 from shared import wire
-from shared.config import TrainConfig
 from shared.service import Log, StopFlag
-from shared.zenoh_session import env_connect, env_run_id, open_client
+from shared.zenoh_session import ServiceArgs, open_client
 
 BLOCK = zenoh.CongestionControl.BLOCK
 MAX_BATCH = 4096
 
 
 @dataclass
-class ReplayArgs:
+class ReplayArgs(ServiceArgs):
     """The replay service: stores transitions from actors and serves batches to the learner."""
 
-    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
-    preset: str = "auto"
-    """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
     data: Path = field(default_factory=lambda: Path(os.environ.get("NASA_DATA", "runs/default")))
     """Run folder; the store lives in <data>/replay (env NASA_DATA)."""
-    connect: str = field(default_factory=env_connect)
-    """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
-    run_id: str = field(default_factory=env_run_id)
-    """Run id: the key prefix nasa/<run_id>/ (env NASA_RUN_ID)."""
     error_buffer: float = 0.0
     """Rate limiter tolerance in samples; 0: 2 * G * 16 + 8 (two 8-transition batches of two actors)."""
     no_rate_limit: bool = False
