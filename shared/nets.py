@@ -61,7 +61,8 @@ class Encoder(nn.Module):
         self.apply(weight_init)
 
     def forward_conv(self, obs: torch.Tensor) -> torch.Tensor:
-        x = obs.float()
+        # Channels-last convolutions are faster on CPU (oneDNN) and on GPU (cuDNN).
+        x = obs.to(dtype=torch.float32, memory_format=torch.channels_last)
         if self.pixel_scale != 1.0:
             x = x / self.pixel_scale
         return self.convs(x).flatten(1)

@@ -15,7 +15,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.agents.base import ModuleStateMixin, adam, optimizer_step, soft_update, to_obs_tensor
+from shared.agents.base import (
+    ModuleStateMixin,
+    adam,
+    channels_last,
+    optimizer_step,
+    soft_update,
+    to_obs_tensor,
+)
 from shared.config import AgentConfig
 from shared.nets import Decoder, Encoder, GaussianActor, TwinQ
 
@@ -63,6 +70,7 @@ class SACAE(ModuleStateMixin):
             c.num_conv_layers,
             sigmoid_output=False,
         ).to(device)
+        channels_last(self._modules().values())
         self.log_alpha = torch.tensor(math.log(c.init_temperature), device=device, requires_grad=True)
         self.target_entropy = -float(action_dim)
 

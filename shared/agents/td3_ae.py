@@ -18,7 +18,14 @@ import torch
 import torch.nn.functional as F
 
 from shared import intrinsic
-from shared.agents.base import ModuleStateMixin, adam, optimizer_step, soft_update, to_obs_tensor
+from shared.agents.base import (
+    ModuleStateMixin,
+    adam,
+    channels_last,
+    optimizer_step,
+    soft_update,
+    to_obs_tensor,
+)
 from shared.config import AgentConfig
 from shared.nets import Decoder, DeterministicActor, Encoder, Ensemble, TwinQ
 
@@ -68,9 +75,7 @@ class TD3AE(ModuleStateMixin):
             # One Adam over all members equals one per member: each member's loss
             # reaches only its own parameters, and Adam is per parameter.
             self.ensemble_opt = adam(self.ensemble.parameters(), c.ensemble_lr, c.ensemble_weight_decay)
-        if device.type == "cuda":
-            for module in self._modules().values():
-                module.to(memory_format=torch.channels_last)
+        channels_last(self._modules().values())
         self.num_updates = 0
 
     # -- acting ---------------------------------------------------------------
