@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import TypeVar
 
 import tyro
@@ -117,3 +118,16 @@ class Log:
         if now - self._last.get(key, -1e9) >= seconds:
             self._last[key] = now
             self(msg)
+
+
+def run_service(
+    cls: type[T], argv: list[str] | None, prog: str, run: Callable[[T, object, StopFlag], None]
+) -> None:
+    """A service's main: parse its flags, stop on SIGINT/SIGTERM, run it on a client session."""
+    from shared.zenoh_session import open_client  # zenoh only for services, not `nasa train`
+
+    args, _ = parse(cls, argv, prog)
+    stop = StopFlag()
+    stop.install_signal_handlers()
+    with open_client(args.connect) as session:  # type: ignore[attr-defined]
+        run(args, session, stop)

@@ -32,7 +32,7 @@ import zenoh
 from shared import envs, wire
 from shared.agents import collect_action, make_agent
 from shared.service import Log, StopFlag
-from shared.zenoh_session import ServiceArgs, open_client
+from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 _EPOCH_2025 = 1_735_689_600.0
@@ -259,10 +259,9 @@ class ActorService:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.service import parse
+    from shared.service import run_service
 
-    args, _ = parse(ActorArgs, argv, "python -m services.actor")
-    stop = StopFlag()
-    stop.install_signal_handlers()
-    with open_client(args.connect) as session:
+    def run(args: ActorArgs, session: zenoh.Session, stop: StopFlag) -> None:
         ActorService(args, session, stop).run()
+
+    run_service(ActorArgs, argv, "python -m services.actor", run)

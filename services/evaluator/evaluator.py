@@ -21,7 +21,7 @@ from shared import envs, wire
 from shared.agents import make_agent
 from shared.evaluation import evaluate
 from shared.service import Log, StopFlag
-from shared.zenoh_session import ServiceArgs, open_client
+from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 
@@ -117,10 +117,9 @@ class EvaluatorService:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.service import parse
+    from shared.service import run_service
 
-    args, _ = parse(EvaluatorArgs, argv, "python -m services.evaluator")
-    stop = StopFlag()
-    stop.install_signal_handlers()
-    with open_client(args.connect) as session:
+    def run(args: EvaluatorArgs, session: zenoh.Session, stop: StopFlag) -> None:
         EvaluatorService(args, session, stop).run()
+
+    run_service(EvaluatorArgs, argv, "python -m services.evaluator", run)

@@ -49,7 +49,7 @@ from shared.config import to_dict
 from shared.device import resolve_device
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields, read_rows
 from shared.service import Log, StopFlag
-from shared.zenoh_session import ServiceArgs, open_client
+from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 CHECKPOINT = "learner/checkpoint.pt"
@@ -319,12 +319,12 @@ class Learner:
         msg = wire.SetIntrinsic(index[sel].astype("<i8").tobytes(), values.astype("<f4").tobytes())
         self.session.put(self.keys.intrinsic, wire.encode(msg), congestion_control=BLOCK)
         n = self.intrinsic["scored"] + len(sel)
-        for name in ("novelty", "surprise"):
-            mean = float(scores[name].mean().item())
+        means = {name: scores[name].mean().item() for name in ("novelty", "surprise")}
+        for name, mean in means.items():
             old = self.intrinsic[f"{name}_mean"]
             self.intrinsic[f"{name}_mean"] = mean if old is None else old + (mean - old) * len(sel) / n
         self.intrinsic["scored"] = n
-        self._train_intrinsic.append((float(scores["novelty"].mean()), float(scores["surprise"].mean())))
+        self._train_intrinsic.append((means["novelty"], means["surprise"]))
 
     # -- the loop -------------------------------------------------------------------------
 
@@ -413,6 +413,9 @@ class Learner:
             self._metric_sums.setdefault(key, []).append(value)
             old = self.losses.get(key)
             self.losses[key] = value if old is None else 0.95 * old + 0.05 * value
+
+    def _sample_rates(self) -> None:
+        """Keep (time, env steps, updates) every 0.5 s for the rates /status reports."""
         now = time.monotonic()
         if not self._rates or now - self._rates[-1][0] >= 0.5:
             self._rates.append((now, self.env_steps, self.agent.num_updates))
@@ -423,9 +426,7 @@ class Learner:
             self.save_checkpoint()
 
     def _drain_side_queues(self) -> None:
-        now = time.monotonic()
-        if not self._rates or now - self._rates[-1][0] >= 0.5:
-            self._rates.append((now, self.env_steps, self.agent.num_updates))
+        self._sample_rates()
         while True:
             try:
                 r = self._evals.get_nowait()
@@ -507,11 +508,9 @@ class Learner:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.service import parse
+    from shared.service import run_service
 
-    args, _ = parse(LearnerArgs, argv, "python -m services.learner")
-    stop = StopFlag()
-    stop.install_signal_handlers()
-    action_dim = envs.from_config(args.config.env, 0).action_dim
-    with open_client(args.connect) as session:
-        Learner(args, session, stop, action_dim).run()
+    def run(args: LearnerArgs, session: zenoh.Session, stop: StopFlag) -> None:
+        Learner(args, session, stop, envs.from_config(args.config.env, 0).action_dim).run()
+
+    run_service(LearnerArgs, argv, "python -m services.learner", run)

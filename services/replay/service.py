@@ -42,7 +42,7 @@ from services.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from services.replay.store import ReplayStore
 from shared import wire
 from shared.service import Log, StopFlag
-from shared.zenoh_session import ServiceArgs, open_client
+from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 MAX_BATCH = 4096
@@ -310,11 +310,9 @@ class ReplayService:
 
 def main(argv: list[str] | None = None) -> None:
     from shared import envs
-    from shared.service import parse
+    from shared.service import run_service
 
-    args, _ = parse(ReplayArgs, argv, "python -m services.replay")
-    stop = StopFlag()
-    stop.install_signal_handlers()
-    action_dim = envs.from_config(args.config.env, 0).action_dim
-    with open_client(args.connect) as session:
-        ReplayService(args, session, stop, action_dim).run()
+    def run(args: ReplayArgs, session: zenoh.Session, stop: StopFlag) -> None:
+        ReplayService(args, session, stop, envs.from_config(args.config.env, 0).action_dim).run()
+
+    run_service(ReplayArgs, argv, "python -m services.replay", run)
