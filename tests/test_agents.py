@@ -70,9 +70,7 @@ def test_actor_loss_leaves_every_encoder_parameter(algo):
     assert changed(enc, agent.encoder) == set()
     assert changed(critic, agent.critic) == set()
     assert changed(actor, agent.actor) == set(actor)
-    assert all(p.grad is None for p in agent.encoder.parameters()) or all(
-        p.grad is None or not p.grad.any() for p in agent.encoder.parameters()
-    )
+    assert all(p.grad is None for p in agent.encoder.parameters())  # no gradient reached it
 
 
 @pytest.mark.parametrize("algo", ["nasa_td3", "td3_ae"])
