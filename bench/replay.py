@@ -1,6 +1,6 @@
 """Replay store benchmark on real frames of the six paper tasks.
 
-    python -m bench.replay [--frames 2000] [--store 100000] [--seconds 3]
+    python -m bench.replay [--frames 2000] [--store 100000] [--seconds 3] [--compression lz4|zstd]
 
 Rendering 100k frames per task is too slow here (~60-160 renders/s), so each
 task renders `--frames` real frames (random actions, render_quality "fast")
@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from services.replay import ReplayStore
+from services.replay.codec import COMPRESSIONS
 from shared.envs import PAPER_TASKS, make
 
 GOAL_BYTES = 4096
@@ -64,7 +65,8 @@ def bench_task(task: str, args: argparse.Namespace, workdir: Path) -> dict:
     render_s = time.perf_counter() - t0
     data_dir = workdir / task
     store = ReplayStore(
-        args.store, (3, 84, 84), 3, action_dim, data_dir=data_dir, chunk_len=args.chunk_len
+        args.store, (3, 84, 84), 3, action_dim, data_dir=data_dir, chunk_len=args.chunk_len,
+        compression=args.compression,
     )
     rng = np.random.default_rng(1)
     t0 = time.perf_counter()
@@ -119,6 +121,7 @@ def main() -> None:
     p.add_argument("--store", type=int, default=100_000, help="transitions in the store")
     p.add_argument("--seconds", type=float, default=3.0, help="sampling time per mode")
     p.add_argument("--chunk-len", type=int, default=8)
+    p.add_argument("--compression", choices=COMPRESSIONS, default="lz4")
     p.add_argument("--per-chunk", type=int, default=8, help="transitions per decoded chunk")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--tasks", default=",".join(PAPER_TASKS))
@@ -155,6 +158,7 @@ def main() -> None:
         f"goal_samples_per_chunk_{args.per_chunk}_met": mean(gk) >= GOAL_SAMPLES,
         "render_quality": "fast",
         "chunk_len": args.chunk_len,
+        "compression": args.compression,
         "note": (
             f"{args.frames} real rendered frames per task re-inserted to {args.store} transitions; "
             "uniform_iid = i.i.d. uniform draws; per_chunk = each decoded chunk serves several "

@@ -46,6 +46,7 @@ class Trainer:
             frame_stack=config.env.frame_stack,
             action_dim=self.env.action_dim,
             data_dir=self.out / "replay",
+            compression=config.replay_compression,
         )
         self.eval_log = CsvLog(self.out / "eval.csv", eval_fields(config.eval_episodes))
         self.train_log = CsvLog(self.out / "train.csv", TRAIN_FIELDS)

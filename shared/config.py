@@ -111,6 +111,8 @@ class TrainConfig:
     """G: gradient updates per environment step after warm-up."""
     batch_size: int = 128
     replay_capacity: int = 1_000_000
+    replay_compression: Literal["lz4", "zstd"] = "lz4"
+    """Replay frame compressor: lz4 samples about 2x faster, zstd stores about 15% fewer bytes."""
     eval_every: int = 10_000
     eval_episodes: int = 10
     checkpoint_every: int = 10_000
@@ -180,6 +182,8 @@ def validate(config: TrainConfig) -> TrainConfig:
         raise ConfigError(f"env.render_quality must be paper or fast, got {config.env.render_quality!r}")
     if config.env.time_limit not in ("bootstrap", "terminal"):
         raise ConfigError(f"env.time_limit must be bootstrap or terminal, got {config.env.time_limit!r}")
+    if config.replay_compression not in ("lz4", "zstd"):
+        raise ConfigError(f"replay_compression must be lz4 or zstd, got {config.replay_compression!r}")
     return config
 
 

@@ -85,6 +85,7 @@ class ReplayService:
             frame_stack=c.env.frame_stack,
             action_dim=action_dim,
             data_dir=Path(args.data) / "replay",
+            compression=c.replay_compression,
         )
         g = c.updates_per_step
         self.limiter: SampleToInsertRatio | None = None

@@ -76,8 +76,9 @@ class ReplayStore:
         data_dir: str | Path | None = None,
         chunk_len: int = 8,
         prioritized: bool = False,
-        zstd_level: int = 1,
-        sample_threads: int = 2,
+        compression: str = "lz4",
+        compression_level: int | None = None,
+        sample_threads: int = 1,
         fsync_interval_s: float = 1.0,
         action_bound: float = 1.0,
         priority_exponent: float = 0.6,
@@ -99,7 +100,7 @@ class ReplayStore:
         self.action_bound = float(action_bound)
         self.priority_exponent = float(priority_exponent)
         self.fsync_interval_s = float(fsync_interval_s)
-        self._codec = FrameCodec(self.frame_size, zstd_level)
+        self._codec = FrameCodec(self.frame_size, compression, compression_level)
         self._tls = threading.local()
         self._lock = threading.RLock()
         self._pool = ThreadPoolExecutor(sample_threads) if sample_threads > 1 else None
@@ -148,6 +149,7 @@ class ReplayStore:
             "action_dim": self.action_dim,
             "chunk_len": self.chunk_len,
             "prioritized": self.prioritized,
+            "compression": self._codec.compression,
         }
 
     # ------------------------------------------------------------- validation
@@ -482,8 +484,8 @@ class ReplayStore:
             g = self._draw(batch_size, rng, per_chunk)
             pos = g % self.capacity
             refs = self._refs[pos]
-            uref, inv = np.unique(refs, return_inverse=True)
-            jobs = self._collect_blobs(uref)
+            uref, first, inv = np.unique(refs.ravel(), return_index=True, return_inverse=True)
+            jobs = self._collect_blobs(uref, first)
             out = {
                 "action": self._action[pos],
                 "reward": self._reward[pos],
@@ -501,8 +503,10 @@ class ReplayStore:
                 w = (len(self) * p / self._tree.total) ** -0.4
                 out["weight"] = (w / w.max()).astype(np.float32)
         # Decode outside the lock: blobs are immutable bytes, so writers keep going.
-        decoded = self._decode(uref, jobs)
-        frames = decoded[inv.reshape(refs.shape)]  # (B, k+1, frame_size)
+        frames = self._decode(refs.size, jobs)  # (B * (k+1), frame_size)
+        dup = np.flatnonzero(first[inv] != np.arange(refs.size))  # repeats (episode starts, overlaps)
+        if dup.size:
+            frames[dup] = frames[first[inv[dup]]]
         b, (c, h, w) = batch_size, self.frame_shape
         frames = frames.reshape(b, self.k + 1, c, h, w)
         out["obs"] = frames[:, : self.k].reshape(b, self.k * c, h, w)
@@ -532,8 +536,13 @@ class ReplayStore:
             out.extend(owned[i] for i in rng.integers(lo, len(owned), per_chunk - 1).tolist())
         return np.array(out[:b], np.int64)
 
-    def _collect_blobs(self, uref: np.ndarray) -> list[tuple[bytes, bool, list[tuple[int, bytes]]]]:
-        """Per touched chunk: (keyframe blob, whether the key itself is wanted, (row, blob) pairs)."""
+    def _collect_blobs(
+        self, uref: np.ndarray, dest: np.ndarray
+    ) -> list[tuple[bytes, bool, list[tuple[int, bytes]]]]:
+        """Per touched chunk: (keyframe blob, whether the key itself is wanted, (out row, blob) pairs).
+
+        `uref` is sorted; `dest[i]` is the output row that receives frame `uref[i]`.
+        """
         jobs = []
         cids = uref // self.chunk_len
         offs = uref % self.chunk_len
@@ -541,13 +550,13 @@ class ReplayStore:
         ends = np.r_[starts[1:], len(uref)]
         for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
             blobs = self._chunks[int(cids[s])].blobs
-            # uref is sorted, so offsets ascend within a chunk: offset 0 (the key) comes first.
-            rows = [(r, blobs[o]) for r, o in zip(range(s, e), offs[s:e].tolist(), strict=True)]
+            # Offsets ascend within a chunk, so offset 0 (the key) comes first.
+            rows = [(r, blobs[o]) for r, o in zip(dest[s:e].tolist(), offs[s:e].tolist(), strict=True)]
             jobs.append((blobs[0], offs[s] == 0, rows))
         return jobs
 
-    def _decode(self, uref: np.ndarray, jobs: list) -> np.ndarray:
-        out = np.empty((len(uref), self.frame_size), np.uint8)
+    def _decode(self, n: int, jobs: list) -> np.ndarray:
+        out = np.empty((n, self.frame_size), np.uint8)
         if self._pool is None or len(jobs) < 4:
             self._decode_jobs(jobs, out)
             return out
@@ -559,7 +568,7 @@ class ReplayStore:
     def _decode_jobs(self, jobs: list, out: np.ndarray) -> None:
         codec = getattr(self._tls, "codec", None)
         if codec is None:
-            codec = self._tls.codec = FrameCodec(self.frame_size, self._codec.level)
+            codec = self._tls.codec = FrameCodec(self.frame_size, self._codec.compression)
         for key_blob, has_key, rows in jobs:
             if has_key:
                 key = out[rows[0][0]]
