@@ -199,6 +199,10 @@ def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:
         fill(store, range(1))
     with pytest.raises(StoreFormatError, match="differs"):
         ReplayStore(100, SHAPE, 3, 4, data_dir=tmp_path)
+    with pytest.raises(StoreFormatError, match="'compression': 'lz4'.*differs.*'compression': 'zstd'"):
+        ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path, compression="zstd")
+    with pytest.raises(ValueError, match="unknown compression 'brotli'"):
+        ReplayStore(100, SHAPE, 3, 2, compression="brotli")
     m = tmp_path / "MANIFEST.json"
     body = json.loads(m.read_text())
     body["version"] = 0

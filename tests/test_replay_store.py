@@ -85,10 +85,13 @@ def check_batch(batch: dict, naive: dict[int, dict]) -> None:
             assert batch[key][i] == r[key], (key, g)
 
 
-@pytest.mark.parametrize("capacity,chunk_len", [(10_000, 8), (150, 8), (97, 3), (64, 16)])
-def test_stacks_match_naive_buffer(capacity: int, chunk_len: int) -> None:
+@pytest.mark.parametrize(
+    "capacity,chunk_len,compression",
+    [(10_000, 8, "lz4"), (10_000, 8, "zstd"), (150, 8, "lz4"), (97, 3, "zstd"), (64, 16, "lz4")],
+)
+def test_stacks_match_naive_buffer(capacity: int, chunk_len: int, compression: str) -> None:
     rng = np.random.default_rng(capacity)
-    store = ReplayStore(capacity, SHAPE, K, A, chunk_len=chunk_len)
+    store = ReplayStore(capacity, SHAPE, K, A, chunk_len=chunk_len, compression=compression)
     naive = fill(store, rng, 600)
     assert store.num_inserted == 600
     assert len(store) == min(600, capacity)
