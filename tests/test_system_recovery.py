@@ -1,4 +1,4 @@
-"""Failures: an actor and the learner killed with SIGKILL; the supervisor restarts them."""
+"""Failures: an actor, the learner and the replay killed with SIGKILL; the supervisor restarts them."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from system_harness import System
 
 
 @pytest.mark.timeout(300)
-def test_actor_and_learner_survive_sigkill(tmp_path):
+def test_actor_learner_and_replay_survive_sigkill(tmp_path):
     data = tmp_path / "run"
     system = System(data, actors=2, steps=1_000_000, evaluator=False,
                     extra=["--checkpoint-every", "40", "--eval-every", "100000"])
@@ -59,6 +59,23 @@ def test_actor_and_learner_survive_sigkill(tmp_path):
         assert resumed["env_steps"] >= before["env_steps"]
         assert resumed["replay"]["size"] >= before["replay"]["size"]
         system.wait_for("learning to go on", lambda s: s["updates"] > resumed["updates"] + 5)
+
+        # The replay dies: it reopens its store with every acknowledged transition (its
+        # published size only counts acknowledged ones); the actors pause, abandon their
+        # episodes and start new ones when it is back, and learning goes on.
+        replay = system.sup.children["replay"]
+        before = system.status()
+        stored = before["replay"]["size"]
+        os.kill(replay.proc.pid, signal.SIGKILL)
+        back = system.wait_for(
+            "the replay back, holding every acknowledged transition, and the actors storing again",
+            lambda s: replay.restarts == 1 and s["replay"]["size"] > stored + 20,
+        )
+        assert back["replay"]["size"] > stored
+        system.wait_for("learning to go on", lambda s: s["updates"] > back["updates"] + 5)
+        actor_logs = "".join(f.read_text() for f in (data / "logs").glob("actor-*.log"))
+        assert "the replay is gone" in actor_logs
+        assert "no acknowledgement for 60 s" not in actor_logs
     finally:
         system.close()
     assert all(c.proc.poll() is not None for c in system.sup.children.values())

@@ -15,6 +15,11 @@
   restarts, as the replay requires). The env and exploration seeds derive from
   (config.seed, actor_id, incarnation). A liveliness token
   alive/actor/<id>/<incarnation> announces it; a status heartbeat every second.
+- Replay loss: the actor watches the replay's liveliness token. While the
+  replay is gone it does not act (its transitions would go nowhere); when the
+  token disappears, the unacknowledged batches count as lost and the episode
+  under way is abandoned, so the first batch after the replay's return starts
+  a new episode, which the replay accepts (it never stitches across a gap).
 """
 
 from __future__ import annotations
@@ -92,6 +97,8 @@ class ActorService:
         self._pending_weights: bytes | None = None
         self._cv = threading.Condition()
         self._in_flight = 0
+        self._replay_alive = False
+        self._episode_broken = False  # the replay went away during the episode under way
         self._seq = 0
         self._rate = (time.monotonic(), 0)
         self.steps_per_s = 0.0
@@ -116,6 +123,20 @@ class ActorService:
             self._in_flight = max(0, self._in_flight - 1)
             self.global_steps = max(self.global_steps, ack.num_inserted)
             self._cv.notify_all()
+
+    def _on_replay_alive(self, sample: zenoh.Sample) -> None:
+        with self._cv:
+            self._replay_alive = sample.kind == zenoh.SampleKind.PUT
+            if not self._replay_alive:
+                self._in_flight = 0  # never acknowledged: the replay did not store them, or lost the acks
+                self._episode_broken = True
+                self.log("the replay is gone: pausing, and abandoning the episode under way")
+            self._cv.notify_all()
+
+    def _await_replay(self) -> None:
+        with self._cv:
+            while not self._replay_alive and not self.stop:
+                self._cv.wait(0.5)
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
         try:
@@ -214,6 +235,7 @@ class ActorService:
             s.declare_subscriber(k.ack(self.actor_id), self._on_ack),
             s.declare_subscriber(k.replay_stats, self._on_stats),
             s.declare_subscriber(k.stop, self._on_stop),
+            s.liveliness().declare_subscriber(k.alive("replay", 0), self._on_replay_alive, history=True),
             s.declare_publisher(k.insert(self.actor_id), congestion_control=BLOCK) as publisher,
             s.liveliness().declare_token(k.alive("actor", self.actor_id, self.incarnation)),
         ):
@@ -233,11 +255,14 @@ class ActorService:
             if self.replay_done:  # the run's step budget is reached: wait for the stop
                 self.stop.wait(0.2)
                 continue
+            self._await_replay()
+            with self._cv:
+                self._episode_broken = False
             ts = env.reset()
             episode += 1
             first: np.ndarray | None = ts.frame
             start, steps, total = 0, [], 0.0
-            while not self.stop and not self.replay_done:
+            while not self.stop and not self.replay_done and not self._episode_broken:
                 self.maybe_load_weights()
                 warming_up = self.global_steps < c.warmup_steps
                 action = collect_action(agent, ts.obs, warming_up, self.rng, env.action_dim)

@@ -289,19 +289,25 @@ class Learner:
         }
 
     def score_unscored(self, batch: dict[str, np.ndarray]) -> None:
-        """Score rows never scored (NaN) once, use the scores, and write them back to the replay."""
+        """Score rows never scored (NaN) once, use the scores, and write them back to the replay.
+
+        A row scored before that comes back unscored had its write-back still in
+        flight, or lost to a replay restart: it keeps its first score, sent again.
+        """
         rows = np.flatnonzero(np.isnan(batch["intrinsic"]))
         if len(rows) == 0:
             return
         index = batch["index"]
-        fresh = []
+        fresh, again = [], []
         for r in rows.tolist():
             cached = self._scored.get(int(index[r]))
             if cached is not None:
                 batch["intrinsic"][r] = cached
+                again.append(r)
             else:
                 fresh.append(r)
         if not fresh:
+            self._write_back(index[again], batch["intrinsic"][again])
             return
         d = self.device
         sel = np.array(fresh)
@@ -316,8 +322,8 @@ class Learner:
             self._scored[i] = v
         while len(self._scored) > 100_000:
             self._scored.popitem(last=False)
-        msg = wire.SetIntrinsic(index[sel].astype("<i8").tobytes(), values.astype("<f4").tobytes())
-        self.session.put(self.keys.intrinsic, wire.encode(msg), congestion_control=BLOCK)
+        both = np.concatenate([sel, np.array(again, dtype=sel.dtype)])
+        self._write_back(index[both], batch["intrinsic"][both])
         n = self.intrinsic["scored"] + len(sel)
         means = {name: scores[name].mean().item() for name in ("novelty", "surprise")}
         for name, mean in means.items():
@@ -325,6 +331,10 @@ class Learner:
             self.intrinsic[f"{name}_mean"] = mean if old is None else old + (mean - old) * len(sel) / n
         self.intrinsic["scored"] = n
         self._train_intrinsic.append((means["novelty"], means["surprise"]))
+
+    def _write_back(self, index: np.ndarray, values: np.ndarray) -> None:
+        msg = wire.SetIntrinsic(index.astype("<i8").tobytes(), values.astype("<f4").tobytes())
+        self.session.put(self.keys.intrinsic, wire.encode(msg), congestion_control=BLOCK)
 
     # -- the loop -------------------------------------------------------------------------
 
