@@ -53,6 +53,10 @@ class AgentConfig:
     ensemble_hidden_dim: int = 512
     ensemble_lr: float = 1e-4
     ensemble_weight_decay: float = 1e-3
+    ensemble_every: int = 1
+    """Train the ensemble on every n-th update: 1 as DESIGN.md (every update, same
+    minibatch); G for the reference code's schedule (once per env step, on the last
+    of its G minibatches)."""
     gamma: float = 0.99
     tau: float = 0.005
     """Soft-update rate of the Q heads and actor MLP (TD3) or of the critic (SAC-AE)."""
@@ -148,6 +152,7 @@ def validate(config: TrainConfig) -> TrainConfig:
         "agent.ensemble_size": config.agent.ensemble_size,
         "agent.ensemble_hidden_dim": config.agent.ensemble_hidden_dim,
         "agent.policy_delay": config.agent.policy_delay,
+        "agent.ensemble_every": config.agent.ensemble_every,
     }
     for name, value in positive.items():
         if value < 1:

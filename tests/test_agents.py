@@ -93,6 +93,19 @@ def test_ensemble_loss_moves_ensemble_only():
     assert changed(ens, agent.ensemble) == set(ens)
 
 
+@pytest.mark.parametrize("every", [1, 3])
+def test_ensemble_trains_on_every_nth_update(every):
+    agent = make("nasa_td3", ensemble_every=every)
+    batch = random_batch()
+    moved = []
+    for _ in range(6):
+        before = snapshot(agent.ensemble)
+        metrics = agent.update(batch)
+        moved.append(bool(changed(before, agent.ensemble)))
+        assert ("ensemble_loss" in metrics) == moved[-1]
+    assert moved == [(n + 1) % every == 0 for n in range(6)]
+
+
 def test_one_adam_over_members_equals_one_per_member():
     agent = make("nasa_td3")
     batch = random_batch()

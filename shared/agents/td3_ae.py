@@ -132,7 +132,7 @@ class TD3AE(ModuleStateMixin):
             metrics |= self.update_actor(z_now)
             soft_update(self.critic_target, self.critic, c.tau)
             soft_update(self.actor_target, self.actor, c.tau)
-        if self.uses_intrinsic:
+        if self.uses_intrinsic and self.num_updates % c.ensemble_every == 0:
             metrics |= self.update_ensemble(obs, action, next_obs, z_now)
         return metrics
 
