@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 FORMAT_NAME = "nasa-td3-replay"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the manifest names the frame compressor (lz4 or zstd); 1 was zstd only
 MANIFEST = "MANIFEST.json"
 _HEADER = struct.Struct("<IIB")
 _SEG_RE = re.compile(r"^log-(\d{6})\.bin$")

@@ -241,8 +241,7 @@ class ReplayService:
             time.sleep(min(wait, 0.2))
             return wire.SampleReply(False, "empty", self.store.num_inserted)
         b = self.store.sample(req.batch_size, rng)
-        k = self.config.env.frame_stack
-        window = np.concatenate([b["obs"], b["next_obs"][:, 3 * (k - 1) :]], axis=1)
+        window = b["window"]
         self.samples_served += 1
         return wire.SampleReply(
             ok=True,

@@ -471,6 +471,9 @@ class ReplayStore:
     ) -> dict[str, np.ndarray]:
         """Sample a batch: uniform over live transitions (or proportional to priority).
 
+        Frames come as `window` (B, (k+1)*C, H, W), each transition's k+1 frames;
+        `obs` and `next_obs` are views of it (its first and last k frames).
+
         per_chunk > 1 (uniform mode only) draws batch_size / per_chunk anchor
         transitions uniformly and, for each, per_chunk - 1 more uniformly among
         the live transitions whose newest frame shares the anchor's chunk. Every
@@ -512,9 +515,10 @@ class ReplayStore:
         if dup.size:
             frames[dup] = frames[first[inv[dup]]]
         b, (c, h, w) = batch_size, self.frame_shape
-        frames = frames.reshape(b, self.k + 1, c, h, w)
-        out["obs"] = frames[:, : self.k].reshape(b, self.k * c, h, w)
-        out["next_obs"] = frames[:, 1:].reshape(b, self.k * c, h, w)
+        # window: the k+1 frames of each transition; obs and next_obs are views of it.
+        out["window"] = frames.reshape(b, (self.k + 1) * c, h, w)
+        out["obs"] = out["window"][:, : self.k * c]
+        out["next_obs"] = out["window"][:, c:]
         return out
 
     def _draw(self, b: int, rng: np.random.Generator, per_chunk: int) -> np.ndarray:
