@@ -79,6 +79,8 @@ def check_batch(batch: dict, naive: dict[int, dict]) -> None:
         r = naive[g]
         np.testing.assert_array_equal(batch["obs"][i], r["obs"], err_msg=f"obs of {g}")
         np.testing.assert_array_equal(batch["next_obs"][i], r["next_obs"], err_msg=f"next of {g}")
+        window = np.concatenate([r["obs"], r["next_obs"][-SHAPE[0] :]])
+        np.testing.assert_array_equal(batch["window"][i], window, err_msg=f"window of {g}")
         np.testing.assert_array_equal(batch["action"][i], r["action"])
         assert batch["reward"][i] == r["reward"]
         for key in ("episode_id", "actor_id", "incarnation", "step", "policy_version"):

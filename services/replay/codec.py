@@ -11,7 +11,7 @@ tasks this costs ~10% more bytes than previous-frame deltas at chunk_len 8-16
 
 Two compressors (`compression`):
 - "lz4" (default), LZ4 HC at `level` 4: decompresses an 84x84 frame in 3-6 us,
-  about 3x faster than zstd, for ~15% more bytes than zstd level 1;
+  about 3x faster than zstd, for ~14% more bytes than zstd level 1;
 - "zstd" at `level` 1: the smallest store, sampling about half as fast.
 """
 
