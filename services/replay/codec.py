@@ -51,13 +51,6 @@ class FrameCodec:
         # uint8 subtraction wraps modulo 256, so key + delta restores the frame exactly.
         return self._compress(np.subtract(frame, key, dtype=np.uint8).tobytes())
 
-    def decode_into(self, blob: bytes, out: np.ndarray) -> None:
-        """Decompress a keyframe into `out` (a contiguous uint8 row of frame_size)."""
-        out[:] = np.frombuffer(self._decompress(blob), np.uint8)
-
-    def add_delta_into(self, blob: bytes, key: np.ndarray, out: np.ndarray) -> None:
-        """out = key + delta (wrapping); `key` and `out` may not alias."""
-        np.add(key, np.frombuffer(self._decompress(blob), np.uint8), out=out)
-
-    def decode_key(self, blob: bytes) -> np.ndarray:
+    def decode(self, blob: bytes) -> np.ndarray:
+        """A keyframe, or a delta to add to its keyframe: a read-only uint8 row of frame_size."""
         return np.frombuffer(self._decompress(blob), np.uint8)

@@ -246,7 +246,7 @@ class ReplayStore:
             else:
                 chunk = self._chunks[ep.chunk_ids[-1]]
                 if chunk.key is None:
-                    chunk.key = self._codec.decode_key(chunk.blobs[0])
+                    chunk.key = self._codec.decode(chunk.blobs[0])
                 blob = self._codec.encode_delta(flat, chunk.key)
             g = self._num_inserted
             payload = b"".join(
@@ -492,7 +492,10 @@ class ReplayStore:
             pos = g % self.capacity
             refs = self._refs[pos]
             uref, first, inv = np.unique(refs.ravel(), return_index=True, return_inverse=True)
-            jobs = self._collect_blobs(uref, first)
+            cids = uref // self.chunk_len
+            starts = np.flatnonzero(np.r_[True, cids[1:] != cids[:-1]])
+            # Chunk objects, not the dict: a chunk freed meanwhile keeps its blobs for us.
+            chunks = [self._chunks[c] for c in cids[starts].tolist()]
             out = {
                 "action": self._action[pos],
                 "reward": self._reward[pos],
@@ -510,7 +513,7 @@ class ReplayStore:
                 w = (len(self) * p / self._tree.total) ** -0.4
                 out["weight"] = (w / w.max()).astype(np.float32)
         # Decode outside the lock: blobs are immutable bytes, so writers keep going.
-        frames = self._decode(refs.size, jobs)  # (B * (k+1), frame_size)
+        frames = self._decode(refs.size, chunks, starts, uref % self.chunk_len, first)
         dup = np.flatnonzero(first[inv] != np.arange(refs.size))  # repeats (episode starts, overlaps)
         if dup.size:
             frames[dup] = frames[first[inv[dup]]]
@@ -544,48 +547,38 @@ class ReplayStore:
             out.extend(owned[i] for i in rng.integers(lo, len(owned), per_chunk - 1).tolist())
         return np.array(out[:b], np.int64)
 
-    def _collect_blobs(
-        self, uref: np.ndarray, dest: np.ndarray
-    ) -> list[tuple[bytes, bool, list[tuple[int, bytes]]]]:
-        """Per touched chunk: (keyframe blob, whether the key itself is wanted, (out row, blob) pairs).
-
-        `uref` is sorted; `dest[i]` is the output row that receives frame `uref[i]`.
-        """
-        jobs = []
-        cids = uref // self.chunk_len
-        offs = uref % self.chunk_len
-        starts = np.flatnonzero(np.r_[True, cids[1:] != cids[:-1]])
-        ends = np.r_[starts[1:], len(uref)]
-        for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
-            blobs = self._chunks[int(cids[s])].blobs
-            # Offsets ascend within a chunk, so offset 0 (the key) comes first.
-            rows = [(r, blobs[o]) for r, o in zip(dest[s:e].tolist(), offs[s:e].tolist(), strict=True)]
-            jobs.append((blobs[0], offs[s] == 0, rows))
-        return jobs
-
-    def _decode(self, n: int, jobs: list) -> np.ndarray:
+    def _decode(
+        self, n: int, chunks: list[_Chunk], starts: np.ndarray, offs: np.ndarray, dest: np.ndarray
+    ) -> np.ndarray:
+        """Decode the sorted unique frames (chunk `chunks[i]` holds those from `starts[i]` on,
+        at offsets `offs`) into rows `dest` of a (n, frame_size) array."""
         out = np.empty((n, self.frame_size), np.uint8)
-        if self._pool is None or len(jobs) < 4:
-            self._decode_jobs(jobs, out)
+        ends = np.r_[starts[1:], len(offs)]
+        groups = list(zip(chunks, starts.tolist(), ends.tolist(), strict=True))
+        if self._pool is None or len(groups) < 4:
+            self._decode_groups(groups, offs, dest, out)
             return out
-        parts = [jobs[i :: self._threads] for i in range(self._threads)]
-        for f in [self._pool.submit(self._decode_jobs, p, out) for p in parts]:
+        parts = [groups[i :: self._threads] for i in range(self._threads)]
+        for f in [self._pool.submit(self._decode_groups, p, offs, dest, out) for p in parts]:
             f.result()
         return out
 
-    def _decode_jobs(self, jobs: list, out: np.ndarray) -> None:
+    def _decode_groups(self, groups: list, offs: np.ndarray, dest: np.ndarray, out: np.ndarray) -> None:
         codec = getattr(self._tls, "codec", None)
         if codec is None:
             codec = self._tls.codec = FrameCodec(self.frame_size, self._codec.compression)
-        for key_blob, has_key, rows in jobs:
-            if has_key:
-                key = out[rows[0][0]]
-                codec.decode_into(key_blob, key)
-                rows = rows[1:]
+        decode, add = codec.decode, np.add  # locals: this loop runs ~5 times per transition
+        offs, dest = offs.tolist(), dest.tolist()
+        for chunk, s, e in groups:
+            blobs = chunk.blobs
+            if offs[s] == 0:  # sorted: the keyframe, when wanted, comes first
+                key = out[dest[s]]
+                key[:] = decode(blobs[0])
+                s += 1
             else:
-                key = codec.decode_key(key_blob)
-            for r, blob in rows:
-                codec.add_delta_into(blob, key, out[r])
+                key = decode(blobs[0])
+            for i in range(s, e):
+                add(key, decode(blobs[offs[i]]), out=out[dest[i]])
 
     def stats(self) -> dict:
         with self._lock:
