@@ -15,11 +15,12 @@ import argparse
 import json
 import os
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
-from shared import envs
+from shared import envs, intrinsic
 from shared.agents import make_agent
 from shared.config import ALGOS, agent_defaults
 from shared.device import resolve_device
@@ -75,17 +76,33 @@ def time_updates(algo: str, batch: dict, updates: int, device: torch.device, **o
     return updates / (time.perf_counter() - start)
 
 
-def time_scoring(batch: dict, repeats: int, device: torch.device) -> float:
-    """Milliseconds per transition to score novelty + surprise in one batch."""
+def time_scoring(batch: dict, repeats: int, device: torch.device) -> tuple[float, dict[str, float]]:
+    """Milliseconds per transition to score novelty + surprise in one batch, and the
+    milliseconds per batch of each part (one encoder pass, the decoder, SSIM, ensemble)."""
     torch.manual_seed(0)
     agent = make_agent("nasa_td3", (9, 84, 84), batch["action"].shape[1], agent_defaults("nasa_td3"), device)
-    agent.score(batch["obs"], batch["action"], batch["next_obs"])
-    sync(device)
-    start = time.perf_counter()
-    for _ in range(repeats):
-        agent.score(batch["obs"], batch["action"], batch["next_obs"])
-    sync(device)
-    return (time.perf_counter() - start) / repeats / len(batch["obs"]) * 1000
+    obs, action = batch["obs"], batch["action"]
+
+    def timed(fn: Callable[[], object]) -> float:
+        fn()
+        sync(device)
+        start = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        sync(device)
+        return (time.perf_counter() - start) / repeats * 1000
+
+    total = timed(lambda: agent.score(obs, action, batch["next_obs"]))
+    with torch.no_grad():
+        z = agent.encoder(obs)
+        reconstruction = agent.decoder(z)
+        parts = {
+            "encoder_pass": timed(lambda: agent.encoder(obs)),
+            "decoder_pass": timed(lambda: agent.decoder(z)),
+            "ssim": timed(lambda: intrinsic.novelty(obs, reconstruction)),
+            "ensemble": timed(lambda: agent.ensemble(z, action)),
+        }
+    return total / len(obs), {k: round(v, 1) for k, v in parts.items()}
 
 
 def main() -> None:
@@ -112,9 +129,11 @@ def main() -> None:
         rate = time_updates(algo, batch, args.updates, device, shared_encoder_pass=True)
         result["updates_per_s"][f"{algo}+shared_encoder_pass"] = round(rate, 3)
         print(f"{algo:10s} {rate:6.3f} updates/s with shared_encoder_pass (not the reference's order)")
-    score_ms = time_scoring(batch, args.score_repeats, device)
+    score_ms, parts = time_scoring(batch, args.score_repeats, device)
     print(f"scoring: {score_ms:.3f} ms per transition in batches of {args.batch}")
+    print(f"scoring parts, ms per batch (score = 2 encoder passes + the rest): {parts}")
     result["score_ms_per_transition"] = round(score_ms, 3)
+    result["score_parts_ms_per_batch"] = parts
     result["speedup_vs_reference"] = {
         "nasa_td3_updates": round(result["updates_per_s"]["nasa_td3"] / REFERENCE_UPDATES_PER_S, 2),
         "scoring": round(REFERENCE_SCORE_MS / score_ms, 1),

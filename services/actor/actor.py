@@ -136,6 +136,7 @@ class ActorService:
     def _await_replay(self) -> None:
         with self._cv:
             while not self._replay_alive and not self.stop:
+                self.log.every("await", 10.0, f"waiting for the replay ({self.keys.alive('replay', 0)})")
                 self._cv.wait(0.5)
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
