@@ -1,4 +1,5 @@
-"""`nasa up` as a user runs it: first line names the preset, `nasa status` reads it, Ctrl-C stops all."""
+"""`nasa up` as a user runs it: first line names the preset, `nasa status` reads it, Ctrl-C stops all,
+and the same command again resumes the run."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from system_harness import REPO, TINY
 
 from nasa.up import free_port
@@ -32,40 +34,74 @@ def children_of(pid: int) -> list[int]:
     return found
 
 
-@pytest.mark.timeout(240)
-def test_nasa_up_runs_reports_and_stops_on_ctrl_c(tmp_path):
+def start_up(data: Path) -> tuple[subprocess.Popen, int]:
     port = free_port()
     cmd = [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--actors", "1",
-           "--steps", "100000", "--device", "cpu", "--data", str(tmp_path / "run"), "--port", str(port),
+           "--steps", "100000", "--device", "cpu", "--data", str(data), "--port", str(port),
            "--router-port", "0", "--learner-threads", "1", "--logs", "--", *TINY]
     up = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
+    return up, port
+
+
+def wait_status(up: subprocess.Popen, port: int, pred, what: str, timeout: float = 150) -> dict:
+    deadline = time.monotonic() + timeout
+    status = None
+    url = f"http://127.0.0.1:{port}/status"
+    while time.monotonic() < deadline and up.poll() is None:
+        out = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--url", url],
+                             cwd=REPO, capture_output=True, text=True)
+        if out.returncode == 0:
+            status = json.loads(out.stdout)
+            if pred(status):
+                return status
+        time.sleep(0.5)
+    raise AssertionError(f"timed out waiting for {what}; last status {status}")
+
+
+def stop_with_ctrl_c(up: subprocess.Popen) -> None:
+    kids = children_of(up.pid)
+    assert len(kids) == 4  # replay, learner, evaluator, one actor
+    up.send_signal(signal.SIGINT)
+    rest, _ = up.communicate(timeout=90)
+    assert up.returncode == 0, rest
+    assert "nasa up: stopped" in rest
+    assert [p for p in kids if Path(f"/proc/{p}").exists() and p in children_of(up.pid)] == []
+
+
+@pytest.mark.timeout(360)
+def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
+    data = tmp_path / "run"
+    up, port = start_up(data)
     try:
         first = up.stdout.readline()
         assert first.startswith("nasa up: preset cpu-small (auto: no GPU"), first
         assert f"http://127.0.0.1:{port}/status" in up.stdout.readline()
-        deadline = time.monotonic() + 150
-        status = None
-        while time.monotonic() < deadline:
-            url = f"http://127.0.0.1:{port}/status"
-            out = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--url", url],
-                                 cwd=REPO, capture_output=True, text=True)
-            if out.returncode == 0:
-                status = json.loads(out.stdout)
-                if status["actors"] and status["env_steps"] > 0:
-                    break
-            time.sleep(0.5)
-        assert status is not None and status["actors"] and status["env_steps"] > 0, status
+        status = wait_status(up, port, lambda s: s["actors"] and s["updates"] > 0, "actors and updates")
         assert status["task"] == "cartpole-balance" and status["algo"] == "nasa_td3"
-        kids = children_of(up.pid)
-        assert len(kids) == 4  # replay, learner, evaluator, one actor
-        up.send_signal(signal.SIGINT)
-        rest, _ = up.communicate(timeout=90)
-        assert up.returncode == 0, rest
-        assert "nasa up: stopped" in rest
-        assert [p for p in kids if Path(f"/proc/{p}").exists() and p in children_of(up.pid)] == []
+        assert not status["resumed"]
+        stop_with_ctrl_c(up)
     finally:
         if up.poll() is None:
             up.kill()
             up.wait()
     assert children_of(up.pid) == []
+    assert (data / "replay" / "MANIFEST.json").exists() and (data / "learner" / "checkpoint.pt").exists()
+
+    # The same command again continues the run: the learner from its checkpoint, the
+    # replay from its log.
+    saved = torch.load(data / "learner" / "checkpoint.pt", weights_only=True)
+    again, port = start_up(data)
+    try:
+        resumed = wait_status(
+            again, port, lambda s: s["resumed"] and s["replay"]["size"] > 0, "a resumed run"
+        )
+        assert resumed["updates"] >= saved["updates"] > 0
+        assert resumed["replay"]["size"] >= status["replay"]["size"]
+        wait_status(again, port, lambda s: s["updates"] > resumed["updates"], "learning to go on")
+        stop_with_ctrl_c(again)
+    finally:
+        if again.poll() is None:
+            again.kill()
+            again.wait()
+    assert children_of(again.pid) == []
