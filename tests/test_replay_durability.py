@@ -9,7 +9,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -177,21 +176,32 @@ def test_snapshot_roundtrip_intrinsic_truncate_eviction(tmp_path: Path) -> None:
 
 
 def test_snapshot_does_not_stall_inserts(tmp_path: Path) -> None:
+    """Inserts complete while a snapshot's file is being written (it is written without the lock)."""
     with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
         fill(store, range(60))
-        latencies = []
+        writing, release = threading.Event(), threading.Event()
+        write = store._write_snapshot
+
+        def held_write(seg: int, state: dict) -> None:
+            writing.set()
+            assert release.wait(60), "test never released the snapshot writer"
+            write(seg, state)
+
+        store._write_snapshot = held_write
         snap = threading.Thread(target=store.snapshot)
         snap.start()
-        e = 60
-        while snap.is_alive() or len(latencies) < 50:
-            ep = store.begin_episode(frame(e, 0), incarnation=e)  # noqa: F821
-            for t in range(EP_LEN):
-                t0 = time.perf_counter()
-                store.add(ep, np.zeros(2), 0.0, 1.0, frame(e, t + 1), t == EP_LEN - 1)  # noqa: F821
-                latencies.append(time.perf_counter() - t0)
-            e += 1
+        assert writing.wait(30), "snapshot never reached its write"
+        inserter = threading.Thread(target=fill, args=(store, range(60, 63)))
+        inserter.start()
+        inserter.join(30)  # a snapshot holding the lock would keep these inserts waiting
+        finished_while_writing = not inserter.is_alive()
+        release.set()
+        inserter.join()
         snap.join()
-    assert max(latencies) < 0.5, max(latencies)
+        assert finished_while_writing, "inserts waited for the snapshot's file write"
+        assert store.num_inserted == 63 * EP_LEN
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        check_store(store, 63 * EP_LEN - 1)  # the snapshot plus the log written during it
 
 
 def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:
