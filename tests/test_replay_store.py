@@ -113,7 +113,7 @@ def test_stacks_match_naive_buffer(capacity: int, chunk_len: int, compression: s
 
 def test_every_live_transition_exact_after_wraparound() -> None:
     rng = np.random.default_rng(7)
-    store = ReplayStore(50, SHAPE, K, A, chunk_len=4, sample_threads=1)
+    store = ReplayStore(50, SHAPE, K, A, chunk_len=4, decode_threads=1)
     naive = fill(store, rng, 333, actors=2, max_len=12)
     seen = set()
     for s in range(40):

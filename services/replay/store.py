@@ -78,7 +78,7 @@ class ReplayStore:
         prioritized: bool = False,
         compression: str = "lz4",
         compression_level: int | None = None,
-        sample_threads: int | None = None,
+        decode_threads: int | None = None,
         fsync_interval_s: float = 1.0,
         action_bound: float = 1.0,
         priority_exponent: float = 0.6,
@@ -103,12 +103,12 @@ class ReplayStore:
         self._codec = FrameCodec(self.frame_size, compression, compression_level)
         self._tls = threading.local()
         self._lock = threading.RLock()
-        if sample_threads is None:
+        if decode_threads is None:
             # Measured: zstd's slower calls gain ~1.3x from a second decode thread; lz4's calls
             # are so short that GIL hand-offs between threads cost more than they save.
-            sample_threads = 2 if self._codec.compression == "zstd" else 1
-        self._pool = ThreadPoolExecutor(sample_threads) if sample_threads > 1 else None
-        self._threads = max(1, int(sample_threads))
+            decode_threads = 2 if self._codec.compression == "zstd" else 1
+        self._pool = ThreadPoolExecutor(decode_threads) if decode_threads > 1 else None
+        self._threads = max(1, int(decode_threads))
 
         c, a = self.capacity, self.action_dim
         self._action = np.zeros((c, a), np.float32)
