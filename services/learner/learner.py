@@ -276,11 +276,11 @@ class Learner:
         expected = (b, 3 * (k + 1), *self.obs_shape[1:])
         if shape != expected:
             raise wire.WireError(f"window shape {shape}, expected {expected}")
-        window = wire.array(r.window, "u1", shape)
+        window = wire.array(r.window, "u1", shape).copy()  # one writable copy; obs, next_obs view it
         a = self.action_dim
         return {
-            "obs": np.ascontiguousarray(window[:, : 3 * k]),
-            "next_obs": np.ascontiguousarray(window[:, 3:]),
+            "obs": window[:, : 3 * k],
+            "next_obs": window[:, 3:],
             "action": wire.array(r.action, "<f4", (b, a)).copy(),
             "reward": wire.array(r.reward, "<f4", (b,)).copy(),
             "intrinsic": wire.array(r.intrinsic, "<f4", (b,)).copy(),
