@@ -28,6 +28,7 @@ import os
 import random
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,6 +71,25 @@ class ActorArgs(ServiceArgs):
     """torch threads for acting."""
 
 
+class StepRate:
+    """Env steps per second over the last `window_s` seconds.
+
+    Not over the last second: backpressure from the replay pauses an actor for
+    seconds at a time, and a 1-s rate then reads 0 for an actor that is working.
+    """
+
+    def __init__(self, start: float, window_s: float = 10.0) -> None:
+        self.window_s = window_s
+        self._points: deque[tuple[float, int]] = deque([(start, 0)])
+
+    def update(self, now: float, steps: int) -> float:
+        self._points.append((now, steps))
+        while len(self._points) > 2 and now - self._points[1][0] >= self.window_s:
+            self._points.popleft()  # keep the newest point that is at least window_s old
+        t0, s0 = self._points[0]
+        return (steps - s0) / (now - t0) if now > t0 else 0.0
+
+
 class ActorService:
     def __init__(self, args: ActorArgs, session: zenoh.Session, stop: StopFlag) -> None:
         c = args.config
@@ -100,7 +120,7 @@ class ActorService:
         self._replay_alive = False
         self._episode_broken = False  # the replay went away during the episode under way
         self._seq = 0
-        self._rate = (time.monotonic(), 0)
+        self._rate = StepRate(time.monotonic())
         self.steps_per_s = 0.0
 
     # -- callbacks ------------------------------------------------------------------------
@@ -211,11 +231,7 @@ class ActorService:
         publisher.put(wire.encode(msg))
 
     def _publish_status(self) -> None:
-        now = time.monotonic()
-        t0, s0 = self._rate
-        if now - t0 >= 1.0:
-            self.steps_per_s = (self.env_steps - s0) / (now - t0)
-            self._rate = (now, self.env_steps)
+        self.steps_per_s = self._rate.update(time.monotonic(), self.env_steps)
         finished, self._finished = self._finished, []
         status = wire.ActorStatus(
             self.actor_id, self.incarnation, self.env_steps, self.episodes, self.policy_version,
