@@ -11,7 +11,7 @@ services count and log it and carry on.
 |------------------------------|------------------|----------------------|-------------------------------|
 | replay/insert/<actor_id>     | TransitionBatch  | actor (BLOCK)        | replay                        |
 | replay/ack/<actor_id>        | InsertAck        | replay (BLOCK)       | actor <actor_id>              |
-| replay/sample   (queryable)  | SampleRequest -> SampleReply | replay answers | learner (get, prefetched)  |
+| replay/sample   (queryable)  | SampleRequest -> SampleReply | replay answers | learner (batches; unscored) |
 | replay/intrinsic             | SetIntrinsic     | learner (BLOCK)      | replay                        |
 | replay/stats                 | ReplayStats      | replay (2 Hz)        | learner, actors, evaluator    |
 | learner/weights              | Weights          | learner (every K updates) | actors, evaluator        |
@@ -145,9 +145,13 @@ class InsertAck(Message):
 
 @dataclass
 class SampleRequest(Message):
+    """A uniform batch (paced by the replay's rate limiter); or, with unscored_after >= 0, up
+    to batch_size of the oldest unscored transitions from that global index on (not paced)."""
+
     TYPE: ClassVar[str] = "sample_request"
     batch_size: int
     wait_s: float = 2.0
+    unscored_after: int = -1
 
 
 @dataclass

@@ -182,6 +182,23 @@ def test_intrinsic_slot_and_truncate() -> None:
     assert store.add(ep, np.zeros(A), 0.0, 1.0, f0 + 1, False) == 60
 
 
+def test_unscored_rows_oldest_first_and_get_by_index() -> None:
+    store = ReplayStore(50, SHAPE, K, A)  # 80 inserted, 30 evicted
+    naive = fill(store, np.random.default_rng(5), 80)
+    store.set_intrinsic(np.array([40, 41, 60]), np.array([0.1, 0.2, 0.3]))
+    np.testing.assert_array_equal(store.unscored(0, 5), [30, 31, 32, 33, 34])  # evicted ones skipped
+    np.testing.assert_array_equal(store.unscored(39, 4), [39, 42, 43, 44])  # scored ones skipped
+    np.testing.assert_array_equal(store.unscored(59, 100), [59, *range(61, 80)])
+    assert len(store.unscored(80, 10)) == 0 and len(store.unscored(0, 0)) == 0
+    b = store.get(store.unscored(55, 7))
+    np.testing.assert_array_equal(b["index"], [55, 56, 57, 58, 59, 61, 62])
+    check_batch(b, naive)
+    assert np.isnan(b["intrinsic"]).all()
+    for bad in (np.array([29]), np.array([80]), np.array([], np.int64), np.zeros((2, 2), np.int64)):
+        with pytest.raises(ValueError, match="index"):
+            store.get(bad)
+
+
 def test_dead_actor_episode_is_closed() -> None:
     store = ReplayStore(100, SHAPE, K, A)
     f = [np.full(SHAPE, i, np.uint8) for i in range(10)]

@@ -85,3 +85,25 @@ def test_warmup_transitions_carry_zero_intrinsic_and_samples_follow_the_ratio(tm
         if g < 5:
             np.testing.assert_array_equal(row[9:], frames[g])
     svc.store.close()
+
+
+def test_unscored_requests_return_the_oldest_unscored_rows_outside_the_ratio(tmp_path):
+    svc = make_service(tmp_path, warmup=4)
+    rng = np.random.default_rng(0)
+    msg, frames, first = batch(n=7, last=True)
+    assert svc.insert_batch(msg) == 7  # rows 0-3 warm-up (scored 0), rows 4-6 unscored
+    samples = svc.limiter.samples
+    reply = svc.sample(wire.SampleRequest(2, unscored_after=0), rng)
+    assert reply.ok and reply.batch_size == 2 and reply.num_inserted == 7
+    np.testing.assert_array_equal(wire.array(reply.index, "<i8", (2,)), [4, 5])
+    window = wire.array(reply.window, "u1", tuple(reply.window_shape))
+    np.testing.assert_array_equal(window[0, 9:], frames[4])  # row 4's newest frame
+    assert np.isnan(wire.array(reply.intrinsic, "<f4", (2,))).all()
+    svc.store.set_intrinsic(np.array([4, 5]), np.array([0.5, 0.5]))
+    reply = svc.sample(wire.SampleRequest(8, unscored_after=0), rng)
+    np.testing.assert_array_equal(wire.array(reply.index, "<i8", (reply.batch_size,)), [6])
+    svc.store.set_intrinsic(np.array([6]), np.array([0.5]))
+    reply = svc.sample(wire.SampleRequest(8, unscored_after=5), rng)
+    assert not reply.ok and reply.reason == "none unscored" and reply.num_inserted == 7
+    assert svc.limiter.samples == samples  # scoring requests are not training samples
+    svc.store.close()

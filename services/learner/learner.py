@@ -4,15 +4,16 @@
   replay's queryable and queue the decoded batch, so the compute thread finds
   the next batch ready. The replay's rate limiter paces the requests.
 - Intrinsic rewards (nasa_td3, collect timing): each transition is scored
-  once, with the learner's networks at the moment it first reaches the
-  learner. The replay stores warm-up transitions with 0 (as the reference)
-  and later ones unscored (NaN); when a batch holds unscored rows, the learner
-  scores those rows (one batched `agent.score`), uses the scores in this
-  update and writes them back (`replay/intrinsic`), so every later sample reads
-  the stored value. A small cache covers rows that reach the learner again
-  before the write-back lands. Scoring at first sample rather than at
-  collection keeps the scoring on the learner's device and networks, off the
-  actors, and never delays sampling of fresh transitions.
+  once, soon after the replay stores it, with the learner's networks of that
+  moment (the paper scores at collection with the single process's networks).
+  The replay stores warm-up transitions with 0 (as the reference) and later
+  ones unscored (NaN). Before each update the learner asks the replay for the
+  oldest unscored transitions it has not seen (`SampleRequest.unscored_after`,
+  served on its own replay thread, outside the rate limiter), scores them in
+  one batched `agent.score` and writes the scores back (`replay/intrinsic`).
+  A training batch that still brings an unscored row (the learner fell behind,
+  or a write-back was lost to a replay restart) scores it then. A small cache
+  covers rows that come back before their write-back lands.
 - Weights: version = the update count; published every `publish_every`
   updates (DROP: latest wins, a lost message is replaced by the next) and
   served on `learner/weights/latest` for actors that just started.
@@ -118,6 +119,7 @@ class Learner:
         self._evals: queue.Queue[wire.EvalResult] = queue.Queue()
         self._episode_rows: queue.Queue[tuple[int, float, float]] = queue.Queue()
         self._scored: OrderedDict[int, float] = OrderedDict()
+        self._unscored_after = 0  # every row below this was scored or found scored
         self._rates: deque[tuple[float, int, int]] = deque(maxlen=64)
         self._weights_msg: bytes | None = None
         self._started = time.monotonic()
@@ -269,8 +271,9 @@ class Learner:
         r = wire.decode(data, wire.SampleReply)
         with self._lock:
             self.env_steps = max(self.env_steps, r.num_inserted)
-        if not r.ok:
-            return None
+        return self._batch_from_reply(r) if r.ok else None
+
+    def _batch_from_reply(self, r: wire.SampleReply) -> dict:
         b, k = r.batch_size, self.config.env.frame_stack
         shape = tuple(r.window_shape)
         expected = (b, 3 * (k + 1), *self.obs_shape[1:])
@@ -287,6 +290,32 @@ class Learner:
             "discount": wire.array(r.discount, "<f4", (b,)).copy(),
             "index": wire.array(r.index, "<i8", (b,)).copy(),
         }
+
+    def score_new(self) -> None:
+        """Collect timing: score transitions soon after the replay stores them, oldest first,
+        at most one batch per update. Rows it has not reached yet are scored when a training
+        batch first brings them (score_unscored)."""
+        if self.env_steps <= self._unscored_after:
+            return
+        request = wire.SampleRequest(self.config.batch_size, wait_s=0.0, unscored_after=self._unscored_after)
+        try:
+            replies = self.session.get(
+                self.keys.sample, payload=wire.encode(request), timeout=10.0, congestion_control=BLOCK
+            )
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                r = wire.decode(reply.ok.payload.to_bytes(), wire.SampleReply)
+                if not r.ok:  # nothing unscored below r.num_inserted
+                    self._unscored_after = max(self._unscored_after, r.num_inserted)
+                    continue
+                batch = self._batch_from_reply(r)
+                self.score_unscored(batch)
+                self._unscored_after = max(self._unscored_after, int(batch["index"].max()) + 1)
+        except wire.WireError as err:
+            self._invalid(f"unscored reply: {err}")
+        except zenoh.ZError as err:
+            self.log.every("unscored", 5.0, f"unscored request failed: {err}")
 
     def score_unscored(self, batch: dict[str, np.ndarray]) -> None:
         """Score rows never scored (NaN) once, use the scores, and write them back to the replay.
@@ -390,12 +419,19 @@ class Learner:
             except queue.Empty:
                 continue
             if self.scoring:
+                self.score_new()
                 self.score_unscored(batch)
             metrics = agent.update(batch_to_device(batch, self.device))
             self._record(metrics)
             if agent.num_updates % self.args.publish_every == 0:
                 self.publish_weights(publisher)
         if finished:
+            if self.scoring:
+                while self._unscored_after < self.env_steps and not self.stop:  # the last arrivals
+                    before = self._unscored_after
+                    self.score_new()
+                    if self._unscored_after == before:
+                        break
             self.publish_weights(publisher)
             self._wait_final_eval()
         self.save_checkpoint()

@@ -102,6 +102,7 @@ class ReplayService:
         self._episodes: dict[tuple[int, int], list[int]] = {}
         self._inserts: queue.Queue[bytes] = queue.Queue()
         self._queries: queue.Queue[zenoh.Query] = queue.Queue()
+        self._scoring_queries: queue.Queue[zenoh.Query] = queue.Queue()
         self._last_snapshot = self.store.num_inserted
         self._threads: list[threading.Thread] = []
         if self.store.num_inserted:
@@ -113,7 +114,14 @@ class ReplayService:
         self._inserts.put(sample.payload.to_bytes())
 
     def _on_query(self, query: zenoh.Query) -> None:
-        self._queries.put(query)
+        # Scoring requests get their own thread: training requests may wait on the rate limiter.
+        try:
+            payload = query.payload
+            req = wire.decode(payload.to_bytes() if payload is not None else b"", wire.SampleRequest)
+            scoring = req.unscored_after >= 0
+        except wire.WireError:
+            scoring = False  # the sampling thread replies with the error
+        (self._scoring_queries if scoring else self._queries).put(query)
 
     def _on_intrinsic(self, sample: zenoh.Sample) -> None:
         try:
@@ -209,11 +217,11 @@ class ReplayService:
 
     # -- sampling -----------------------------------------------------------------------
 
-    def _sample_loop(self, seed: int) -> None:
+    def _sample_loop(self, seed: int, queries: queue.Queue[zenoh.Query]) -> None:
         rng = np.random.default_rng(seed)
         while not self.stop:
             try:
-                query = self._queries.get(timeout=0.2)
+                query = queries.get(timeout=0.2)
             except queue.Empty:
                 continue
             try:
@@ -232,6 +240,8 @@ class ReplayService:
     def sample(self, req: wire.SampleRequest, rng: np.random.Generator) -> wire.SampleReply:
         if not 1 <= req.batch_size <= MAX_BATCH:
             raise wire.WireError(f"batch_size {req.batch_size}")
+        if req.unscored_after >= 0:
+            return self.unscored(req)
         wait = min(max(float(req.wait_s), 0.0), 10.0)
         if self.limiter is not None:
             if not self.limiter.await_sample(1, timeout=wait):
@@ -241,13 +251,25 @@ class ReplayService:
             time.sleep(min(wait, 0.2))
             return wire.SampleReply(False, "empty", self.store.num_inserted)
         b = self.store.sample(req.batch_size, rng)
-        window = b["window"]
         self.samples_served += 1
+        return self._reply(b)
+
+    def unscored(self, req: wire.SampleRequest) -> wire.SampleReply:
+        """The oldest unscored transitions from req.unscored_after on, for the learner to score
+        soon after they are stored (collect timing). Not a training sample: not rate limited."""
+        n = self.store.num_inserted  # read first: anything newer is past the scan
+        index = self.store.unscored(req.unscored_after, req.batch_size)
+        if len(index) == 0:
+            return wire.SampleReply(False, "none unscored", n)
+        return self._reply(self.store.get(index))
+
+    def _reply(self, b: dict[str, np.ndarray]) -> wire.SampleReply:
+        window = b["window"]
         return wire.SampleReply(
             ok=True,
             reason="",
             num_inserted=self.store.num_inserted,
-            batch_size=req.batch_size,
+            batch_size=len(window),
             window_shape=list(window.shape),
             window=window.tobytes(),
             action=b["action"].astype("<f4").tobytes(),
@@ -286,9 +308,12 @@ class ReplayService:
             self._threads = [threading.Thread(target=self._insert_loop, name="insert", daemon=True)]
             for i in range(max(1, self.args.sample_threads)):
                 seed = self.config.seed * 1000 + self.store.num_inserted + i
-                self._threads.append(
-                    threading.Thread(target=self._sample_loop, args=(seed,), name=f"sample{i}", daemon=True)
-                )
+                self._threads.append(threading.Thread(
+                    target=self._sample_loop, args=(seed, self._queries), name=f"sample{i}", daemon=True
+                ))
+            self._threads.append(threading.Thread(
+                target=self._sample_loop, args=(0, self._scoring_queries), name="unscored", daemon=True
+            ))
             for t in self._threads:
                 t.start()
             n, budget = self.store.num_inserted, self.config.steps

@@ -485,39 +485,63 @@ class ReplayStore:
         if per_chunk > 1 and self._tree is not None:
             raise ValueError("per_chunk > 1 is for uniform sampling only")
         with self._lock:
-            n = len(self)
-            if n == 0:
+            if len(self) == 0:
                 raise ValueError("cannot sample from an empty replay store")
-            g = self._draw(batch_size, rng, per_chunk)
-            pos = g % self.capacity
-            refs = self._refs[pos]
-            uref, first, inv = np.unique(refs.ravel(), return_index=True, return_inverse=True)
-            cids = uref // self.chunk_len
-            starts = np.flatnonzero(np.r_[True, cids[1:] != cids[:-1]])
-            # Chunk objects, not the dict: a chunk freed meanwhile keeps its blobs for us.
-            chunks = [self._chunks[c] for c in cids[starts].tolist()]
-            out = {
-                "action": self._action[pos],
-                "reward": self._reward[pos],
-                "intrinsic": self._intrinsic[pos],
-                "discount": self._discount[pos],
-                "index": g,
-                "episode_id": self._episode[pos],
-                "actor_id": self._actor[pos],
-                "incarnation": self._incarnation[pos],
-                "policy_version": self._policy[pos],
-                "step": self._step[pos],
-            }
-            if self._tree is not None:
-                p = self._tree.get(pos)
-                w = (len(self) * p / self._tree.total) ** -0.4
-                out["weight"] = (w / w.max()).astype(np.float32)
-        # Decode outside the lock: blobs are immutable bytes, so writers keep going.
-        frames = self._decode(refs.size, chunks, starts, uref % self.chunk_len, first)
-        dup = np.flatnonzero(first[inv] != np.arange(refs.size))  # repeats (episode starts, overlaps)
+            plan = self._gather(self._draw(batch_size, rng, per_chunk))
+        return self._assemble(plan)
+
+    def get(self, index: np.ndarray) -> dict[str, np.ndarray]:
+        """The live transitions at these global indices, as `sample` returns them."""
+        g = np.asarray(index, dtype=np.int64)
+        if g.ndim != 1 or len(g) == 0:
+            raise ValueError(f"index must be a non-empty 1-d array, got shape {g.shape}")
+        with self._lock:
+            if g.min() < self._head or g.max() >= self._num_inserted:
+                raise ValueError(f"index outside the live range [{self._head}, {self._num_inserted})")
+            plan = self._gather(g)
+        return self._assemble(plan)
+
+    def unscored(self, after: int, limit: int) -> np.ndarray:
+        """Live global indices >= after whose intrinsic slot is unscored (NaN), oldest first."""
+        with self._lock:
+            g = np.arange(max(int(after), self._head), self._num_inserted, dtype=np.int64)
+            return g[np.isnan(self._intrinsic[g % self.capacity])][: max(0, int(limit))]
+
+    def _gather(self, g: np.ndarray) -> tuple:
+        """Under the lock: the metadata of transitions `g` and what decoding their frames needs."""
+        pos = g % self.capacity
+        refs = self._refs[pos]
+        uref, first, inv = np.unique(refs.ravel(), return_index=True, return_inverse=True)
+        cids = uref // self.chunk_len
+        starts = np.flatnonzero(np.r_[True, cids[1:] != cids[:-1]])
+        # Chunk objects, not the dict: a chunk freed meanwhile keeps its blobs for us.
+        chunks = [self._chunks[c] for c in cids[starts].tolist()]
+        out = {
+            "action": self._action[pos],
+            "reward": self._reward[pos],
+            "intrinsic": self._intrinsic[pos],
+            "discount": self._discount[pos],
+            "index": g,
+            "episode_id": self._episode[pos],
+            "actor_id": self._actor[pos],
+            "incarnation": self._incarnation[pos],
+            "policy_version": self._policy[pos],
+            "step": self._step[pos],
+        }
+        if self._tree is not None:
+            p = self._tree.get(pos)
+            w = (len(self) * p / self._tree.total) ** -0.4
+            out["weight"] = (w / w.max()).astype(np.float32)
+        return out, refs.size, chunks, starts, uref % self.chunk_len, first, inv
+
+    def _assemble(self, plan: tuple) -> dict[str, np.ndarray]:
+        """Outside the lock (blobs are immutable bytes, so writers keep going): decode the frames."""
+        out, n, chunks, starts, offs, first, inv = plan
+        frames = self._decode(n, chunks, starts, offs, first)
+        dup = np.flatnonzero(first[inv] != np.arange(n))  # repeats (episode starts, overlaps)
         if dup.size:
             frames[dup] = frames[first[inv[dup]]]
-        b, (c, h, w) = batch_size, self.frame_shape
+        b, (c, h, w) = len(out["index"]), self.frame_shape
         # window: the k+1 frames of each transition; obs and next_obs are views of it.
         out["window"] = frames.reshape(b, (self.k + 1) * c, h, w)
         out["obs"] = out["window"][:, : self.k * c]
