@@ -109,7 +109,10 @@ class Learner:
         self.invalid = 0
         self.actors: dict[int, dict] = {}
         self.losses: dict[str, float] = {}
-        self.intrinsic = {"novelty_mean": None, "surprise_mean": None, "scored": 0}
+        # scored_at_first_sample: rows a training batch brought before score_new reached them.
+        self.intrinsic = {
+            "novelty_mean": None, "surprise_mean": None, "scored": 0, "scored_at_first_sample": 0,
+        }
         self.eval = {"step": None, "mean": None, "std": None}
         self.episodes = 0
         self.wall_s = 0.0
@@ -310,18 +313,20 @@ class Learner:
                     self._unscored_after = max(self._unscored_after, r.num_inserted)
                     continue
                 batch = self._batch_from_reply(r)
-                self.score_unscored(batch)
+                self.score_unscored(batch, on_arrival=True)
                 self._unscored_after = max(self._unscored_after, int(batch["index"].max()) + 1)
         except wire.WireError as err:
             self._invalid(f"unscored reply: {err}")
         except zenoh.ZError as err:
             self.log.every("unscored", 5.0, f"unscored request failed: {err}")
 
-    def score_unscored(self, batch: dict[str, np.ndarray]) -> None:
+    def score_unscored(self, batch: dict[str, np.ndarray], on_arrival: bool = False) -> None:
         """Score rows never scored (NaN) once, use the scores, and write them back to the replay.
 
         A row scored before that comes back unscored had its write-back still in
         flight, or lost to a replay restart: it keeps its first score, sent again.
+        A row drawn twice into one batch is scored once. `on_arrival`: the rows
+        come from score_new (else a training batch brought them first).
         """
         rows = np.flatnonzero(np.isnan(batch["intrinsic"]))
         if len(rows) == 0:
@@ -339,14 +344,16 @@ class Learner:
             self._write_back(index[again], batch["intrinsic"][again])
             return
         d = self.device
-        sel = np.array(fresh)
+        fresh_rows = np.array(fresh)
+        _, first, inverse = np.unique(index[fresh_rows], return_index=True, return_inverse=True)
+        sel = fresh_rows[first]  # one row per distinct transition
         scores = self.agent.score(
             torch.as_tensor(batch["obs"][sel], device=d),
             torch.as_tensor(batch["action"][sel], device=d),
             torch.as_tensor(batch["next_obs"][sel], device=d),
         )
         values = scores["intrinsic"].float().cpu().numpy()
-        batch["intrinsic"][sel] = values
+        batch["intrinsic"][fresh_rows] = values[inverse]
         for i, v in zip(index[sel].tolist(), values.tolist(), strict=True):
             self._scored[i] = v
         while len(self._scored) > 100_000:
@@ -354,6 +361,8 @@ class Learner:
         both = np.concatenate([sel, np.array(again, dtype=sel.dtype)])
         self._write_back(index[both], batch["intrinsic"][both])
         n = self.intrinsic["scored"] + len(sel)
+        if not on_arrival:
+            self.intrinsic["scored_at_first_sample"] += len(sel)
         means = {name: scores[name].mean().item() for name in ("novelty", "surprise")}
         for name, mean in means.items():
             old = self.intrinsic[f"{name}_mean"]
