@@ -41,6 +41,7 @@ def _line(name: str, value: float | int | None, labels: dict[str, object] | None
 def prometheus_text(s: dict) -> str:
     """The status as Prometheus metrics (one gauge or counter per figure)."""
     base = {"run_id": s["run_id"]}
+    intrinsic = s["intrinsic"]
     series: list[tuple[str, str, str, list[str | None]]] = [
         ("nasa_env_steps_total", "counter", "Environment steps stored by the replay",
          [_line("nasa_env_steps_total", s["env_steps"], base)]),
@@ -67,6 +68,17 @@ def prometheus_text(s: dict) -> str:
         ("nasa_actor_env_steps_total", "counter", "Env steps of the actor's current incarnation",
          [_line("nasa_actor_env_steps_total", a["env_steps"], {**base, "actor": a["id"]})
           for a in s["actors"]]),
+        ("nasa_actor_env_steps_per_second", "gauge", "Env steps per second of the actor over ~10 s",
+         [_line("nasa_actor_env_steps_per_second", a["steps_per_s"], {**base, "actor": a["id"]})
+          for a in s["actors"]]),
+        ("nasa_intrinsic_scored_total", "counter", "Transitions given an intrinsic reward",
+         [_line("nasa_intrinsic_scored_total", intrinsic["scored"], base)]),
+        ("nasa_intrinsic_scored_at_first_sample_total", "counter",
+         "Transitions scored when a training batch first brought them, not on arrival",
+         [_line("nasa_intrinsic_scored_at_first_sample_total", intrinsic["scored_at_first_sample"], base)]),
+        ("nasa_intrinsic_mean", "gauge", "Running mean of each intrinsic reward",
+         [_line("nasa_intrinsic_mean", intrinsic[f"{k}_mean"], {**base, "name": k})
+          for k in ("novelty", "surprise")]),
         ("nasa_loss", "gauge", "Recent mean of each loss",
          [_line("nasa_loss", v, {**base, "name": k}) for k, v in s["losses"].items()]),
     ]
