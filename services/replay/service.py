@@ -101,8 +101,8 @@ class ReplayService:
         # (actor, incarnation) -> [episode, store episode id, next step]
         self._episodes: dict[tuple[int, int], list[int]] = {}
         self._inserts: queue.Queue[bytes] = queue.Queue()
-        self._queries: queue.Queue[zenoh.Query] = queue.Queue()
-        self._scoring_queries: queue.Queue[zenoh.Query] = queue.Queue()
+        self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
+        self._scoring_queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
         self._last_snapshot = self.store.num_inserted
         self._threads: list[threading.Thread] = []
         if self.store.num_inserted:
@@ -114,14 +114,16 @@ class ReplayService:
         self._inserts.put(sample.payload.to_bytes())
 
     def _on_query(self, query: zenoh.Query) -> None:
-        # Scoring requests get their own thread: training requests may wait on the rate limiter.
         try:
             payload = query.payload
             req = wire.decode(payload.to_bytes() if payload is not None else b"", wire.SampleRequest)
-            scoring = req.unscored_after >= 0
-        except wire.WireError:
-            scoring = False  # the sampling thread replies with the error
-        (self._scoring_queries if scoring else self._queries).put(query)
+        except wire.WireError as err:
+            self._invalid(f"sample request: {err}")
+            query.reply_err(str(err).encode())
+            query.drop()
+            return
+        # Scoring requests get their own thread: training requests may wait on the rate limiter.
+        (self._scoring_queries if req.unscored_after >= 0 else self._queries).put((query, req))
 
     def _on_intrinsic(self, sample: zenoh.Sample) -> None:
         try:
@@ -217,16 +219,14 @@ class ReplayService:
 
     # -- sampling -----------------------------------------------------------------------
 
-    def _sample_loop(self, seed: int, queries: queue.Queue[zenoh.Query]) -> None:
+    def _sample_loop(self, seed: int, queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]]) -> None:
         rng = np.random.default_rng(seed)
         while not self.stop:
             try:
-                query = queries.get(timeout=0.2)
+                query, req = queries.get(timeout=0.2)
             except queue.Empty:
                 continue
             try:
-                payload = query.payload
-                req = wire.decode(payload.to_bytes() if payload is not None else b"", wire.SampleRequest)
                 reply = self.sample(req, rng)
                 query.reply(self.keys.sample, wire.encode(reply))
             except wire.WireError as err:
