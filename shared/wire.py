@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import time
 import types
 import typing
 from dataclasses import dataclass, field
@@ -43,6 +44,13 @@ import zstandard as zstd
 
 SCHEMA_VERSION = 1
 PREFIX = "nasa"
+_EPOCH_2025 = 1_735_689_600.0
+
+
+def restart_stamp(per_second: int, bits: int) -> int:
+    """Time since 2025-01-01 in 1/per_second s, mod 2**bits: grows across process restarts, so
+    it orders an actor's incarnations and a learner's weight epochs."""
+    return int((time.time() - _EPOCH_2025) * per_second) % 2**bits
 
 
 class WireError(ValueError):

@@ -41,12 +41,11 @@ from shared.service import Log, StopFlag
 from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
-_EPOCH_2025 = 1_735_689_600.0
 
 
 def new_incarnation() -> int:
     """Tenths of a second since 2025-01-01: grows across restarts (fits 31 bits until 2031)."""
-    return int((time.time() - _EPOCH_2025) * 10) % 2**31
+    return wire.restart_stamp(10, 31)
 
 
 def _default_actor_id() -> int:

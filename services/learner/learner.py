@@ -126,7 +126,7 @@ class Learner:
         self._rates: deque[tuple[float, int, int]] = deque(maxlen=64)
         self._weights_msg: bytes | None = None
         self._started = time.monotonic()
-        self.epoch = int((time.time() - 1_735_689_600.0) * 1000) % 2**62  # orders weights across restarts
+        self.epoch = wire.restart_stamp(1000, 62)  # orders weights across learner restarts
         self.resumed = False
         if (self.out / CHECKPOINT).exists():
             self.restore(checkpoint.load(self.out / CHECKPOINT, self.device))
