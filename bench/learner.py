@@ -60,20 +60,26 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def seconds_per_call(fn: Callable[[], object], repeats: int, device: torch.device, warmup: int = 1) -> float:
+    """Mean wall-clock seconds of fn() after `warmup` untimed calls (allocator, kernels)."""
+    for _ in range(warmup):
+        fn()
+    sync(device)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    sync(device)
+    return (time.perf_counter() - start) / repeats
+
+
 def time_updates(algo: str, batch: dict, updates: int, device: torch.device, **overrides) -> float:
     config = agent_defaults(algo)
     for key, value in overrides.items():
         setattr(config, key, value)
     torch.manual_seed(0)
     agent = make_agent(algo, (9, 84, 84), batch["action"].shape[1], config, device)
-    for _ in range(2):  # warm-up: allocator, kernels, one actor step
-        agent.update(batch)
-    sync(device)
-    start = time.perf_counter()
-    for _ in range(updates):
-        agent.update(batch)
-    sync(device)
-    return updates / (time.perf_counter() - start)
+    # Two warm-up updates: the second is the first with an actor step.
+    return 1.0 / seconds_per_call(lambda: agent.update(batch), updates, device, warmup=2)
 
 
 def time_scoring(batch: dict, repeats: int, device: torch.device) -> tuple[float, dict[str, float]]:
@@ -83,24 +89,18 @@ def time_scoring(batch: dict, repeats: int, device: torch.device) -> tuple[float
     agent = make_agent("nasa_td3", (9, 84, 84), batch["action"].shape[1], agent_defaults("nasa_td3"), device)
     obs, action = batch["obs"], batch["action"]
 
-    def timed(fn: Callable[[], object]) -> float:
-        fn()
-        sync(device)
-        start = time.perf_counter()
-        for _ in range(repeats):
-            fn()
-        sync(device)
-        return (time.perf_counter() - start) / repeats * 1000
+    def ms(fn: Callable[[], object]) -> float:
+        return seconds_per_call(fn, repeats, device) * 1000
 
-    total = timed(lambda: agent.score(obs, action, batch["next_obs"]))
+    total = ms(lambda: agent.score(obs, action, batch["next_obs"]))
     with torch.no_grad():
         z = agent.encoder(obs)
         reconstruction = agent.decoder(z)
         parts = {
-            "encoder_pass": timed(lambda: agent.encoder(obs)),
-            "decoder_pass": timed(lambda: agent.decoder(z)),
-            "ssim": timed(lambda: intrinsic.novelty(obs, reconstruction)),
-            "ensemble": timed(lambda: agent.ensemble(z, action)),
+            "encoder_pass": ms(lambda: agent.encoder(obs)),
+            "decoder_pass": ms(lambda: agent.decoder(z)),
+            "ssim": ms(lambda: intrinsic.novelty(obs, reconstruction)),
+            "ensemble": ms(lambda: agent.ensemble(z, action)),
         }
     return total / len(obs), {k: round(v, 1) for k, v in parts.items()}
 
