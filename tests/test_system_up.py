@@ -3,12 +3,14 @@ and the same command again resumes the run."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -34,14 +36,22 @@ def children_of(pid: int) -> list[int]:
     return found
 
 
-def start_up(data: Path) -> tuple[subprocess.Popen, int]:
+@contextlib.contextmanager
+def nasa_up(data: Path) -> Iterator[tuple[subprocess.Popen, int]]:
+    """`nasa up` on `data` as a user starts it; killed if still running, and nothing left after."""
     port = free_port()
     cmd = [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--actors", "1",
            "--steps", "100000", "--device", "cpu", "--data", str(data), "--port", str(port),
            "--router-port", "0", "--learner-threads", "1", "--logs", "--", *TINY]
     up = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
-    return up, port
+    try:
+        yield up, port
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+    assert children_of(up.pid) == []
 
 
 def wait_status(up: subprocess.Popen, port: int, pred, what: str, timeout: float = 150) -> dict:
@@ -72,8 +82,7 @@ def stop_with_ctrl_c(up: subprocess.Popen) -> None:
 @pytest.mark.timeout(360)
 def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
     data = tmp_path / "run"
-    up, port = start_up(data)
-    try:
+    with nasa_up(data) as (up, port):
         first = up.stdout.readline()
         assert first.startswith("nasa up: preset cpu-small (auto: no GPU"), first
         assert f"http://127.0.0.1:{port}/status" in up.stdout.readline()
@@ -81,18 +90,12 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         assert status["task"] == "cartpole-balance" and status["algo"] == "nasa_td3"
         assert not status["resumed"]
         stop_with_ctrl_c(up)
-    finally:
-        if up.poll() is None:
-            up.kill()
-            up.wait()
-    assert children_of(up.pid) == []
     assert (data / "replay" / "MANIFEST.json").exists() and (data / "learner" / "checkpoint.pt").exists()
 
     # The same command again continues the run: the learner from its checkpoint, the
     # replay from its log.
     saved = torch.load(data / "learner" / "checkpoint.pt", weights_only=True)
-    again, port = start_up(data)
-    try:
+    with nasa_up(data) as (again, port):
         resumed = wait_status(
             again, port, lambda s: s["resumed"] and s["replay"]["size"] > 0, "a resumed run"
         )
@@ -100,8 +103,3 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         assert resumed["replay"]["size"] >= status["replay"]["size"]
         wait_status(again, port, lambda s: s["updates"] > resumed["updates"], "learning to go on")
         stop_with_ctrl_c(again)
-    finally:
-        if again.poll() is None:
-            again.kill()
-            again.wait()
-    assert children_of(again.pid) == []
