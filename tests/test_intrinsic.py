@@ -1,4 +1,9 @@
-"""Novelty matches scikit-image's SSIM (the reference's) on real frames; surprise is the ensemble MSE."""
+"""Novelty matches scikit-image's SSIM (the reference's) on real frames, in both implementations
+(the CPU kernel and the torch one other devices use); surprise is the ensemble MSE."""
+
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -31,12 +36,18 @@ def reference_novelty(obs: np.ndarray, reconstruction: np.ndarray) -> float:
     return 1 - value
 
 
-def test_novelty_matches_scikit_image_on_rendered_frames_and_reconstructions(rendered_stacks):
+def torch_novelty(obs: torch.Tensor, reconstruction: torch.Tensor) -> torch.Tensor:
+    return 1 - intrinsic.ssim_torch(obs.float() / 255, reconstruction)
+
+
+@pytest.mark.parametrize("novelty", [intrinsic.novelty, torch_novelty], ids=["cpu_kernel", "torch"])
+def test_novelty_matches_scikit_image_on_rendered_frames_and_reconstructions(rendered_stacks, novelty):
     agent = make_agent("nasa_td3", (9, 84, 84), 6, agent_defaults("nasa_td3"), torch.device("cpu"))
     obs = torch.from_numpy(rendered_stacks)
     with torch.no_grad():
         reconstruction = agent.decoder(agent.encoder(obs))
-    ours = intrinsic.novelty(obs, reconstruction).numpy()
+    assert reconstruction.is_contiguous(memory_format=torch.channels_last)  # the layout scoring sees
+    ours = novelty(obs, reconstruction).numpy()
     expected = [
         reference_novelty(o.astype(np.float64), r.astype(np.float64))
         for o, r in zip(rendered_stacks, reconstruction.numpy(), strict=True)
@@ -44,14 +55,14 @@ def test_novelty_matches_scikit_image_on_rendered_frames_and_reconstructions(ren
     np.testing.assert_allclose(ours, expected, atol=1e-4)
 
 
-def test_ssim_matches_scikit_image_on_near_copies(rendered_stacks):
-    # Three noise levels of six stacks: 18 samples span several CPU blocks and a partial one.
+@pytest.mark.parametrize("ssim", [intrinsic.ssim, intrinsic.ssim_torch], ids=["cpu_kernel", "torch"])
+def test_ssim_matches_scikit_image_on_near_copies(rendered_stacks, ssim):
+    # Three noise levels of six stacks, so that samples differ in data range and noise.
     rng = np.random.default_rng(1)
     x = np.tile(rendered_stacks.astype(np.float64) / 255, (3, 1, 1, 1))
     noise = np.repeat([0.01, 0.02, 0.05], len(rendered_stacks))[:, None, None, None]
     y = np.clip(x + rng.normal(0, 1, x.shape) * noise, 0, 1)
-    assert len(x) > 2 * intrinsic.CPU_BLOCK and len(x) % intrinsic.CPU_BLOCK
-    ours = intrinsic.ssim(torch.from_numpy(x), torch.from_numpy(y)).numpy()
+    ours = ssim(torch.from_numpy(x), torch.from_numpy(y)).numpy()
     expected = [
         structural_similarity(a, b, data_range=a.max() - a.min(), channel_axis=0)
         for a, b in zip(x, y, strict=True)
@@ -61,14 +72,39 @@ def test_ssim_matches_scikit_image_on_near_copies(rendered_stacks):
     assert np.ptp(expected) > 0.1  # and the noise levels are told apart
 
 
-def test_ssim_of_an_image_with_itself_is_one(rendered_stacks):
+@pytest.mark.parametrize("ssim", [intrinsic.ssim, intrinsic.ssim_torch], ids=["cpu_kernel", "torch"])
+def test_ssim_of_an_image_with_itself_is_one(rendered_stacks, ssim):
     x = torch.from_numpy(rendered_stacks).float() / 255
-    torch.testing.assert_close(intrinsic.ssim(x, x), torch.ones(len(x)))
+    torch.testing.assert_close(ssim(x, x), torch.ones(len(x)))
 
 
-def test_ssim_rejects_mismatched_shapes():
+def test_ssim_rejects_mismatched_shapes_and_tiny_images():
     with pytest.raises(ValueError, match="one shape"):
         intrinsic.ssim(torch.zeros(1, 3, 16, 16), torch.zeros(1, 3, 16, 8))
+    with pytest.raises(ValueError, match="at least 7x7"):
+        intrinsic.ssim(torch.zeros(1, 3, 16, 6), torch.zeros(1, 3, 16, 6))
+
+
+CONCURRENT_NOVELTY = """
+from concurrent.futures import ThreadPoolExecutor
+import numba, torch
+from shared import intrinsic
+obs = torch.randint(0, 256, (8, 9, 84, 84), dtype=torch.uint8)
+reconstruction = torch.rand(obs.shape)
+expected = intrinsic.novelty(obs, reconstruction)
+with ThreadPoolExecutor(4) as pool:
+    results = list(pool.map(lambda _: intrinsic.novelty(obs, reconstruction), range(16)))
+assert numba.threading_layer() == "workqueue", numba.threading_layer()
+assert all(torch.equal(r, expected) for r in results)
+"""
+
+
+def test_novelty_from_several_threads_at_once_with_numbas_plain_thread_pool():
+    # Any thread may score. numba's fallback thread pool (workqueue, used where neither
+    # OpenMP nor TBB is found) aborts the process when two threads enter it at once.
+    env = os.environ | {"NUMBA_THREADING_LAYER": "workqueue"}
+    run = subprocess.run([sys.executable, "-c", CONCURRENT_NOVELTY], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
 
 
 def test_surprise_is_mse_of_the_ensemble_mean():
