@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+
 import torch
+
+# glibc's mallopt parameters (malloc.h).
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+KEEP_FREED_BYTES = 1 << 30
 
 
 class DeviceError(RuntimeError):
@@ -10,7 +18,31 @@ class DeviceError(RuntimeError):
 
 
 def resolve_device(name: str) -> torch.device:
-    """`auto` -> cuda when present, else cpu; `cuda[:N]` must exist."""
+    """`auto` -> cuda when present, else cpu; `cuda[:N]` must exist. On the CPU the
+    process also keeps freed memory for reuse (`keep_freed_memory`)."""
+    device = _parse_device(name)
+    if device.type == "cpu":
+        keep_freed_memory()
+    return device
+
+
+def keep_freed_memory() -> bool:
+    """Let glibc's malloc keep freed blocks of up to 1 GiB instead of unmapping them.
+
+    By default a freed block over 32 MiB (a batch's decoded images, its gradients)
+    goes back to the OS, and the next update page-faults it in afresh, zeroed: about
+    15% of an update on this CPU. The process keeps its peak footprint instead.
+    A no-op (False) where the C library is not glibc."""
+    libc_name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(libc_name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, KEEP_FREED_BYTES)) and bool(mallopt(_M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
+
+
+def _parse_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:

@@ -1,6 +1,8 @@
 """Config validation, device choice, task names, frame stacking and render quality."""
 
 import dataclasses
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -106,6 +108,33 @@ def test_device_errors_are_clear():
     if not torch.cuda.is_available():
         with pytest.raises(DeviceError, match="CUDA is not available"):
             resolve_device("cuda")
+
+
+FREE_A_LARGE_BLOCK = """
+import sys
+import torch
+from shared.device import resolve_device
+if sys.argv[1] == "cpu":
+    resolve_device("cpu")
+page = 4096
+def resident_mib():
+    return int(open("/proc/self/statm").read().split()[1]) * page / 2**20
+before = resident_mib()
+block = torch.ones(64 * 2**20 // 4)  # 64 MiB, above glibc's largest default mmap threshold
+del block
+print(resident_mib() - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
+def test_on_the_cpu_freed_tensors_stay_with_the_process_for_reuse():
+    def kept_mib(*args: str) -> float:
+        run = subprocess.run([sys.executable, "-c", FREE_A_LARGE_BLOCK, *args], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        return float(run.stdout)
+
+    assert kept_mib("none") < 8  # glibc's default: unmapped at once
+    assert kept_mib("cpu") > 56  # kept, so the next batch does not page-fault it in again
 
 
 def test_unknown_task_lists_the_valid_ones():
