@@ -135,14 +135,16 @@ class Decoder(nn.Module):
         layers.append(
             nn.ConvTranspose2d(num_filters, obs_shape[0], 3, stride=2, output_padding=output_padding)
         )
-        if sigmoid_output:
-            layers.append(nn.Sigmoid())
         self.deconvs = nn.Sequential(*layers)
+        self.sigmoid_output = sigmoid_output
         self.apply(weight_init)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        h = torch.relu(self.fc(z)).view(-1, *self.conv_shape)
-        return self.deconvs(h)
+        # Channels-last as in the encoder; in-place activations spare two image-sized
+        # passes over memory (neither producer needs its output for its gradient).
+        h = torch.relu_(self.fc(z)).view(-1, *self.conv_shape)
+        x = self.deconvs(h.contiguous(memory_format=torch.channels_last))
+        return torch.sigmoid_(x) if self.sigmoid_output else x
 
 
 class DeterministicActor(nn.Module):
