@@ -249,3 +249,44 @@ def test_decoder_stride_one_layers_equal_transposed_convolutions():
     assert fast.shape == expected.shape == (4, 5, 13, 15)
     torch.testing.assert_close(fast, expected, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(ours(x), expected)  # with gradients: the transposed path
+
+
+def stored_rows(actors: int = 2, steps: int = 5, seed: int = 0):
+    """Rows as the replay stores them: actors' steps interleaved, each next stack the obs
+    stack of the same actor's next row. Returns obs, next_obs and each row's successor."""
+    g = torch.Generator().manual_seed(seed)
+    frames = torch.randint(0, 256, (actors, steps + 3, 3, *OBS_SHAPE[1:]), dtype=torch.uint8, generator=g)
+    obs, next_obs, successor = [], [], []
+    for t in range(steps):
+        for a in range(actors):
+            obs.append(frames[a, t : t + 3].flatten(0, 1))
+            next_obs.append(frames[a, t + 1 : t + 4].flatten(0, 1))
+            successor.append(len(successor) + actors if t + 1 < steps else -1)
+    return torch.stack(obs), torch.stack(next_obs), successor
+
+
+def test_chained_rows_pairs_each_next_stack_with_its_successors_obs_only():
+    from shared.agents.td3_ae import chained_rows
+
+    obs, next_obs, successor = stored_rows()
+    assert chained_rows(obs, next_obs).tolist() == successor
+    # A decoy equal to an unchained next stack on every fingerprint row (each 12th) but
+    # one pixel: it must not be taken for it.
+    last = successor.index(-1)
+    decoy = next_obs[last].clone()
+    decoy[0, 5, 5] ^= 1
+    found = chained_rows(torch.cat([obs, decoy[None]]), next_obs)
+    assert found[last] == -1 and found.tolist() == successor
+    assert (chained_rows(obs, next_obs.flip(-1)) == -1).all()  # an i.i.d.-like batch: no chain
+
+
+def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
+    agent = make("nasa_td3")
+    obs, next_obs, successor = stored_rows()
+    action = torch.rand(len(obs), ACTION_DIM) * 2 - 1
+    scores = agent.score(obs, action, next_obs)
+    with torch.no_grad():
+        alone = [agent.score(o[None], a[None], n[None]) for o, a, n in zip(obs, action, next_obs, strict=True)]
+    for name in ("novelty", "surprise", "intrinsic"):
+        torch.testing.assert_close(scores[name], torch.cat([s[name] for s in alone]), rtol=1e-4, atol=1e-6)
+    assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains
