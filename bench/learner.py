@@ -97,7 +97,9 @@ def scoring_batches(stacks: np.ndarray, batch: int, action_dim: int, device: tor
     }
 
 
-def time_scoring(batches: dict, repeats: int, device: torch.device) -> tuple[dict[str, float], dict[str, float]]:
+def time_scoring(
+    batches: dict, repeats: int, device: torch.device
+) -> tuple[dict[str, float], dict[str, float]]:
     """Milliseconds per transition to score novelty + surprise in each batch, and the
     milliseconds per batch of each part (one encoder pass, the decoder, SSIM, ensemble)."""
     torch.manual_seed(0)
@@ -144,7 +146,8 @@ def main() -> None:
         rate = time_updates(algo, batch, args.updates, device, shared_encoder_pass=True)
         result["updates_per_s"][f"{algo}+shared_encoder_pass"] = round(rate, 3)
         print(f"{algo:10s} {rate:6.3f} updates/s with shared_encoder_pass (not the reference's order)")
-    score_ms, parts = time_scoring(scoring_batches(stacks, args.batch, 6, device, rng), args.score_repeats, device)
+    to_score = scoring_batches(stacks, args.batch, 6, device, rng)
+    score_ms, parts = time_scoring(to_score, args.score_repeats, device)
     for name, value in score_ms.items():
         print(f"scoring, {name}: {value:.3f} ms per transition in batches of {args.batch} "
               f"({REFERENCE_SCORE_MS / value:.1f}x the reference)")

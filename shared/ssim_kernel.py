@@ -45,7 +45,9 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, sums, window):  # pragma: no cover
                 )
     for q in range(4):
         for j in range(cols):
-            window[q, j] = sums[0, q, j] + sums[1, q, j] + sums[2, q, j] + sums[3, q, j] + sums[4, q, j] + sums[5, q, j]
+            window[q, j] = (
+                sums[0, q, j] + sums[1, q, j] + sums[2, q, j] + sums[3, q, j] + sums[4, q, j] + sums[5, q, j]
+            )
     total = 0.0
     for h in range(height - WIN + 1):
         for q in range(4):

@@ -286,7 +286,8 @@ def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
     action = torch.rand(len(obs), ACTION_DIM) * 2 - 1
     scores = agent.score(obs, action, next_obs)
     with torch.no_grad():
-        alone = [agent.score(o[None], a[None], n[None]) for o, a, n in zip(obs, action, next_obs, strict=True)]
+        rows = zip(obs, action, next_obs, strict=True)
+        alone = [agent.score(o[None], a[None], n[None]) for o, a, n in rows]
     for name in ("novelty", "surprise", "intrinsic"):
         torch.testing.assert_close(scores[name], torch.cat([s[name] for s in alone]), rtol=1e-4, atol=1e-6)
     assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains

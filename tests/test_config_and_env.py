@@ -129,7 +129,8 @@ print(resident_mib() - before)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
 def test_on_the_cpu_freed_tensors_stay_with_the_process_for_reuse():
     def kept_mib(*args: str) -> float:
-        run = subprocess.run([sys.executable, "-c", FREE_A_LARGE_BLOCK, *args], capture_output=True, text=True)
+        command = [sys.executable, "-c", FREE_A_LARGE_BLOCK, *args]
+        run = subprocess.run(command, capture_output=True, text=True)
         assert run.returncode == 0, run.stderr
         return float(run.stdout)
 
