@@ -291,3 +291,24 @@ def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
     for name in ("novelty", "surprise", "intrinsic"):
         torch.testing.assert_close(scores[name], torch.cat([s[name] for s in alone]), rtol=1e-4, atol=1e-6)
     assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains
+
+
+def test_a_fresh_update_reuses_the_scored_next_latent_with_the_same_result():
+    shared, recomputed = (make("nasa_td3", intrinsic_timing="fresh") for _ in range(2))
+    recomputed.load_state_dict(shared.state_dict())
+    score_only = type(recomputed).score_with_next_latent
+    # Without the latent, the TD target encodes next_obs itself.
+    recomputed.score_with_next_latent = lambda *args: (score_only(recomputed, *args)[0], None)
+    passes = {}
+    for agent in (shared, recomputed):
+        passes[agent] = 0
+        agent.encoder.register_forward_pre_hook(
+            lambda module, args, agent=agent: passes.__setitem__(agent, passes[agent] + 1)
+        )
+        torch.manual_seed(3)
+        agent.update(random_batch())
+    assert passes[shared] == passes[recomputed] - 1  # the TD target did not encode next_obs again
+    for name, value in recomputed.encoder.state_dict().items():
+        torch.testing.assert_close(shared.encoder.state_dict()[name], value)
+    for name, value in recomputed.critic.state_dict().items():
+        torch.testing.assert_close(shared.critic.state_dict()[name], value)

@@ -89,10 +89,17 @@ class TD3AE(ModuleStateMixin):
 
     # -- intrinsic rewards ----------------------------------------------------
 
-    @torch.no_grad()
     def score(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
     ) -> dict[str, torch.Tensor]:
+        """Novelty, surprise and their weighted sum (`intrinsic`) per transition."""
+        return self.score_with_next_latent(obs, action, next_obs)[0]
+
+    @torch.no_grad()
+    def score_with_next_latent(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """`score`, and Enc(next_obs), which a fresh-timing update's TD target reuses."""
         if not self.uses_intrinsic:
             raise RuntimeError(f"{self.algo} has no intrinsic rewards")
         z = self.encoder(obs)
@@ -100,7 +107,7 @@ class TD3AE(ModuleStateMixin):
         novelty = intrinsic.novelty(obs, self.decoder(z))
         surprise = intrinsic.surprise(self.ensemble(z, action), z_next)
         total = self.config.novelty_weight * novelty + self.config.surprise_weight * surprise
-        return {"novelty": novelty, "surprise": surprise, "intrinsic": total}
+        return {"novelty": novelty, "surprise": surprise, "intrinsic": total}, z_next
 
     @torch.no_grad()
     def encode_next(self, obs: torch.Tensor, z: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
@@ -125,14 +132,17 @@ class TD3AE(ModuleStateMixin):
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
         metrics: dict[str, float] = {}
+        next_latent = None
         if self.uses_intrinsic:
             if c.intrinsic_timing == "fresh":
-                bonus = self.score(obs, action, next_obs)["intrinsic"]
+                # Same encoder, same input: the TD target's Enc(next_obs) is this one.
+                scores, next_latent = self.score_with_next_latent(obs, action, next_obs)
+                bonus = scores["intrinsic"]
             else:
                 bonus = torch.nan_to_num(batch["intrinsic"], nan=0.0)
             reward = reward + bonus.view(-1, 1)
             metrics["intrinsic_batch_mean"] = bonus.mean().item()
-        q_target = self.td_target(reward, batch["discount"].view(-1, 1), next_obs)
+        q_target = self.td_target(reward, batch["discount"].view(-1, 1), next_obs, next_latent)
         if self.uses_decoder and c.shared_encoder_pass:
             metrics |= self.update_critic_and_autoencoder(obs, action, q_target)
         else:
@@ -151,10 +161,17 @@ class TD3AE(ModuleStateMixin):
         return metrics
 
     @torch.no_grad()
-    def td_target(self, reward: torch.Tensor, discount: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        """Clipped double-Q target with target policy smoothing; targets read the online encoder."""
+    def td_target(
+        self,
+        reward: torch.Tensor,
+        discount: torch.Tensor,
+        next_obs: torch.Tensor,
+        next_latent: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Clipped double-Q target with target policy smoothing; targets read the online encoder
+        (`next_latent`: Enc(next_obs) already computed with the current weights)."""
         c = self.config
-        z_next = self.encoder(next_obs)
+        z_next = self.encoder(next_obs) if next_latent is None else next_latent
         next_action = self.actor_target(z_next)
         noise = (torch.randn_like(next_action) * c.target_noise).clamp(
             -c.target_noise_clip, c.target_noise_clip
