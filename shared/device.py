@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 
 import torch
 
@@ -33,11 +32,9 @@ def keep_freed_memory() -> bool:
     goes back to the OS, and the next update page-faults it in afresh, zeroed: about
     15% of an update on this CPU. The process keeps its peak footprint instead.
     A no-op (False) where the C library is not glibc."""
-    libc_name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(libc_name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library
+    except (OSError, AttributeError):
         return False
     kept = mallopt(_M_MMAP_THRESHOLD, KEEP_FREED_BYTES)
     return bool(kept) and bool(mallopt(_M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
