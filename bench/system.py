@@ -79,11 +79,12 @@ def inprocess_update_loop(args: argparse.Namespace) -> float:
     from services.replay.store import ReplayStore
     from shared import envs
     from shared.agents import batch_to_device, make_agent
+    from shared.device import resolve_device
 
     torch.set_num_threads(args.learner_threads)
     c = preset_config(args)
     env = envs.from_config(c.env, 0)
-    device = torch.device(args.device)
+    device = resolve_device(args.device)  # as `nasa train` and the learner service
     agent = make_agent(c.algo, env.obs_shape, env.action_dim, c.agent, device)
     rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory() as tmp:
