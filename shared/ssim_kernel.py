@@ -1,10 +1,12 @@
 """SSIM on the CPU as one compiled pass per image plane (numba).
 
 The same statistic as `intrinsic.ssim_torch` (scikit-image's defaults), but each
-84x84 plane's four local sums stay in cache and the formula runs fused, instead
-of a dozen full-size intermediates: about 4x faster than the torch version on
-this 2-core CPU. The 7x7 window is a sum of seven shifted rows then seven rows;
-the vertical sum slides (add the entering row, drop the leaving one).
+84x84 plane streams through cache-sized buffers and the formula runs fused,
+instead of a dozen full-size intermediates: about 5x faster than the torch
+version on this 2-core CPU. Per input row: the horizontal 7-sums of x, y,
+x^2 + y^2 (SSIM needs only var_x + var_y) and xy go into a ring of the last
+seven rows, and the vertical window slides by adding the new row's sums and
+dropping the oldest. Rows are padded to whole vectors; a mask drops the padding.
 """
 
 from __future__ import annotations
@@ -15,20 +17,23 @@ import numba
 import numpy as np
 
 WIN = 7
+_LANES = 16  # float32 lanes of an AVX-512 vector: rows are padded to a multiple
 # fastmath lets LLVM vectorise the sums; error_model="numpy" keeps a division by
 # zero (a constant image, data range 0) a NaN, as torch and scikit-image give.
 _JIT = dict(fastmath=True, boundscheck=False, error_model="numpy", cache=True)
 
 
 @numba.njit(**_JIT)
-def _plane_ssim_sum(x, y, scale, c1, c2, row, sums, window):  # pragma: no cover - compiled
+def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid):  # pragma: no cover - compiled
     """Sum of the valid SSIM map of one (H, W) plane pair; x is multiplied by `scale`."""
     height, width = x.shape
-    cols = width - WIN + 1
+    span = window.shape[1]
     n = WIN * WIN
     cov_norm = np.float32(n / (n - 1.0))  # sample covariance
     inv_n = np.float32(1.0 / n)
-    # Horizontal 7-sums of x, y, x^2 + y^2 (SSIM needs only var_x + var_y) and xy, per row.
+    ring[:] = 0.0
+    window[:] = 0.0
+    total = 0.0
     for h in range(height):
         for w in range(width):
             a = np.float32(x[h, w]) * scale
@@ -37,35 +42,26 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, sums, window):  # pragma: no cover
             row[1, w] = b
             row[2, w] = a * a + b * b
             row[3, w] = a * b
+        slot = h % WIN
         for q in range(4):
-            for j in range(cols):
-                sums[h, q, j] = (
+            for j in range(span):
+                s = (
                     row[q, j] + row[q, j + 1] + row[q, j + 2] + row[q, j + 3]
                     + row[q, j + 4] + row[q, j + 5] + row[q, j + 6]
                 )
-    for q in range(4):
-        for j in range(cols):
-            window[q, j] = (
-                sums[0, q, j] + sums[1, q, j] + sums[2, q, j] + sums[3, q, j] + sums[4, q, j] + sums[5, q, j]
-            )
-    total = 0.0
-    for h in range(height - WIN + 1):
-        for q in range(4):
-            for j in range(cols):
-                window[q, j] += sums[h + WIN - 1, q, j]
-        acc = np.float32(0.0)
-        for j in range(cols):
-            ux = window[0, j] * inv_n
-            uy = window[1, j] * inv_n
-            uxuy = ux * uy
-            u2 = ux * ux + uy * uy
-            numerator = (2 * uxuy + c1) * (2 * cov_norm * (window[3, j] * inv_n - uxuy) + c2)
-            denominator = (u2 + c1) * (cov_norm * (window[2, j] * inv_n - u2) + c2)
-            acc += numerator / denominator
-        total += acc
-        for q in range(4):
-            for j in range(cols):
-                window[q, j] -= sums[h, q, j]
+                window[q, j] += s - ring[slot, q, j]
+                ring[slot, q, j] = s
+        if h >= WIN - 1:
+            acc = np.float32(0.0)
+            for j in range(span):
+                ux = window[0, j] * inv_n
+                uy = window[1, j] * inv_n
+                uxuy = ux * uy
+                u2 = ux * ux + uy * uy
+                numerator = (2 * uxuy + c1) * (2 * cov_norm * (window[3, j] * inv_n - uxuy) + c2)
+                denominator = (u2 + c1) * (cov_norm * (window[2, j] * inv_n - u2) + c2)
+                acc += valid[j] * (numerator / denominator)
+            total += acc
     return total
 
 
@@ -73,13 +69,16 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, sums, window):  # pragma: no cover
 def _batch_ssim(x, y, scale):  # pragma: no cover - compiled
     batch, channels, height, width = x.shape
     cols = width - WIN + 1
+    span = (cols + _LANES - 1) // _LANES * _LANES
+    valid = np.zeros(span, np.float32)
+    valid[:cols] = 1.0
     out = np.empty(batch, np.float64)
     scale = np.float32(scale)
     channels_last = y.strides[1] < y.strides[3]
     for b in numba.prange(batch):
-        row = np.empty((4, width), np.float32)
-        sums = np.empty((height, 4, cols), np.float32)
-        window = np.empty((4, cols), np.float32)
+        row = np.zeros((4, span + WIN - 1), np.float32)  # zero padding past the image
+        ring = np.empty((WIN, 4, span), np.float32)
+        window = np.empty((4, span), np.float32)
         # y's planes, copied in y's memory order: a channels-last y (the decoder's
         # output) read plane by plane would stride across every plane at each pixel.
         planes = np.empty((channels, height, width), np.float32)
@@ -95,12 +94,12 @@ def _batch_ssim(x, y, scale):  # pragma: no cover - compiled
         c2 = (np.float32(0.03) * data_range) ** 2
         total = 0.0
         for c in range(channels):
-            total += _plane_ssim_sum(x[b, c], planes[c], scale, c1, c2, row, sums, window)
+            total += _plane_ssim_sum(x[b, c], planes[c], scale, c1, c2, row, ring, window, valid)
         out[b] = total / (channels * (height - WIN + 1) * cols)
     return out
 
 
-# numba's default thread pool must not be entered from two threads at once.
+# numba's plain thread pool (workqueue) must not be entered from two threads at once.
 _lock = threading.Lock()
 
 
