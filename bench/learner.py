@@ -100,8 +100,10 @@ def scoring_batches(stacks: np.ndarray, batch: int, action_dim: int, device: tor
 def time_scoring(
     batches: dict, repeats: int, device: torch.device
 ) -> tuple[dict[str, float], dict[str, float]]:
-    """Milliseconds per transition to score novelty + surprise in each batch, and the
-    milliseconds per batch of each part (one encoder pass, the decoder, SSIM, ensemble)."""
+    """Milliseconds per transition to score novelty + surprise in each batch and one
+    transition at a time (`batch_1`: the single-process trainer, like the reference),
+    and the milliseconds per batch of each part (one encoder pass, the decoder, SSIM,
+    ensemble)."""
     torch.manual_seed(0)
     obs, action, next_obs = batches["unchained"]
     agent = make_agent("nasa_td3", tuple(obs.shape[1:]), action.shape[1], agent_defaults("nasa_td3"), device)
@@ -110,6 +112,8 @@ def time_scoring(
         return seconds_per_call(fn, repeats, device) * 1000
 
     per_transition = {name: ms(lambda b=b: agent.score(*b)) / len(b[0]) for name, b in batches.items()}
+    singles = [(o[None], a[None], n[None]) for o, a, n in zip(obs[:32], action, next_obs, strict=False)]
+    per_transition["batch_1"] = ms(lambda: [agent.score(*one) for one in singles]) / len(singles)
     with torch.no_grad():
         z = agent.encoder(obs)
         reconstruction = agent.decoder(z)
@@ -149,7 +153,8 @@ def main() -> None:
     to_score = scoring_batches(stacks, args.batch, 6, device, rng)
     score_ms, parts = time_scoring(to_score, args.score_repeats, device)
     for name, value in score_ms.items():
-        print(f"scoring, {name}: {value:.3f} ms per transition in batches of {args.batch} "
+        size = 1 if name == "batch_1" else args.batch
+        print(f"scoring, {name}: {value:.3f} ms per transition in batches of {size} "
               f"({REFERENCE_SCORE_MS / value:.1f}x the reference)")
     print(f"scoring parts, ms per batch (unchained: 2 encoder passes + the rest): {parts}")
     result["score_ms_per_transition"] = {k: round(v, 3) for k, v in score_ms.items()}
