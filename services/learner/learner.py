@@ -23,6 +23,8 @@
 - Checkpoint (atomic, shared/checkpoint.py) in <data>/learner/ every
   checkpoint_every global env steps, at the end and on SIGTERM/SIGINT; a
   restarted learner resumes from it (the replay keeps its own data).
+- When it stops, the learner writes its last /status to <data>/learner/status.json,
+  so a finished run's counts outlive the status API.
 - The run ends when the replay's step budget is reached and the learner has
   done G * (steps - warmup) updates (or the limiter allows no more); the
   learner then waits for the last evaluation, checkpoints, and publishes Stop.
@@ -54,6 +56,7 @@ from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 CHECKPOINT = "learner/checkpoint.pt"
+FINAL_STATUS = "learner/status.json"
 
 
 @dataclass
@@ -61,7 +64,8 @@ class LearnerArgs(ServiceArgs):
     """The learner: updates the agent from replay batches, publishes weights, serves /status."""
 
     data: Path = field(default_factory=lambda: Path(os.environ.get("NASA_DATA", "runs/default")))
-    """Run folder: config.json, eval.csv, train.csv, learner/checkpoint.pt (env NASA_DATA)."""
+    """Run folder: config.json, eval.csv, train.csv, learner/checkpoint.pt, learner/status.json
+    (env NASA_DATA)."""
     host: str = field(default_factory=lambda: os.environ.get("NASA_STATUS_HOST", "127.0.0.1"))
     """Address of the status API (env NASA_STATUS_HOST; 0.0.0.0 in a container)."""
     port: int = field(default_factory=lambda: int(os.environ.get("NASA_STATUS_PORT", "8000")))
@@ -151,6 +155,13 @@ class Learner:
             },
         )
         self.last_checkpoint_step = self.env_steps
+
+    def write_final_status(self) -> None:
+        """The last /status, in the run folder (atomically: a reader never sees half of it)."""
+        path = self.out / FINAL_STATUS
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.status(), indent=2) + "\n")
+        os.replace(tmp, path)
 
     def restore(self, state: dict) -> None:
         self.agent.load_state_dict(state["agent"])
@@ -444,6 +455,7 @@ class Learner:
             self.publish_weights(publisher)
             self._wait_final_eval()
         self.save_checkpoint()
+        self.write_final_status()
         if finished:
             self.log(f"run done: {self.env_steps} env steps, {agent.num_updates} updates")
             self.session.put(self.keys.stop, wire.encode(wire.Stop("run done")), congestion_control=BLOCK)
