@@ -20,7 +20,7 @@ WIN = 7
 _LANES = 16  # float32 lanes of an AVX-512 vector: rows are padded to a multiple
 # fastmath lets LLVM vectorise the sums; error_model="numpy" keeps a division by
 # zero (a constant image, data range 0) a NaN, as torch and scikit-image give.
-_JIT = dict(fastmath=True, boundscheck=False, error_model="numpy", cache=True)
+_JIT = dict(fastmath={"reassoc", "contract", "arcp", "nsz"}, boundscheck=False, error_model="numpy", cache=True)
 
 
 @numba.njit(**_JIT)

@@ -54,7 +54,9 @@ class System:
             return None
 
     def wait_for(self, what: str, pred: Callable[[dict], bool], timeout: float = 120.0,
-                 poll_supervisor: bool = True) -> dict:
+                 poll_supervisor: bool = True, or_run_done: bool = False) -> dict | None:
+        """The first status that satisfies pred; with `or_run_done`, None once the learner
+        has finished the run and exited (a fast run can end between two polls)."""
         deadline = time.monotonic() + timeout
         last = None
         while time.monotonic() < deadline:
@@ -65,6 +67,8 @@ class System:
                 last = s
                 if pred(s):
                     return s
+            elif or_run_done and self.sup.children["learner"].exited == 0:
+                return None
             time.sleep(0.2)
         raise AssertionError(f"timed out waiting for {what}; last status: {last}\n{self.logs()}")
 
