@@ -235,7 +235,8 @@ def up(argv: list[str]) -> None:
 
 
 def status(argv: list[str]) -> None:
-    """`nasa status [--url URL]`: print the learner's /status."""
+    """`nasa status [--url URL] [--data DIR]`: print the learner's /status, or the last one
+    it left in DIR when it is not running."""
     import json
 
     import httpx
@@ -243,15 +244,23 @@ def status(argv: list[str]) -> None:
 
     @dataclass
     class StatusCommand:
-        """Print the status of a running system (the learner's GET /status)."""
+        """Print the status of a running system (the learner's GET /status); with --data, a
+        stopped run's last status (<data>/learner/status.json) when the learner is not running."""
 
         url: str = "http://127.0.0.1:8000/status"
+        data: Path | None = None
 
     cmd = tyro.cli(StatusCommand, args=argv, prog="nasa status")
     try:
         response = httpx.get(cmd.url, timeout=5.0)
         response.raise_for_status()
     except httpx.HTTPError as err:
-        print(f"nasa status: cannot read {cmd.url}: {err}", file=sys.stderr)
-        sys.exit(1)
+        saved = cmd.data / "learner" / "status.json" if cmd.data else None
+        if saved is None or not saved.exists():
+            hint = f" and there is no {saved}" if saved else " (a stopped run: --data DIR)"
+            print(f"nasa status: cannot read {cmd.url}: {err}{hint}", file=sys.stderr)
+            sys.exit(1)
+        print(f"nasa status: the learner is not running; its last status, from {saved}:", file=sys.stderr)
+        print(saved.read_text().rstrip())
+        return
     print(json.dumps(response.json(), indent=2))

@@ -92,6 +92,18 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         stop_with_ctrl_c(up)
     assert (data / "replay" / "MANIFEST.json").exists() and (data / "learner" / "checkpoint.pt").exists()
 
+    # Stopped, the run still answers `nasa status --data` with the learner's last status.
+    dead = f"http://127.0.0.1:{port}/status"
+    last = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--url", dead, "--data", str(data)],
+                          cwd=REPO, capture_output=True, text=True)
+    assert last.returncode == 0, last.stderr
+    assert "not running" in last.stderr
+    last_status = json.loads(last.stdout)
+    assert last_status["run_id"] == status["run_id"] and last_status["updates"] >= status["updates"]
+    missing = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--url", dead, "--data",
+                              str(tmp_path / "nowhere")], cwd=REPO, capture_output=True, text=True)
+    assert missing.returncode == 1 and "no " in missing.stderr
+
     # The same command again continues the run: the learner from its checkpoint, the
     # replay from its log.
     saved = torch.load(data / "learner" / "checkpoint.pt", weights_only=True)
