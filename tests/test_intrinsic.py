@@ -121,3 +121,15 @@ def test_score_weights_novelty_and_surprise():
     obs = torch.randint(0, 256, (4, 9, 32, 32), dtype=torch.uint8)
     scores = agent.score(obs, torch.zeros(4, 2), obs)
     torch.testing.assert_close(scores["intrinsic"], 2.0 * scores["novelty"] + 3.0 * scores["surprise"])
+
+
+def test_novelty_reads_obs_in_the_replay_s_layout(rendered_stacks):
+    # The replay hands out obs and next_obs as views of one (B, stack + 1, 3, H, W) window,
+    # so obs is not contiguous: the kernel must read it as it is.
+    frames = torch.from_numpy(rendered_stacks).view(len(rendered_stacks), 3, 3, 84, 84)
+    window = torch.cat([frames, frames[:, :1]], dim=1)  # (B, 4, 3, H, W)
+    obs = window[:, :3].flatten(1, 2)
+    assert not obs.is_contiguous()
+    reconstruction = torch.rand(obs.shape).contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(intrinsic.novelty(obs, reconstruction),
+                               intrinsic.novelty(obs.contiguous(), reconstruction))
