@@ -293,22 +293,31 @@ def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
     assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains
 
 
-def test_a_fresh_update_reuses_the_scored_next_latent_with_the_same_result():
-    shared, recomputed = (make("nasa_td3", intrinsic_timing="fresh") for _ in range(2))
-    recomputed.load_state_dict(shared.state_dict())
-    score_only = type(recomputed).score_with_next_latent
-    # Without the latent, the TD target encodes next_obs itself.
-    recomputed.score_with_next_latent = lambda *args: (score_only(recomputed, *args)[0], None)
+@pytest.mark.parametrize("shared_encoder_pass", [False, True])
+def test_a_fresh_update_scores_with_the_encoder_passes_it_makes_anyway(shared_encoder_pass):
+    # Scoring, the TD target and the critic read the same weights: one Enc(obs) and one
+    # Enc(next_obs) serve all three, with the same result as computing each apart.
+    shared, apart, collect = (
+        make("nasa_td3", intrinsic_timing=t, shared_encoder_pass=shared_encoder_pass)
+        for t in ("fresh", "fresh", "collect")
+    )
+    for other in (apart, collect):
+        other.load_state_dict(shared.state_dict())
+    scoring = type(apart).score_with_next_latent
+    # Ignoring the given latent and returning none: scoring and the TD target encode themselves.
+    apart.score_with_next_latent = lambda obs, action, next_obs, latent=None: (
+        scoring(apart, obs, action, next_obs)[0], None)
     passes = {}
-    for agent in (shared, recomputed):
+    for agent in (shared, apart, collect):
         passes[agent] = 0
         agent.encoder.register_forward_pre_hook(
             lambda module, args, agent=agent: passes.__setitem__(agent, passes[agent] + 1)
         )
         torch.manual_seed(3)
         agent.update(random_batch())
-    assert passes[shared] == passes[recomputed] - 1  # the TD target did not encode next_obs again
-    for name, value in recomputed.encoder.state_dict().items():
+    assert passes[shared] == passes[collect]  # fresh scoring costs no encoder pass of its own
+    assert passes[apart] == passes[shared] + 2
+    for name, value in apart.encoder.state_dict().items():
         torch.testing.assert_close(shared.encoder.state_dict()[name], value)
-    for name, value in recomputed.critic.state_dict().items():
+    for name, value in apart.critic.state_dict().items():
         torch.testing.assert_close(shared.critic.state_dict()[name], value)

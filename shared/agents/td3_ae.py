@@ -97,12 +97,17 @@ class TD3AE(ModuleStateMixin):
 
     @torch.no_grad()
     def score_with_next_latent(
-        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        latent: torch.Tensor | None = None,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        """`score`, and Enc(next_obs), which a fresh-timing update's TD target reuses."""
+        """`score` (`latent`: Enc(obs) already computed with the current weights), and
+        Enc(next_obs), which a fresh-timing update's TD target reuses."""
         if not self.uses_intrinsic:
             raise RuntimeError(f"{self.algo} has no intrinsic rewards")
-        z = self.encoder(obs)
+        z = self.encoder(obs) if latent is None else latent
         z_next = self.encode_next(obs, z, next_obs)
         novelty = intrinsic.novelty(obs, self.decoder(z))
         surprise = intrinsic.surprise(self.ensemble(z, action), z_next)
@@ -132,11 +137,14 @@ class TD3AE(ModuleStateMixin):
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
         metrics: dict[str, float] = {}
-        next_latent = None
+        latent = next_latent = None
         if self.uses_intrinsic:
             if c.intrinsic_timing == "fresh":
-                # Same encoder, same input: the TD target's Enc(next_obs) is this one.
-                scores, next_latent = self.score_with_next_latent(obs, action, next_obs)
+                # Scoring, the TD target and the critic's forward pass all read the current
+                # weights: one Enc(obs) (kept with its graph for the critic's loss) and one
+                # Enc(next_obs) serve all three.
+                latent = self.encoder(obs)
+                scores, next_latent = self.score_with_next_latent(obs, action, next_obs, latent.detach())
                 bonus = scores["intrinsic"]
             else:
                 bonus = torch.nan_to_num(batch["intrinsic"], nan=0.0)
@@ -144,9 +152,9 @@ class TD3AE(ModuleStateMixin):
             metrics["intrinsic_batch_mean"] = bonus.mean().item()
         q_target = self.td_target(reward, batch["discount"].view(-1, 1), next_obs, next_latent)
         if self.uses_decoder and c.shared_encoder_pass:
-            metrics |= self.update_critic_and_autoencoder(obs, action, q_target)
+            metrics |= self.update_critic_and_autoencoder(obs, action, q_target, latent)
         else:
-            metrics |= self.update_critic(obs, action, q_target)
+            metrics |= self.update_critic(obs, action, q_target, latent)
             if self.uses_decoder:
                 metrics |= self.update_autoencoder(obs)
         z_now = None
@@ -184,10 +192,16 @@ class TD3AE(ModuleStateMixin):
         return F.mse_loss(q1, q_target) + F.mse_loss(q2, q_target)
 
     def update_critic(
-        self, obs: torch.Tensor, action: torch.Tensor, q_target: torch.Tensor
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        q_target: torch.Tensor,
+        latent: torch.Tensor | None = None,
     ) -> dict[str, float]:
-        """The critic loss trains the Q heads and the whole encoder (conv, fc, LayerNorm)."""
-        loss = self.critic_loss(self.encoder(obs), action, q_target)
+        """The critic loss trains the Q heads and the whole encoder (conv, fc, LayerNorm);
+        `latent`: Enc(obs) with its graph, already computed with the current weights."""
+        z = self.encoder(obs) if latent is None else latent
+        loss = self.critic_loss(z, action, q_target)
         optimizer_step([self.critic_opt], loss)
         return {"critic_loss": loss.item()}
 
@@ -198,10 +212,14 @@ class TD3AE(ModuleStateMixin):
         return {"ae_loss": loss.item()}
 
     def update_critic_and_autoencoder(
-        self, obs: torch.Tensor, action: torch.Tensor, q_target: torch.Tensor
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        q_target: torch.Tensor,
+        latent: torch.Tensor | None = None,
     ) -> dict[str, float]:
         """`shared_encoder_pass`: one encoder pass and one backward for both losses (not the reference)."""
-        z = self.encoder(obs)
+        z = self.encoder(obs) if latent is None else latent
         critic_loss = self.critic_loss(z, action, q_target)
         ae_loss = self._ae_loss(obs, z)
         optimizer_step([self.critic_opt, self.encoder_opt, self.decoder_opt], critic_loss + ae_loss)
