@@ -150,6 +150,9 @@ def main() -> None:
         rate = time_updates(algo, batch, args.updates, device, shared_encoder_pass=True)
         result["updates_per_s"][f"{algo}+shared_encoder_pass"] = round(rate, 3)
         print(f"{algo:10s} {rate:6.3f} updates/s with shared_encoder_pass (not the reference's order)")
+    rate = time_updates("nasa_td3", batch, args.updates, device, intrinsic_timing="fresh")
+    result["updates_per_s"]["nasa_td3+fresh"] = round(rate, 3)
+    print(f"nasa_td3   {rate:6.3f} updates/s with intrinsic_timing fresh (the batch rescored each update)")
     to_score = scoring_batches(stacks, args.batch, 6, device, rng)
     score_ms, parts = time_scoring(to_score, args.score_repeats, device)
     for name, value in score_ms.items():
