@@ -6,7 +6,6 @@ Shapes are computed from a dummy forward pass, never hard-coded for 84x84.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 
@@ -85,26 +84,6 @@ class Encoder(nn.Module):
                 mine.bias = theirs.bias
 
 
-class StrideOneConvTranspose2d(nn.ConvTranspose2d):
-    """A stride-1 transposed convolution that runs as the equivalent convolution when no
-    gradient is needed (scoring, acting).
-
-    The equivalent is a full-padded convolution with the kernel flipped and its
-    channel axes swapped: the same numbers from the same parameters. On this CPU
-    oneDNN runs its forward about 20% faster than the transposed path, but its
-    backward is slower, so training keeps the transposed path.
-    """
-
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int) -> None:
-        super().__init__(in_channels, out_channels, kernel_size, stride=1)
-
-    def forward(self, x: torch.Tensor, output_size: list[int] | None = None) -> torch.Tensor:
-        if torch.is_grad_enabled():
-            return super().forward(x, output_size)
-        weight = self.weight.flip(2, 3).transpose(0, 1)
-        return F.conv2d(x, weight, self.bias, padding=self.kernel_size[0] - 1)
-
-
 class Decoder(nn.Module):
     """Linear -> ReLU -> reshape -> transposed convs mirroring the encoder.
 
@@ -126,7 +105,7 @@ class Decoder(nn.Module):
         self.fc = nn.Linear(latent_dim, int(torch.Size(conv_shape).numel()))
         layers: list[nn.Module] = []
         for _ in range(num_layers - 1):
-            layers += [StrideOneConvTranspose2d(num_filters, num_filters, 3), nn.ReLU(inplace=True)]
+            layers += [nn.ConvTranspose2d(num_filters, num_filters, 3, stride=1), nn.ReLU(inplace=True)]
         size = conv_shape[1] + 2 * (num_layers - 1)
         # The stride-2 layer must land exactly on the image size (84: 41 -> 84 needs output_padding 1).
         output_padding = obs_shape[1] - ((size - 1) * 2 + 3)

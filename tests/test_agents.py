@@ -233,24 +233,6 @@ def test_fresh_timing_rescores_and_collect_reads_the_batch():
     assert fresh.update(batch)["intrinsic_batch_mean"] != pytest.approx(123.0)
 
 
-def test_decoder_stride_one_layers_equal_transposed_convolutions():
-    from torch import nn
-
-    from shared.nets import StrideOneConvTranspose2d
-
-    torch.manual_seed(0)
-    ours = StrideOneConvTranspose2d(8, 5, 3)
-    reference = nn.ConvTranspose2d(8, 5, 3, stride=1)
-    reference.load_state_dict(ours.state_dict())
-    x = torch.randn(4, 8, 11, 13)
-    expected = reference(x)
-    with torch.no_grad():  # the convolution path
-        fast = ours(x)
-    assert fast.shape == expected.shape == (4, 5, 13, 15)
-    torch.testing.assert_close(fast, expected, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(ours(x), expected)  # with gradients: the transposed path
-
-
 def stored_rows(actors: int = 2, steps: int = 5, seed: int = 0):
     """Rows as the replay stores them: actors' steps interleaved, each next stack the obs
     stack of the same actor's next row. Returns obs, next_obs and each row's successor."""
