@@ -62,27 +62,20 @@ class Encoder(nn.Module):
         self.apply(weight_init)
 
     def forward_conv(self, obs: torch.Tensor) -> torch.Tensor:
-        """The conv features, (B, C, H, W), channels-last in memory."""
         # Channels-last convolutions are faster on CPU (oneDNN) and on GPU (cuDNN).
         x = obs.to(dtype=torch.float32, memory_format=torch.channels_last)
         if self.pixel_scale != 1.0:
             x = x / self.pixel_scale
-        return self.convs(x)
+        # Flattened in (H, W, C) order, the channels-last memory order: a view, not a copy.
+        return self.convs(x).permute(0, 2, 3, 1).flatten(1)
 
     def forward_head(self, h: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.ln(self.fc_channels_last(h)))
-
-    def fc_channels_last(self, h: torch.Tensor) -> torch.Tensor:
-        """fc on the conv features, which are channels-last in memory.
-
-        fc.weight keeps PyTorch's (C, H, W) column order (checkpoints, the reference's
-        layout). Whichever is smaller is permuted to match the other: the features at
-        small batches (acting), the weight's columns at training batches."""
-        if h.shape[0] < self.fc.out_features:
-            return self.fc(h.flatten(1))
+        # fc.weight keeps PyTorch's (C, H, W) column order (checkpoints, the reference's
+        # layout); its columns are permuted to match `forward_conv`, a copy a third the
+        # size of the activations' it replaces.
         c, height, width = self.conv_shape
         weight = self.fc.weight.view(-1, c, height, width).permute(0, 2, 3, 1).flatten(1)
-        return F.linear(h.permute(0, 2, 3, 1).flatten(1), weight, self.fc.bias)
+        return torch.tanh(self.ln(F.linear(h, weight, self.fc.bias)))
 
     def forward(self, obs: torch.Tensor, detach_conv: bool = False) -> torch.Tensor:
         h = self.forward_conv(obs)
@@ -133,23 +126,16 @@ class Decoder(nn.Module):
         self.apply(weight_init)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
+        # Channels-last as in the encoder: fc's rows (kept in PyTorch's (C, H, W) order)
+        # are taken in (H, W, C) order, so its output already is the channels-last image.
         # In-place activations spare two image-sized passes over memory (neither
         # producer needs its output for its gradient).
-        x = self.deconvs(torch.relu_(self.fc_channels_last(z)))
-        return torch.sigmoid_(x) if self.sigmoid_output else x
-
-    def fc_channels_last(self, z: torch.Tensor) -> torch.Tensor:
-        """fc's output as a channels-last (B, C, H, W) image, as the encoder's features.
-
-        fc keeps PyTorch's (C, H, W) row order; at training batches its rows are taken
-        in (H, W, C) order so that the output needs no copy, at small batches the
-        (smaller) output is copied instead."""
         c, height, width = self.conv_shape
-        if z.shape[0] < self.fc.in_features:
-            return self.fc(z).view(-1, c, height, width).contiguous(memory_format=torch.channels_last)
         weight = self.fc.weight.view(c, height, width, -1).permute(1, 2, 0, 3).flatten(0, 2)
         bias = self.fc.bias.view(c, height, width).permute(1, 2, 0).flatten()
-        return F.linear(z, weight, bias).view(-1, height, width, c).permute(0, 3, 1, 2)
+        h = torch.relu_(F.linear(z, weight, bias)).view(-1, height, width, c).permute(0, 3, 1, 2)
+        x = self.deconvs(h)
+        return torch.sigmoid_(x) if self.sigmoid_output else x
 
 
 class DeterministicActor(nn.Module):
