@@ -6,7 +6,6 @@ Shapes are computed from a dummy forward pass, never hard-coded for 84x84.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 
@@ -66,16 +65,10 @@ class Encoder(nn.Module):
         x = obs.to(dtype=torch.float32, memory_format=torch.channels_last)
         if self.pixel_scale != 1.0:
             x = x / self.pixel_scale
-        # Flattened in (H, W, C) order, the channels-last memory order: a view, not a copy.
-        return self.convs(x).permute(0, 2, 3, 1).flatten(1)
+        return self.convs(x).flatten(1)
 
     def forward_head(self, h: torch.Tensor) -> torch.Tensor:
-        # fc.weight keeps PyTorch's (C, H, W) column order (checkpoints, the reference's
-        # layout); its columns are permuted to match `forward_conv`, a copy a third the
-        # size of the activations' it replaces.
-        c, height, width = self.conv_shape
-        weight = self.fc.weight.view(-1, c, height, width).permute(0, 2, 3, 1).flatten(1)
-        return torch.tanh(self.ln(F.linear(h, weight, self.fc.bias)))
+        return torch.tanh(self.ln(self.fc(h)))
 
     def forward(self, obs: torch.Tensor, detach_conv: bool = False) -> torch.Tensor:
         h = self.forward_conv(obs)
@@ -126,15 +119,10 @@ class Decoder(nn.Module):
         self.apply(weight_init)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        # Channels-last as in the encoder: fc's rows (kept in PyTorch's (C, H, W) order)
-        # are taken in (H, W, C) order, so its output already is the channels-last image.
-        # In-place activations spare two image-sized passes over memory (neither
-        # producer needs its output for its gradient).
-        c, height, width = self.conv_shape
-        weight = self.fc.weight.view(c, height, width, -1).permute(1, 2, 0, 3).flatten(0, 2)
-        bias = self.fc.bias.view(c, height, width).permute(1, 2, 0).flatten()
-        h = torch.relu_(F.linear(z, weight, bias)).view(-1, height, width, c).permute(0, 3, 1, 2)
-        x = self.deconvs(h)
+        # Channels-last as in the encoder; in-place activations spare two image-sized
+        # passes over memory (neither producer needs its output for its gradient).
+        h = torch.relu_(self.fc(z)).view(-1, *self.conv_shape)
+        x = self.deconvs(h.contiguous(memory_format=torch.channels_last))
         return torch.sigmoid_(x) if self.sigmoid_output else x
 
 
