@@ -1,25 +1,30 @@
-"""The replay service's insert and sample paths, without Zenoh."""
+"""The replay service's insert and sample paths, without Zenoh; bad sample requests over a real
+Zenoh session on loopback."""
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 
 import numpy as np
 import pytest
 
+from nasa.up import free_port
 from services.replay.service import ReplayArgs, ReplayService
 from shared import wire
 from shared.config import default_config
 from shared.service import StopFlag
+from shared.zenoh_session import open_client, open_router
 
 SHAPE = (3, 16, 16)
 
 
-def make_service(tmp_path, warmup=4, steps=100):
+def make_service(tmp_path, warmup=4, steps=100, session=None, stop=None):
     config = default_config("nasa_td3", "cpu-small")
     config.env.image_size, config.warmup_steps, config.steps = 16, warmup, steps
     args = ReplayArgs(config=config, data=tmp_path, error_buffer=4)
-    return ReplayService(args, None, StopFlag(), action_dim=2)  # type: ignore[arg-type]
+    return ReplayService(args, session, StopFlag() if stop is None else stop, action_dim=2)  # type: ignore[arg-type]
 
 
 def batch(actor=0, inc=1, episode=0, start=0, n=3, last=False, seed=0, shape=SHAPE):
@@ -107,3 +112,38 @@ def test_unscored_requests_return_the_oldest_unscored_rows_outside_the_ratio(tmp
     assert not reply.ok and reply.reason == "none unscored" and reply.num_inserted == 7
     assert svc.limiter.samples == samples  # scoring requests are not training samples
     svc.store.close()
+
+
+def test_bad_sample_requests_get_an_error_reply_and_lose_nothing(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stop = StopFlag()
+    with open_router(endpoint), open_client(endpoint) as replay_session, open_client(endpoint) as learner:
+        svc = make_service(tmp_path, session=replay_session, stop=stop)
+        assert svc.insert_batch(batch(n=7, last=True)[0]) == 7
+        serving = threading.Thread(target=svc.run)
+        serving.start()
+        try:
+            # Its liveliness token is declared after its queryable: once seen, requests reach it.
+            deadline = time.monotonic() + 10
+            while not list(learner.liveliness().get(svc.keys.alive("replay", 0), timeout=1.0)):
+                assert time.monotonic() < deadline, "the replay never came up"
+                time.sleep(0.1)
+            requests = {
+                "malformed": b"not a sample request",  # rejected in the Zenoh callback
+                "impossible": wire.encode(wire.SampleRequest(0)),  # rejected by the sampling thread
+                "scoring": wire.encode(wire.SampleRequest(2, unscored_after=0)),
+            }
+            replies = {
+                name: list(learner.get(svc.keys.sample, payload=payload, timeout=10.0))
+                for name, payload in requests.items()
+            }
+        finally:
+            stop.set("test done")
+            serving.join(timeout=15)
+    for name in ("malformed", "impossible"):
+        [reply] = replies[name]
+        assert reply.ok is None and reply.err is not None, name
+    assert b"batch_size 0" in replies["impossible"][0].err.payload.to_bytes()
+    [reply] = replies["scoring"]  # the service still answers, and its data is intact
+    assert wire.decode(reply.ok.payload.to_bytes(), wire.SampleReply).batch_size == 2
+    assert svc.invalid == 2 and svc.store.num_inserted == 7

@@ -118,8 +118,7 @@ class ReplayService:
             payload = query.payload
             req = wire.decode(payload.to_bytes() if payload is not None else b"", wire.SampleRequest)
         except wire.WireError as err:
-            self._invalid(f"sample request: {err}")
-            query.reply_err(str(err).encode())
+            self._reject(query, err)
             query.drop()
             return
         # Scoring requests get their own thread: training requests may wait on the rate limiter.
@@ -145,6 +144,11 @@ class ReplayService:
     def _invalid(self, what: str) -> None:
         self.invalid += 1
         self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
+
+    def _reject(self, query: zenoh.Query, err: wire.WireError) -> None:
+        """Counts and answers a bad sample request (a malformed message or impossible values)."""
+        self._invalid(f"sample request: {err}")
+        query.reply_err(str(err).encode())
 
     # -- inserts ------------------------------------------------------------------------
 
@@ -230,8 +234,7 @@ class ReplayService:
                 reply = self.sample(req, rng)
                 query.reply(self.keys.sample, wire.encode(reply))
             except wire.WireError as err:
-                self._invalid(f"sample request: {err}")
-                query.reply_err(str(err).encode())
+                self._reject(query, err)
             except RateLimiterClosed:
                 query.reply_err(b"replay stopping")
             finally:
