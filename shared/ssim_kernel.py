@@ -37,11 +37,14 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid):
     window[:] = 0.0
     total = 0.0
     for h in range(height):
+        # Three loops, so that the products vectorise even when y is strided.
         for w in range(width):
-            a = np.float32(x[h, w]) * scale
-            b = np.float32(y[h, w])
-            row[0, w] = a
-            row[1, w] = b
+            row[0, w] = np.float32(x[h, w]) * scale
+        for w in range(width):
+            row[1, w] = y[h, w]
+        for w in range(width):
+            a = row[0, w]
+            b = row[1, w]
             row[2, w] = a * a + b * b
             row[3, w] = a * b
         slot = h % WIN
@@ -76,27 +79,22 @@ def _batch_ssim(x, y, scale):
     valid[:cols] = 1.0
     out = np.empty(batch, np.float64)
     scale = np.float32(scale)
-    channels_last = y.strides[1] < y.strides[3]
     for b in numba.prange(batch):
         row = np.zeros((4, span + WIN - 1), np.float32)  # zero padding past the image
         ring = np.empty((WIN, 4, span), np.float32)
         window = np.empty((4, span), np.float32)
-        # y's planes, copied in y's memory order: a channels-last y (the decoder's
-        # output) read plane by plane would stride across every plane at each pixel.
-        planes = np.empty((channels, height, width), np.float32)
-        if channels_last:
-            for h in range(height):
-                for w in range(width):
-                    for c in range(channels):
-                        planes[c, h, w] = y[b, c, h, w]
-        else:
-            planes[:] = y[b]
-        data_range = np.float32(x[b].max() - x[b].min()) * scale
+        pixels = x[b].ravel()  # one flat loop: the min/max reduction vectorises
+        lo = pixels[0]
+        hi = lo
+        for i in range(pixels.size):
+            lo = min(lo, pixels[i])
+            hi = max(hi, pixels[i])
+        data_range = (np.float32(hi) - np.float32(lo)) * scale
         c1 = (np.float32(0.01) * data_range) ** 2
         c2 = (np.float32(0.03) * data_range) ** 2
         total = 0.0
         for c in range(channels):
-            total += _plane_ssim_sum(x[b, c], planes[c], scale, c1, c2, row, ring, window, valid)
+            total += _plane_ssim_sum(x[b, c], y[b, c], scale, c1, c2, row, ring, window, valid)
         out[b] = total / (channels * (height - WIN + 1) * cols)
     return out
 
@@ -106,7 +104,8 @@ _lock = threading.Lock()
 
 
 def batch_ssim(x: np.ndarray, y: np.ndarray, x_scale: float, threads: int) -> np.ndarray:
-    """Mean SSIM per sample of (B, C, H, W) arrays (any strides): x * x_scale and y in [0, 1]."""
+    """Mean SSIM per sample of (B, C, H, W) arrays (y of any strides): x * x_scale and y in [0, 1]."""
+    x = np.ascontiguousarray(x)
     with _lock:
         numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
         return _batch_ssim(x, y, x_scale)
