@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-CHECKPOINT_FORMAT = 1
+# 2: the encoder's and decoder's fc layers index conv features in (h, w, c) order.
+CHECKPOINT_FORMAT = 2
 
 
 def save(path: str | Path, state: dict) -> None:

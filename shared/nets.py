@@ -1,6 +1,12 @@
 """Networks of NaSA-TD3 and its baselines, with the reference initialisation.
 
 Shapes are computed from a dummy forward pass, never hard-coded for 84x84.
+
+The encoder's and decoder's fc layers index the conv features in (h, w, c)
+order where the reference uses (c, h, w). That is a fixed relabelling of fc
+inputs/outputs: the same functions, and (orthogonal init being invariant to
+permuting rows or columns) the same initial distribution. It lets channels-last
+activations pass between conv and fc without a copy.
 """
 
 from __future__ import annotations
@@ -61,11 +67,13 @@ class Encoder(nn.Module):
         self.apply(weight_init)
 
     def forward_conv(self, obs: torch.Tensor) -> torch.Tensor:
+        """Conv features flattened in (h, w, c) order: the channels-last output as it lies
+        in memory, so no copy (the reference flattens (c, h, w); `fc` is indexed to match)."""
         # Channels-last convolutions are faster on CPU (oneDNN) and on GPU (cuDNN).
         x = obs.to(dtype=torch.float32, memory_format=torch.channels_last)
         if self.pixel_scale != 1.0:
             x = x / self.pixel_scale
-        return self.convs(x).flatten(1)
+        return self.convs(x).permute(0, 2, 3, 1).flatten(1)
 
     def forward_head(self, h: torch.Tensor) -> torch.Tensor:
         return torch.tanh(self.ln(self.fc(h)))
@@ -121,8 +129,11 @@ class Decoder(nn.Module):
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         # Channels-last as in the encoder; in-place activations spare two image-sized
         # passes over memory (neither producer needs its output for its gradient).
-        h = torch.relu_(self.fc(z)).view(-1, *self.conv_shape)
-        x = self.deconvs(h.contiguous(memory_format=torch.channels_last))
+        # fc's outputs are read in (h, w, c) order, so the view below is already the
+        # channels-last layout the transposed convolutions want (no copy).
+        channels, height, width = self.conv_shape
+        h = torch.relu_(self.fc(z)).view(-1, height, width, channels).permute(0, 3, 1, 2)
+        x = self.deconvs(h)
         return torch.sigmoid_(x) if self.sigmoid_output else x
 
 

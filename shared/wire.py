@@ -42,7 +42,7 @@ import msgpack
 import numpy as np
 import zstandard as zstd
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: policy weights' fc layers index conv features in (h, w, c) order
 PREFIX = "nasa"
 _EPOCH_2025 = 1_735_689_600.0
 

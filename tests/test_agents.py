@@ -303,3 +303,27 @@ def test_a_fresh_update_scores_with_the_encoder_passes_it_makes_anyway(shared_en
         torch.testing.assert_close(shared.encoder.state_dict()[name], value)
     for name, value in apart.critic.state_dict().items():
         torch.testing.assert_close(shared.critic.state_dict()[name], value)
+
+
+def test_fc_layers_are_the_references_up_to_a_fixed_relabelling_of_conv_features():
+    # The reference flattens conv features in (c, h, w) order; ours are read in (h, w, c)
+    # order (channels-last, no copy). Permuting fc's weights between the two orders
+    # must give the very same encoder and decoder outputs.
+    torch.manual_seed(0)
+    agent = make_agent("td3_ae", (9, 84, 84), 2, agent_defaults("td3_ae"), torch.device("cpu"))
+    encoder, decoder = agent.encoder, agent.decoder
+    c, h, w = encoder.conv_shape
+    ours_of_ref = torch.arange(c * h * w).view(c, h, w).permute(1, 2, 0).flatten()  # our index i holds ref's
+    ref_of_ours = torch.argsort(ours_of_ref)
+    obs = torch.randint(0, 256, (3, 9, 84, 84), dtype=torch.uint8)
+    with torch.no_grad():
+        conv = encoder.convs(obs.float()).flatten(1)  # the reference's (c, h, w) flatten
+        ref_fc = torch.nn.functional.linear(conv, encoder.fc.weight[:, ref_of_ours], encoder.fc.bias)
+        z = torch.tanh(encoder.ln(ref_fc))
+        assert torch.allclose(encoder(obs), z, atol=1e-5)
+
+        ref_h = torch.relu(torch.nn.functional.linear(
+            z, decoder.fc.weight[ref_of_ours], decoder.fc.bias[ref_of_ours]
+        )).view(-1, c, h, w)
+        ref_reconstruction = torch.sigmoid(decoder.deconvs(ref_h))
+        assert torch.allclose(decoder(z), ref_reconstruction, atol=1e-5)
