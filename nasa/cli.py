@@ -11,10 +11,9 @@ import tyro
 
 from nasa.plot import plot
 from nasa.reproduce import reproduce
-from shared.config import ConfigError, TrainConfig
-from shared.device import DeviceError, resolve_device
-from shared.envs import UnknownTaskError
-from shared.service import parse_with_preset
+from shared.config import TrainConfig
+from shared.device import resolve_device
+from shared.service import EXIT_BAD_INPUT, bad_input_errors, parse_with_preset
 
 
 @dataclass
@@ -74,9 +73,9 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
     try:
         COMMANDS[argv[0]](argv[1:])
-    except (ConfigError, DeviceError, UnknownTaskError, FileExistsError) as err:
+    except (*bad_input_errors(), FileExistsError) as err:
         print(f"nasa {argv[0]}: error: {err}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(EXIT_BAD_INPUT)
 
 
 if __name__ == "__main__":

@@ -71,12 +71,17 @@ class Trainer:
         """Continue the run in `out` exactly from its last checkpoint (optionally to a new step total)."""
         out = Path(out)
         config = from_dict(json.loads((out / "config.json").read_text()))
+        # Read the checkpoint before touching the folder: one this version cannot
+        # continue is refused with the run left as it was.
+        state = None
+        if (out / CHECKPOINT_FILE).exists():
+            state = checkpoint.load(out / CHECKPOINT_FILE, resolve_device(config.device))
         if steps is not None:
             config.steps = steps
             (out / "config.json").write_text(json.dumps(to_dict(config), indent=2) + "\n")
         trainer = cls(config, out)
-        if (out / CHECKPOINT_FILE).exists():
-            trainer.restore(checkpoint.load(out / CHECKPOINT_FILE, trainer.device))
+        if state is not None:
+            trainer.restore(state)
         else:  # killed before its first checkpoint: start over
             trainer.replay.truncate(0)
             trainer.eval_log.truncate(0)

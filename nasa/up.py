@@ -3,12 +3,14 @@
 The launcher runs the Zenoh router in its own process (a session in router
 mode) and starts replay, learner, evaluator and N actors as child processes
 (`python -m services.<role>`, the same commands the deployment files run). A
-child that dies is restarted (a restarted actor draws a new incarnation); the
-run ends when the learner finishes the step budget (it publishes Stop and
-every service exits), on Ctrl-C, or on SIGTERM. Children are stopped in
-order (actors, evaluator, learner, replay), killed if they do not exit in
-time, and get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG, set by
-each service at start), so no process is left.
+child that dies is restarted (a restarted actor draws a new incarnation),
+unless it refused its input (exit code 2: a bad flag, device, task name or
+checkpoint), which would only fail again. The run ends when the learner
+finishes the step budget (it publishes Stop and every service exits), when
+the learner ends for good (`nasa up` then exits non-zero), on Ctrl-C, or on
+SIGTERM. Children are stopped in order (actors, evaluator, learner, replay),
+killed if they do not exit in time, and get SIGTERM if the launcher itself
+dies (PR_SET_PDEATHSIG, set by each service at start), so no process is left.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from shared.service import EXIT_BAD_INPUT
 
 STOP_ORDER = ("actor", "evaluator", "learner", "replay")
 
@@ -95,6 +99,11 @@ class Supervisor:
             if code == 0 or self.stopping:
                 child.exited = code
                 continue
+            if code == EXIT_BAD_INPUT:  # it would fail the same way again
+                child.exited = code
+                where = f" ({self.log_dir / child.name}.log)" if self.log_dir else ""
+                on_event(f"{child.name} refused its input{where}: {self.last_error(child)}; not restarted")
+                continue
             since = self._dead_since.setdefault(child.name, now)
             if child.restarts >= self.max_restarts:
                 child.exited = code
@@ -104,6 +113,13 @@ class Supervisor:
                 child.restarts += 1
                 on_event(f"{child.name} exited with {code}: restarting it ({child.restarts})")
                 self._spawn(child)
+
+    def last_error(self, child: Child) -> str:
+        """The child's last output line, when it went to a log file (else it is in the terminal above)."""
+        if self.log_dir is None:
+            return "see its error above"
+        lines = (self.log_dir / f"{child.name}.log").read_text(errors="replace").strip().splitlines()
+        return lines[-1] if lines else "no output"
 
     def running(self) -> list[Child]:
         return [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
@@ -232,6 +248,8 @@ def up(argv: list[str]) -> None:
             print(f"nasa up: stopping ({stop['reason'] or 'error'})", flush=True)
             sup.stop_all()
     print("nasa up: stopped", flush=True)
+    if learner.exited:
+        sys.exit(EXIT_BAD_INPUT if learner.exited == EXIT_BAD_INPUT else 1)
 
 
 def status(argv: list[str]) -> None:

@@ -9,6 +9,7 @@ of one.
 from __future__ import annotations
 
 import os
+import pickle
 import random
 from pathlib import Path
 
@@ -17,6 +18,10 @@ import torch
 
 # 2: the encoder's and decoder's fc layers index conv features in (h, w, c) order.
 CHECKPOINT_FORMAT = 2
+
+
+class CheckpointError(ValueError):
+    """A checkpoint this version cannot continue from (another format, or not a checkpoint)."""
 
 
 def save(path: str | Path, state: dict) -> None:
@@ -31,10 +36,15 @@ def save(path: str | Path, state: dict) -> None:
 
 
 def load(path: str | Path, device: torch.device | str = "cpu") -> dict:
-    state = torch.load(Path(path), map_location=device, weights_only=True)
-    if state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(
-            f"checkpoint {path} has format {state.get('format')!r}; this version reads {CHECKPOINT_FORMAT}"
+    try:
+        state = torch.load(Path(path), map_location=device, weights_only=True)
+    except (RuntimeError, EOFError, pickle.UnpicklingError) as err:
+        raise CheckpointError(f"{path} is not a readable checkpoint: {err}") from err
+    found = state.get("format") if isinstance(state, dict) else None
+    if found != CHECKPOINT_FORMAT:
+        raise CheckpointError(
+            f"checkpoint {path} has format {found!r} and this version reads format {CHECKPOINT_FORMAT}: "
+            "it cannot be continued; start the run again in a new folder"
         )
     return state
 

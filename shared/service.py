@@ -25,6 +25,19 @@ from shared.config import PRESET_NAMES, ConfigError, auto_preset, default_config
 
 T = TypeVar("T")
 
+# A service ending with this code failed on its input (flags, device, task name,
+# checkpoint): restarting it would fail the same way, so `nasa up` does not.
+EXIT_BAD_INPUT = 2
+
+
+def bad_input_errors() -> tuple[type[Exception], ...]:
+    """The errors that mean the user's input is wrong, not that something crashed."""
+    from shared.checkpoint import CheckpointError  # torch: imported only when needed
+    from shared.device import DeviceError
+    from shared.envs import UnknownTaskError
+
+    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError)
+
 
 def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
     """Parse a service's dataclass (fields `config` and `preset`); returns it and the preset used."""
@@ -126,8 +139,12 @@ def run_service(
     """A service's main: parse its flags, stop on SIGINT/SIGTERM, run it on a client session."""
     from shared.zenoh_session import open_client  # zenoh only for services, not `nasa train`
 
-    args, _ = parse(cls, argv, prog)
-    stop = StopFlag()
-    stop.install_signal_handlers()
-    with open_client(args.connect) as session:  # type: ignore[attr-defined]
-        run(args, session, stop)
+    try:
+        args, _ = parse(cls, argv, prog)
+        stop = StopFlag()
+        stop.install_signal_handlers()
+        with open_client(args.connect) as session:  # type: ignore[attr-defined]
+            run(args, session, stop)
+    except bad_input_errors() as err:
+        print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)

@@ -115,3 +115,20 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         assert resumed["replay"]["size"] >= status["replay"]["size"]
         wait_status(again, port, lambda s: s["updates"] > resumed["updates"], "learning to go on")
         stop_with_ctrl_c(again)
+
+
+@pytest.mark.timeout(180)
+def test_nasa_up_ends_with_a_clear_error_on_a_checkpoint_it_cannot_continue(tmp_path):
+    # The learner refuses the checkpoint (exit 2); restarting it would only fail again,
+    # so `nasa up` stops everything, says why, and exits 2 with the checkpoint untouched.
+    data = tmp_path / "run"
+    (data / "learner").mkdir(parents=True)
+    torch.save({"format": 1, "updates": 10}, data / "learner" / "checkpoint.pt")
+    before = (data / "learner" / "checkpoint.pt").read_bytes()
+    with nasa_up(data) as (up, _port):
+        out, _ = up.communicate(timeout=150)
+    assert up.returncode == 2, out
+    assert "learner refused its input" in out and "has format 1" in out, out
+    assert "restarting" not in out
+    assert "nasa up: stopped" in out
+    assert (data / "learner" / "checkpoint.pt").read_bytes() == before

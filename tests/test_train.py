@@ -89,3 +89,31 @@ def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, args, message):
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("spoil", "message"),
+    [
+        (lambda state: {**state, "format": 1}, "has format 1 and this version reads format 2"),
+        (None, "is not a readable checkpoint"),
+    ],
+)
+def test_resume_refuses_a_checkpoint_it_cannot_continue_and_leaves_the_run_as_it_was(
+    tmp_path, spoil, message
+):
+    import torch
+
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=40), run).run()
+    path = run / CHECKPOINT_FILE
+    if spoil is None:
+        path.write_bytes(b"not a checkpoint" * 64)
+    else:
+        torch.save(spoil(torch.load(path, weights_only=True)), path)
+    before = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    result = run_cli("--resume", str(run), "--steps", "80")
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    after = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    assert after == before
