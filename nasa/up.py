@@ -211,6 +211,9 @@ def up(argv: list[str]) -> None:
         raise ConfigError(f"unknown preset {cmd.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
     if cmd.actors < 1:
         raise ConfigError(f"--actors must be >= 1, got {cmd.actors}")
+    from shared.envs import parse_task
+
+    parse_task(cmd.task)  # here once, rather than from every service it would start
     device = resolve_device(cmd.device)
     preset = auto_preset(device.type) if cmd.preset == "auto" else cmd.preset
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \

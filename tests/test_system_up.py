@@ -132,3 +132,16 @@ def test_nasa_up_ends_with_a_clear_error_on_a_checkpoint_it_cannot_continue(tmp_
     assert "restarting" not in out
     assert "nasa up: stopped" in out
     assert (data / "learner" / "checkpoint.pt").read_bytes() == before
+
+
+def test_nasa_up_rejects_an_unknown_task_before_starting_anything(tmp_path):
+    data = tmp_path / "run"
+    result = subprocess.run(
+        [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-juggle", "--data", str(data),
+         "--router-port", "0", "--port", str(free_port())],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 2, result.stderr
+    assert "nasa up: error: unknown task 'cartpole-juggle'; valid tasks are" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not data.exists()  # no service was started
