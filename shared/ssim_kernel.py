@@ -105,7 +105,7 @@ _lock = threading.Lock()
 
 
 def batch_ssim(x: np.ndarray, y: np.ndarray, x_scale: float, threads: int) -> np.ndarray:
-    """Mean SSIM per sample of (B, C, H, W) arrays (y of any strides): x * x_scale and y in [0, 1]."""
+    """Mean SSIM per sample of (B, C, H, W) arrays of any strides: x * x_scale and y in [0, 1]."""
     x = np.ascontiguousarray(x)
     with _lock:
         numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
