@@ -71,8 +71,9 @@ class Supervisor:
 
     def _spawn(self, child: Child) -> None:
         out = None
-        if self.log_dir is not None:
-            out = open(self.log_dir / f"{child.name}.log", "ab")  # noqa: SIM115 (owned by the child)
+        log = self.log_file(child)
+        if log is not None:
+            out = open(log, "ab")  # noqa: SIM115 (owned by the child)
         try:
             child.proc = subprocess.Popen(
                 [sys.executable, "-m", f"services.{child.role}", *child.argv],
@@ -101,8 +102,7 @@ class Supervisor:
                 continue
             if code == EXIT_BAD_INPUT:  # it would fail the same way again
                 child.exited = code
-                where = f" ({self.log_dir / child.name}.log)" if self.log_dir else ""
-                on_event(f"{child.name} refused its input{where}: {self.last_error(child)}; not restarted")
+                on_event(f"{child.name} refused its input: {self.last_error(child)}; not restarted")
                 continue
             since = self._dead_since.setdefault(child.name, now)
             if child.restarts >= self.max_restarts:
@@ -114,12 +114,17 @@ class Supervisor:
                 on_event(f"{child.name} exited with {code}: restarting it ({child.restarts})")
                 self._spawn(child)
 
+    def log_file(self, child: Child) -> Path | None:
+        """Where the child's output goes; None: this terminal."""
+        return None if self.log_dir is None else self.log_dir / f"{child.name}.log"
+
     def last_error(self, child: Child) -> str:
-        """The child's last output line, when it went to a log file (else it is in the terminal above)."""
-        if self.log_dir is None:
+        """The child's last output line, from its log file (else it is in the terminal above)."""
+        log = self.log_file(child)
+        if log is None:
             return "see its error above"
-        lines = (self.log_dir / f"{child.name}.log").read_text(errors="replace").strip().splitlines()
-        return lines[-1] if lines else "no output"
+        lines = log.read_text(errors="replace").strip().splitlines()
+        return f"{log}: {lines[-1] if lines else 'no output'}"
 
     def running(self) -> list[Child]:
         return [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
