@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.replay import ReplayStore
-from services.replay.codec import COMPRESSIONS
 from shared.envs import PAPER_TASKS, make
+from shared.replay import ReplayStore
+from shared.replay.codec import COMPRESSIONS
 
 GOAL_BYTES = 4096
 GOAL_SAMPLES = 20_000

@@ -76,10 +76,10 @@ def inprocess_update_loop(args: argparse.Namespace) -> float:
     """The trainer's update step: ReplayStore.sample -> batch_to_device -> agent.update, updates/s."""
     import torch
 
-    from services.replay.store import ReplayStore
     from shared import envs
     from shared.agents import batch_to_device, make_agent
     from shared.device import resolve_device
+    from shared.replay.store import ReplayStore
 
     torch.set_num_threads(args.learner_threads)
     c = preset_config(args)

@@ -16,12 +16,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from services.replay.store import ReplayStore
 from shared import checkpoint, envs
 from shared.agents import Agent, batch_to_device, collect_action, make_agent
 from shared.config import TrainConfig, from_dict, to_dict, validate
 from shared.device import resolve_device
 from shared.evaluation import evaluate
+from shared.replay.store import ReplayStore
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 
 CHECKPOINT_FILE = "checkpoint.pt"

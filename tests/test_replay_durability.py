@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.replay import ReplayStore, StoreFormatError
+from shared.replay import ReplayStore, StoreFormatError
 
 SHAPE = (3, 16, 16)
 EP_LEN = 37
@@ -39,7 +39,7 @@ WRITER = textwrap.dedent(
     """
     import sys
     import numpy as np
-    from services.replay import ReplayStore
+    from shared.replay import ReplayStore
     """
 ) + FRAME_SRC + textwrap.dedent(
     """

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from services.replay import RateLimiterClosed, SampleToInsertRatio
+from shared.replay import RateLimiterClosed, SampleToInsertRatio
 
 
 def test_min_size_blocks_samples_not_inserts() -> None:

@@ -7,7 +7,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from services.replay import ReplayStore
+from shared.replay import ReplayStore
 
 SHAPE = (3, 16, 16)
 K = 3

@@ -38,9 +38,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from services.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
-from services.replay.store import ReplayStore
 from shared import wire
+from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
+from shared.replay.store import ReplayStore
 from shared.service import Log, StopFlag
 from shared.zenoh_session import ServiceArgs
 

@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.replay import log as rlog
-from services.replay.codec import FrameCodec
-from services.replay.sumtree import SumTree
+from shared.replay import log as rlog
+from shared.replay.codec import FrameCodec
+from shared.replay.sumtree import SumTree
 
 # Log record types.
 _BEGIN, _STEP, _INTRINSIC, _TRUNCATE, _CLOSE = 1, 2, 3, 4, 5

@@ -1,0 +1,11 @@
+"""The replay library: deduplicated, delta-compressed, rate-limited, durable pixel replay.
+
+Both runners use it: `nasa train` holds a store in process, the replay service
+serves one over Zenoh.
+"""
+
+from shared.replay.log import StoreFormatError
+from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
+from shared.replay.store import ReplayStore
+
+__all__ = ["RateLimiterClosed", "ReplayStore", "SampleToInsertRatio", "StoreFormatError"]
