@@ -13,6 +13,7 @@ services count and log it and carry on.
 | replay/ack/<actor_id>        | InsertAck        | replay (BLOCK)       | actor <actor_id>              |
 | replay/sample   (queryable)  | SampleRequest -> SampleReply | replay answers | learner (batches; unscored) |
 | replay/intrinsic             | SetIntrinsic     | learner (BLOCK)      | replay                        |
+| replay/config   (queryable)  | RunConfigMsg     | replay answers       | learner, actors, evaluator at start |
 | replay/stats                 | ReplayStats      | replay (2 Hz)        | learner, actors, evaluator    |
 | learner/weights              | Weights          | learner (every K updates) | actors, evaluator        |
 | learner/weights/latest (queryable) | Weights    | learner answers      | actors, evaluator at start    |
@@ -76,6 +77,7 @@ class Keys:
         self.insert_all = f"{p}/replay/insert/*"
         self.sample = f"{p}/replay/sample"
         self.intrinsic = f"{p}/replay/intrinsic"
+        self.config = f"{p}/replay/config"
         self.replay_stats = f"{p}/replay/stats"
         self.weights = f"{p}/learner/weights"
         self.weights_latest = f"{p}/learner/weights/latest"
@@ -239,6 +241,15 @@ class EvalResult(Message):
 
 
 @dataclass
+class RunConfigMsg(Message):
+    """The run's resolved config, as the replay holds it (shared.run_config.RunConfig.to_dict())."""
+
+    TYPE: ClassVar[str] = "run_config"
+    run_config: dict
+    digest: str
+
+
+@dataclass
 class Stop(Message):
     TYPE: ClassVar[str] = "stop"
     reason: str
@@ -248,7 +259,7 @@ MESSAGES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
         TransitionBatch, InsertAck, SampleRequest, SampleReply, SetIntrinsic, ReplayStats,
-        Weights, ActorStatus, EvalResult, Stop,
+        Weights, ActorStatus, EvalResult, RunConfigMsg, Stop,
     )
 }
 
