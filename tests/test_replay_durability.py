@@ -150,7 +150,7 @@ def test_corruption_in_middle_is_an_error(tmp_path: Path) -> None:
 
 
 def test_snapshot_roundtrip_intrinsic_truncate_eviction(tmp_path: Path) -> None:
-    with ReplayStore(200, SHAPE, 3, 2, data_dir=tmp_path, prioritized=True) as store:
+    with ReplayStore(200, SHAPE, 3, 2, data_dir=tmp_path) as store:
         fill(store, range(8))  # 296 added, 96 evicted
         store.set_intrinsic(np.array([100, 150, 5]), np.array([1.0, 2.0, 3.0]))
         store.snapshot()
@@ -160,7 +160,7 @@ def test_snapshot_roundtrip_intrinsic_truncate_eviction(tmp_path: Path) -> None:
         before = store.sample(64, np.random.default_rng(0))
         stats = store.stats()
     assert len(list(tmp_path.glob("log-*.bin"))) == 1  # compacted
-    with ReplayStore(200, SHAPE, 3, 2, data_dir=tmp_path, prioritized=True) as store:
+    with ReplayStore(200, SHAPE, 3, 2, data_dir=tmp_path) as store:
         # 333 added, head 133 when truncated to 320: evicted items stay evicted
         assert store.num_inserted == 320 and len(store) == 187
         after_stats = store.stats()
@@ -170,8 +170,8 @@ def test_snapshot_roundtrip_intrinsic_truncate_eviction(tmp_path: Path) -> None:
         check_store(store, 319)
         ints = dict(zip(b["index"].tolist(), b["intrinsic"].tolist(), strict=True))
         assert ints.get(150, 2.0) == 2.0 and ints.get(300, 4.0) == 4.0
-    # Same contents and priorities after reopen: the same rng draws the same batch.
-    for key in ("index", "obs", "intrinsic", "weight"):
+    # Same contents after reopen: the same rng draws the same batch.
+    for key in ("index", "obs", "intrinsic"):
         np.testing.assert_array_equal(b[key], before[key])
 
 
@@ -222,3 +222,36 @@ def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:
     os.remove(m)
     with pytest.raises(StoreFormatError, match="no MANIFEST"):
         ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path)
+
+
+def test_a_folder_written_before_prioritized_sampling_was_removed_still_opens(tmp_path: Path) -> None:
+    """Its manifest names `prioritized: false` and its log may hold episode-close records."""
+    from shared.replay import log as rlog
+    from shared.replay.store import _CLOSE
+
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(2))
+        ep = store.begin_episode(frame(9, 0), incarnation=9)  # noqa: F821
+        store.add(ep, np.zeros(2), 0.0, 1.0, frame(9, 1), False)  # noqa: F821
+    seg = sorted(tmp_path.glob("log-*.bin"))[-1]
+    writer = rlog.LogWriter(seg)
+    writer.append(_CLOSE, ep.to_bytes(8, "little"))  # what close_episode() used to write
+    writer.close()
+    m = tmp_path / "MANIFEST.json"
+    body = json.loads(m.read_text())
+    body["config"]["prioritized"] = False
+    m.write_text(json.dumps(body))
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        assert store.num_inserted == 2 * EP_LEN + 1
+        assert store.stats()["open_episodes"] == 0  # the close record was applied
+        b = store.get(np.arange(2 * EP_LEN))
+        for g in range(2 * EP_LEN):
+            obs, nxt = expected(g)
+            np.testing.assert_array_equal(b["obs"][g], obs)
+            np.testing.assert_array_equal(b["next_obs"][g], nxt)
+        with pytest.raises(ValueError, match="closed"):
+            store.add(ep, np.zeros(2), 0.0, 1.0, frame(9, 2), False)  # noqa: F821
+    body["config"]["prioritized"] = True  # never reachable, but not silently read as uniform
+    m.write_text(json.dumps(body))
+    with pytest.raises(StoreFormatError, match="differs"):
+        ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path)

@@ -118,3 +118,15 @@ def test_close_releases_all_waiters() -> None:
 def test_rejects_window_that_could_deadlock() -> None:
     with pytest.raises(ValueError, match="error_buffer"):
         SampleToInsertRatio(samples_per_insert=5.0, min_size_to_sample=1, error_buffer=2.0)
+
+
+def test_restore_sets_the_counts_of_a_restarted_run() -> None:
+    # A replay restarted with 20 stored transitions, warm-up 10, G = 2: 20 inserts and
+    # 2 * (20 - 10) samples already happened; the next sample is allowed, the ratio holds.
+    rl = SampleToInsertRatio(samples_per_insert=2.0, min_size_to_sample=11, error_buffer=4.0)
+    assert not rl.can_sample()
+    rl.restore(inserts=20, samples=20)
+    assert rl.stats()["inserts"] == 20 and rl.stats()["samples"] == 20
+    assert rl.can_sample(2) and not rl.can_sample(3)  # diff 20 - 20 = 22 - 4 + 2: two samples of slack
+    with pytest.raises(ValueError, match="counts"):
+        rl.restore(-1, 0)

@@ -113,7 +113,7 @@ def test_stacks_match_naive_buffer(capacity: int, chunk_len: int, compression: s
 
 def test_every_live_transition_exact_after_wraparound() -> None:
     rng = np.random.default_rng(7)
-    store = ReplayStore(50, SHAPE, K, A, chunk_len=4, decode_threads=1)
+    store = ReplayStore(50, SHAPE, K, A, chunk_len=4)
     naive = fill(store, rng, 333, actors=2, max_len=12)
     seen = set()
     for s in range(40):
@@ -257,20 +257,28 @@ def test_bad_input_rejected_and_nothing_lost() -> None:
     assert g == 30
 
 
-def test_prioritized_sampling() -> None:
-    store = ReplayStore(200, SHAPE, K, A, prioritized=True)
-    naive = fill(store, np.random.default_rng(2), 300)
-    b = store.sample(64, np.random.default_rng(0))
-    check_batch(b, naive)
-    assert b["index"].min() >= 100 and "weight" in b
-    live = np.arange(100, 300)
-    pr = np.full(200, 1e-9)
-    pr[live == 150] = 100.0
-    store.update_priorities(live, pr)
-    b = store.sample(64, np.random.default_rng(1))
-    assert (b["index"] == 150).mean() > 0.9
-    with pytest.raises(ValueError):
-        ReplayStore(10, SHAPE, K, A).update_priorities(np.array([0]), np.array([1.0]))
+def test_sampling_without_replacement_has_no_repeat_and_stays_uniform() -> None:
+    store = ReplayStore(200, SHAPE, K, A)
+    naive = fill(store, np.random.default_rng(2), 300)  # 200 live: [100, 300)
+    idx = []
+    for s in range(200):
+        b = store.sample(128, np.random.default_rng(s), replace=False)
+        assert len(np.unique(b["index"])) == 128  # no transition twice in a batch
+        check_batch(b, naive) if s < 3 else None
+        idx.append(b["index"])
+    idx = np.concatenate(idx)
+    assert idx.min() >= 100 and idx.max() < 300
+    counts = np.bincount(idx - 100, minlength=200)  # 128 hits expected per item
+    chi2 = ((counts - counts.mean()) ** 2 / counts.mean()).sum()
+    assert chi2 < 300  # 199 dof: a biased draw would be far above
+    # with replacement, a batch of 128 from 200 repeats rows (what replace=False avoids)
+    assert len(np.unique(store.sample(128, np.random.default_rng(0))["index"])) < 128
+    whole = store.sample(200, np.random.default_rng(1), replace=False)
+    assert sorted(whole["index"].tolist()) == list(range(100, 300))
+    with pytest.raises(ValueError, match="201 distinct transitions from 200"):
+        store.sample(201, np.random.default_rng(0), replace=False)
+    with pytest.raises(ValueError, match="per_chunk"):
+        store.sample(64, np.random.default_rng(0), per_chunk=4, replace=False)
 
 
 def test_concurrent_writer_and_sampler() -> None:

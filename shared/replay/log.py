@@ -70,9 +70,13 @@ def check_manifest(data_dir: Path, config: dict) -> bool:
             f"{data_dir} holds replay format version {body.get('version')}, this code reads "
             f"version {FORMAT_VERSION}; use a new data_dir or convert the old one"
         )
-    if body.get("config") != config:
+    stored = body.get("config")
+    if isinstance(stored, dict) and stored.get("prioritized") is False:
+        # Written before prioritized sampling was removed: the same format, always uniform.
+        stored = {k: v for k, v in stored.items() if k != "prioritized"}
+    if stored != config:
         raise StoreFormatError(
-            f"{data_dir} was created with config {body.get('config')}, "
+            f"{data_dir} was created with config {stored}, "
             f"which differs from the requested {config}"
         )
     return True

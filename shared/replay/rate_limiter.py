@@ -92,6 +92,14 @@ class SampleToInsertRatio:
             self.samples += n
             self._cv.notify_all()
 
+    def restore(self, inserts: int, samples: int) -> None:
+        """Set the counts a restarted process had reached (e.g. from its store); wakes waiters."""
+        if inserts < 0 or samples < 0:
+            raise ValueError(f"counts must be >= 0, got inserts={inserts}, samples={samples}")
+        with self._cv:
+            self.inserts, self.samples = int(inserts), int(samples)
+            self._cv.notify_all()
+
     def close(self) -> None:
         with self._cv:
             self.closed = True

@@ -11,7 +11,8 @@ Data model
   contiguous global index range [head, num_inserted). A chunk is reference
   counted by the windows of live transitions, so when the first transitions of
   an episode are evicted, frames later transitions still need are kept, and
-  uniform sampling over [head, num_inserted) stays exact.
+  uniform sampling over [head, num_inserted) stays exact (with or without
+  replacement within a batch).
 
 Durability (log.py): every mutation is one log record written before add()
 returns, so an acknowledged add survives the death of the process; fsync
@@ -35,13 +36,14 @@ import numpy as np
 
 from shared.replay import log as rlog
 from shared.replay.codec import FrameCodec
-from shared.replay.sumtree import SumTree
 
-# Log record types.
+# Log record types. _CLOSE (an episode closed without its last step) is no longer written;
+# logs that hold it still replay.
 _BEGIN, _STEP, _INTRINSIC, _TRUNCATE, _CLOSE = 1, 2, 3, 4, 5
 _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
+ACTION_BOUND = 1.0  # actions are stored as the policy emits them, in [-1, 1]
 
 
 @dataclass
@@ -75,13 +77,8 @@ class ReplayStore:
         action_dim: int,
         data_dir: str | Path | None = None,
         chunk_len: int = 8,
-        prioritized: bool = False,
         compression: str = "lz4",
-        compression_level: int | None = None,
-        decode_threads: int | None = None,
         fsync_interval_s: float = 1.0,
-        action_bound: float = 1.0,
-        priority_exponent: float = 0.6,
     ) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
@@ -96,17 +93,13 @@ class ReplayStore:
         self.k = int(frame_stack)
         self.action_dim = int(action_dim)
         self.chunk_len = int(chunk_len)
-        self.prioritized = bool(prioritized)
-        self.action_bound = float(action_bound)
-        self.priority_exponent = float(priority_exponent)
         self.fsync_interval_s = float(fsync_interval_s)
-        self._codec = FrameCodec(self.frame_size, compression, compression_level)
+        self._codec = FrameCodec(self.frame_size, compression)
         self._tls = threading.local()
         self._lock = threading.RLock()
-        if decode_threads is None:
-            # Measured: zstd's slower calls gain ~1.3x from a second decode thread; lz4's calls
-            # are so short that GIL hand-offs between threads cost more than they save.
-            decode_threads = 2 if self._codec.compression == "zstd" else 1
+        # zstd's slower calls gain from a second decode thread; lz4's calls are so short
+        # that GIL hand-offs between threads cost more than they save (docs/benchmarks.md).
+        decode_threads = 2 if self._codec.compression == "zstd" else 1
         self._pool = ThreadPoolExecutor(decode_threads) if decode_threads > 1 else None
         self._threads = max(1, int(decode_threads))
 
@@ -121,8 +114,6 @@ class ReplayStore:
         self._policy = np.zeros(c, np.int64)
         self._step = np.zeros(c, np.int32)
         self._refs = np.zeros((c, self.k + 1), np.int64)  # chunk_id * chunk_len + offset
-        self._tree = SumTree(c) if prioritized else None
-        self._max_priority = 1.0
 
         self._head = 0  # oldest live global index
         self._num_inserted = 0
@@ -152,7 +143,6 @@ class ReplayStore:
             "frame_stack": self.k,
             "action_dim": self.action_dim,
             "chunk_len": self.chunk_len,
-            "prioritized": self.prioritized,
             "compression": self._codec.compression,
         }
 
@@ -219,8 +209,8 @@ class ReplayStore:
             raise ValueError(f"action has shape {act.shape}, expected ({self.action_dim},)")
         if not np.all(np.isfinite(act)):
             raise ValueError(f"action has non-finite values: {act}")
-        if np.any(np.abs(act) > self.action_bound):
-            raise ValueError(f"action {act} is outside [-{self.action_bound}, {self.action_bound}]")
+        if np.any(np.abs(act) > ACTION_BOUND):
+            raise ValueError(f"action {act} is outside [-{ACTION_BOUND}, {ACTION_BOUND}]")
         reward, discount, intrinsic = float(reward), float(discount), float(intrinsic)
         if not math.isfinite(reward):
             raise ValueError(f"reward must be finite, got {reward}")
@@ -266,16 +256,6 @@ class ReplayStore:
                 self._chunks[ep.chunk_ids[-1]].key = flat.copy()
             return g
 
-    def close_episode(self, episode_id: int) -> None:
-        """Close an open episode without a final step (its actor died)."""
-        with self._lock:
-            self._check_open()
-            ep = self._episodes.get(episode_id)
-            if ep is None or not ep.open:
-                raise ValueError(f"episode {episode_id!r} is not open")
-            self._write(_CLOSE, struct.pack("<q", episode_id))
-            self._apply_close(episode_id)
-
     def set_intrinsic(self, index: np.ndarray, value: np.ndarray) -> None:
         """Fill intrinsic rewards of transitions by global index; evicted indices are ignored."""
         index = np.asarray(index, np.int64).reshape(-1)
@@ -292,28 +272,6 @@ class ReplayStore:
                 _INTRINSIC, struct.pack("<I", len(index)) + index.tobytes() + value.tobytes()
             )
             self._apply_intrinsic(index, value)
-
-    def update_priorities(self, index: np.ndarray, priority: np.ndarray) -> None:
-        """Set priorities (e.g. |TD error|) by global index; evicted indices are ignored.
-
-        Priorities are kept in snapshots but not in the log: after a crash, those
-        set since the last snapshot fall back to the maximum priority.
-        """
-        if self._tree is None:
-            raise ValueError("update_priorities needs a store built with prioritized=True")
-        index = np.asarray(index, np.int64).reshape(-1)
-        priority = np.asarray(priority, np.float64).reshape(-1)
-        if index.shape != priority.shape:
-            raise ValueError("index and priority differ in length")
-        if not np.all(np.isfinite(priority)) or np.any(priority < 0):
-            raise ValueError("priorities must be finite and >= 0")
-        with self._lock:
-            live = (index >= self._head) & (index < self._num_inserted)
-            if not np.any(live):
-                return
-            p = (priority[live] + 1e-6) ** self.priority_exponent
-            self._max_priority = max(self._max_priority, float(p.max()))
-            self._tree.set(index[live] % self.capacity, p)
 
     def truncate(self, num_inserted: int) -> None:
         """Drop every transition added after the first `num_inserted`; closes all open episodes."""
@@ -382,8 +340,6 @@ class ReplayStore:
         self._incarnation[pos] = ep.incarnation
         self._policy[pos] = policy
         self._step[pos] = t
-        if self._tree is not None:
-            self._tree.set(np.array([pos]), self._max_priority)
         self._num_inserted += 1
         if last:
             self._apply_close(ep_id)
@@ -422,8 +378,6 @@ class ReplayStore:
     def _evict_oldest(self) -> None:
         pos = self._head % self.capacity
         self._head += 1
-        if self._tree is not None:
-            self._tree.set(np.array([pos]), 0.0)
         self._release_window(pos)
 
     def _apply_intrinsic(self, index: np.ndarray, value: np.ndarray) -> None:
@@ -448,8 +402,6 @@ class ReplayStore:
             if not chunk.blobs and cid in self._chunks:
                 del self._chunks[cid]
                 ep.live_chunks -= 1
-            if self._tree is not None:
-                self._tree.set(np.array([pos]), 0.0)
             self._intrinsic[pos] = np.nan
         self._num_inserted = n
         self._head = min(self._head, n)
@@ -467,14 +419,18 @@ class ReplayStore:
         return self._num_inserted
 
     def sample(
-        self, batch_size: int, rng: np.random.Generator, per_chunk: int = 1
+        self, batch_size: int, rng: np.random.Generator, per_chunk: int = 1, replace: bool = True
     ) -> dict[str, np.ndarray]:
-        """Sample a batch: uniform over live transitions (or proportional to priority).
+        """Sample a batch uniformly over the live transitions.
 
         Frames come as `window` (B, (k+1)*C, H, W), each transition's k+1 frames;
         `obs` and `next_obs` are views of it (its first and last k frames).
 
-        per_chunk > 1 (uniform mode only) draws batch_size / per_chunk anchor
+        replace=False draws the batch without replacement (no transition twice in
+        one batch, as the reference does); it needs at least batch_size live
+        transitions and raises ValueError otherwise (never a smaller batch).
+
+        per_chunk > 1 (with replacement only) draws batch_size / per_chunk anchor
         transitions uniformly and, for each, per_chunk - 1 more uniformly among
         the live transitions whose newest frame shares the anchor's chunk. Every
         draw is still exactly uniform over the store; draws within a group are
@@ -482,12 +438,20 @@ class ReplayStore:
         """
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        if per_chunk > 1 and self._tree is not None:
-            raise ValueError("per_chunk > 1 is for uniform sampling only")
+        if per_chunk > 1 and not replace:
+            raise ValueError("per_chunk > 1 draws with replacement; it cannot be combined with replace=False")
         with self._lock:
             if len(self) == 0:
                 raise ValueError("cannot sample from an empty replay store")
-            plan = self._gather(self._draw(batch_size, rng, per_chunk))
+            if replace:
+                index = self._draw(batch_size, rng, per_chunk)
+            elif batch_size > len(self):
+                raise ValueError(
+                    f"cannot draw {batch_size} distinct transitions from {len(self)} stored"
+                )
+            else:
+                index = self._head + rng.choice(len(self), batch_size, replace=False)
+            plan = self._gather(index)
         return self._assemble(plan)
 
     def get(self, index: np.ndarray) -> dict[str, np.ndarray]:
@@ -528,10 +492,6 @@ class ReplayStore:
             "policy_version": self._policy[pos],
             "step": self._step[pos],
         }
-        if self._tree is not None:
-            p = self._tree.get(pos)
-            w = (len(self) * p / self._tree.total) ** -0.4
-            out["weight"] = (w / w.max()).astype(np.float32)
         return out, refs.size, chunks, starts, uref % self.chunk_len, first, inv
 
     def _assemble(self, plan: tuple) -> dict[str, np.ndarray]:
@@ -549,16 +509,6 @@ class ReplayStore:
         return out
 
     def _draw(self, b: int, rng: np.random.Generator, per_chunk: int) -> np.ndarray:
-        if self._tree is not None:
-            total = self._tree.total
-            pos = self._tree.find(rng.uniform(0.0, total, b))
-            # Float round-off can land on an empty leaf at the very end; redraw those.
-            for _ in range(8):
-                bad = self._tree.get(pos) <= 0
-                if not bad.any():
-                    break
-                pos[bad] = self._tree.find(rng.uniform(0.0, total, int(bad.sum())))
-            return self._head + (pos - self._head) % self.capacity
         if per_chunk <= 1 or self._head == self._num_inserted:
             return rng.integers(self._head, self._num_inserted, b, dtype=np.int64)
         anchors = rng.integers(self._head, self._num_inserted, -(-b // per_chunk), dtype=np.int64)
@@ -614,8 +564,6 @@ class ReplayStore:
                     self._actor, self._incarnation, self._policy, self._step, self._refs,
                 )
             )
-            if self._tree is not None:
-                meta += self._tree.tree.nbytes
             # Python object overhead per frame: bytes object 33 B + list slot 8 B, plus its
             # owning transition index in `owned` (int 28 B + slot 8 B); ~200 B per chunk.
             overhead = 77 * self._num_blobs + 200 * len(self._chunks) + 200 * len(self._episodes)
@@ -746,8 +694,6 @@ class ReplayStore:
     def _capture(self) -> dict:
         pos = np.arange(self._head, self._num_inserted) % self.capacity
         arrays = {name: getattr(self, name)[pos] for name in self._ARRAYS}
-        if self._tree is not None:
-            arrays["_priority"] = self._tree.get(pos)
         chunks = [(cid, c.episode_id, c.refcount, c.open, list(c.blobs)) for cid, c in self._chunks.items()]
         episodes = {
             str(e): [ep.actor_id, ep.incarnation, ep.chunk_ids, ep.num_frames, ep.open, ep.live_chunks]
@@ -760,7 +706,6 @@ class ReplayStore:
             "next_chunk": self._next_chunk,
             "open_by_actor": {str(a): e for a, e in self._open_by_actor.items()},
             "incarnations": {str(a): i for a, i in self._incarnations.items()},
-            "max_priority": self._max_priority,
             "episodes": episodes,
         }
         return {"meta": meta, "arrays": arrays, "chunks": chunks}
@@ -801,7 +746,6 @@ class ReplayStore:
         self._next_chunk = meta["next_chunk"]
         self._open_by_actor = {int(a): e for a, e in meta["open_by_actor"].items()}
         self._incarnations = {int(a): i for a, i in meta["incarnations"].items()}
-        self._max_priority = meta["max_priority"]
         for e, (actor, inc, cids, nf, is_open, live) in meta["episodes"].items():
             self._episodes[int(e)] = _Episode(actor, inc, cids, nf, is_open, live)
         chunk_meta = np.frombuffer(sec["chunk_meta"], np.int64).reshape(-1, 5)
@@ -819,8 +763,6 @@ class ReplayStore:
         for name in self._ARRAYS:
             arr = getattr(self, name)
             arr[pos] = np.frombuffer(sec[name], arr.dtype).reshape((len(pos), *arr.shape[1:]))
-        if self._tree is not None and len(pos):
-            self._tree.set(pos, np.frombuffer(sec["_priority"], np.float64))
         for g, cid in zip(
             range(self._head, self._num_inserted),
             (self._refs[pos, -1] // self.chunk_len).tolist(),
