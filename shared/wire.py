@@ -11,7 +11,8 @@ services count and log it and carry on.
 |------------------------------|------------------|----------------------|-------------------------------|
 | replay/insert/<actor_id>     | TransitionBatch  | actor (BLOCK)        | replay                        |
 | replay/ack/<actor_id>        | InsertAck        | replay (BLOCK)       | actor <actor_id>              |
-| replay/sample   (queryable)  | SampleRequest -> SampleReply | replay answers | learner (batches; unscored) |
+| replay/sample   (queryable)  | SampleRequest -> SampleReply | replay answers | learner (training batches) |
+| replay/unscored (queryable)  | UnscoredRequest -> SampleReply | replay answers | learner (rows to score) |
 | replay/intrinsic             | SetIntrinsic     | learner (BLOCK)      | replay                        |
 | replay/config   (queryable)  | RunConfigMsg     | replay answers       | learner, actors, evaluator at start |
 | replay/stats                 | ReplayStats      | replay (2 Hz)        | learner, actors, evaluator    |
@@ -43,7 +44,9 @@ import msgpack
 import numpy as np
 import zstandard as zstd
 
-SCHEMA_VERSION = 2  # 2: policy weights' fc layers index conv features in (h, w, c) order
+# 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
+# key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read
+SCHEMA_VERSION = 3
 PREFIX = "nasa"
 _EPOCH_2025 = 1_735_689_600.0
 
@@ -76,6 +79,7 @@ class Keys:
         self.prefix = p
         self.insert_all = f"{p}/replay/insert/*"
         self.sample = f"{p}/replay/sample"
+        self.unscored = f"{p}/replay/unscored"
         self.intrinsic = f"{p}/replay/intrinsic"
         self.config = f"{p}/replay/config"
         self.replay_stats = f"{p}/replay/stats"
@@ -131,7 +135,6 @@ class TransitionBatch(Message):
     incarnation: int
     episode: int
     start: int
-    seq: int
     n: int
     frame_shape: list
     frames: bytes
@@ -148,20 +151,27 @@ class InsertAck(Message):
     TYPE: ClassVar[str] = "insert_ack"
     actor_id: int
     incarnation: int
-    seq: int
-    accepted: int
     num_inserted: int
 
 
 @dataclass
 class SampleRequest(Message):
-    """A uniform batch (paced by the replay's rate limiter); or, with unscored_after >= 0, up
-    to batch_size of the oldest unscored transitions from that global index on (not paced)."""
+    """A uniform batch, paced by the replay's rate limiter (the replay waits up to wait_s)."""
 
     TYPE: ClassVar[str] = "sample_request"
     batch_size: int
     wait_s: float = 2.0
-    unscored_after: int = -1
+
+
+@dataclass
+class UnscoredRequest(Message):
+    """Up to `limit` of the oldest unscored transitions with global index >= `after`, for
+    collect-timing scoring: not a training sample, so not paced. The reply's num_inserted is
+    read before the scan: every row in [after, num_inserted) not returned is scored or evicted."""
+
+    TYPE: ClassVar[str] = "unscored_request"
+    after: int
+    limit: int
 
 
 @dataclass
@@ -258,7 +268,7 @@ class Stop(Message):
 MESSAGES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
-        TransitionBatch, InsertAck, SampleRequest, SampleReply, SetIntrinsic, ReplayStats,
+        TransitionBatch, InsertAck, SampleRequest, UnscoredRequest, SampleReply, SetIntrinsic, ReplayStats,
         Weights, ActorStatus, EvalResult, RunConfigMsg, Stop,
     )
 }

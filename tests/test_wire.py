@@ -14,16 +14,18 @@ from shared import wire
 
 def test_every_message_round_trips():
     msgs = [
-        wire.TransitionBatch(1, 2, 3, 0, 4, 1, [3, 8, 8], b"f", b"first", b"a" * 4, b"r" * 4, b"d" * 4,
+        wire.TransitionBatch(1, 2, 3, 0, 1, [3, 8, 8], b"f", b"first", b"a" * 4, b"r" * 4, b"d" * 4,
                              b"\x01", b"v" * 8),
-        wire.InsertAck(1, 2, 3, 8, 100),
+        wire.InsertAck(1, 2, 100),
         wire.SampleRequest(64, 1.5),
+        wire.UnscoredRequest(100, 64),
         wire.SampleReply(False, "rate limited", 10),
         wire.SetIntrinsic(b"i" * 8, b"v" * 4),
         wire.ReplayStats(1, 2, 3, 4, 5, 6, 7, False),
         wire.Weights(1, 5, 100, {"w": ["<f4", [1], b"\0\0\0\0"]}),
         wire.ActorStatus(0, 1, 10, 1, 5, 3.5, [[1.0, 125]]),
         wire.EvalResult(1000, 7, [1.0, 2.0]),
+        wire.RunConfigMsg({"config": {"seed": 0}}, "0123456789abcdef"),
         wire.Stop("done"),
     ]
     assert {type(m) for m in msgs} == set(wire.MESSAGES.values())
@@ -53,15 +55,16 @@ def test_bad_messages_raise_wire_error(body, match):
 
 
 def test_field_types_are_checked():
-    good = wire.encode(wire.InsertAck(1, 2, 3, 4, 5))
+    good = wire.encode(wire.InsertAck(1, 2, 5))
     body = msgpack.unpackb(good)
-    for field, bad in (("seq", "3"), ("accepted", 1.5), ("num_inserted", True), ("actor_id", None)):
+    bad_fields = (("incarnation", "3"), ("num_inserted", 1.5), ("num_inserted", True), ("actor_id", None))
+    for field, bad in bad_fields:
         with pytest.raises(wire.WireError, match=field):
             wire.decode(msgpack.packb({**body, field: bad}), wire.InsertAck)
     # int where float is declared is fine; None only where declared optional
     status = msgpack.unpackb(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, 5.0, [])))
     assert wire.decode(msgpack.packb({**status, "steps_per_s": 5}), wire.ActorStatus).steps_per_s == 5
-    batch = wire.TransitionBatch(1, 2, 3, 8, 4, 1, [3, 8, 8], b"f", None, b"", b"", b"", b"", b"")
+    batch = wire.TransitionBatch(1, 2, 3, 8, 1, [3, 8, 8], b"f", None, b"", b"", b"", b"", b"")
     assert wire.decode(wire.encode(batch), wire.TransitionBatch).first_frame is None
 
 
