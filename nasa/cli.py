@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,7 +12,8 @@ import tyro
 
 from nasa.plot import plot
 from nasa.reproduce import reproduce
-from shared.config import TrainConfig
+from shared import run_config
+from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.device import resolve_device
 from shared.service import EXIT_BAD_INPUT, bad_input_errors, parse_with_preset
 
@@ -24,19 +26,51 @@ class TrainCommand:
     out: Path | None = None
     """Run folder (default runs/<task>-<algo>-s<seed>)."""
     resume: Path | None = None
-    """Continue the run in this folder exactly from its last checkpoint (other flags but --steps ignored)."""
-    preset: str = "auto"
+    """Continue the run in this folder exactly from its last checkpoint, with its settings;
+    --steps may set a new step budget, any other config flag must agree with the run's."""
+    preset: str = DEFAULT_PRESET
     """`paper` (the reference settings), `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
 
 
+def resume_folder(argv: list[str]) -> Path | None:
+    """The --resume folder of a `nasa train` command line, if any (read before the full parse,
+    because the run's config.json supplies the defaults)."""
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre.add_argument("--resume", type=Path, default=None)
+    return pre.parse_known_args(argv)[0].resume
+
+
+def parse_train(argv: list[str]) -> tuple[TrainCommand, str, int | None]:
+    """`nasa train`'s flags; returns them, the preset used, and (resuming) the new step budget or None.
+
+    Resuming, the run's config.json is the default of every config flag, so a flag that
+    is given and differs from the run's is a ConfigMismatch naming it; --steps alone may change.
+    """
+    folder = resume_folder(argv)
+    if folder is None:
+        cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train")
+        return cmd, preset, None
+    path = folder / run_config.CONFIG_FILE
+    if not path.exists():
+        raise ConfigError(f"--resume {folder}: no run there ({path} does not exist)")
+    saved = run_config.read_config(path)
+    cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train", base=saved)
+    run_config.check_same(cmd.config, saved, str(path), may_change=run_config.RESUME_MAY_CHANGE)
+    # LOCAL_FIELDS (the device) are compared too: Trainer.resume continues on the run's device.
+    device = [f for f in run_config.LOCAL_FIELDS if f in run_config.differing_fields(cmd.config, saved)]
+    if device:
+        raise run_config.ConfigMismatch(str(path), device, cmd.config, saved)
+    steps = cmd.config.steps if cmd.config.steps != saved.steps else None
+    return cmd, preset, steps
+
+
 def train(argv: list[str]) -> None:
-    cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train")
+    cmd, preset, steps = parse_train(argv)
     device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL
 
     if cmd.resume is not None:
         print(f"nasa train: resuming {cmd.resume}", flush=True)
-        steps = cmd.config.steps if "--steps" in argv else None
         Trainer.resume(cmd.resume, steps=steps).run()
         return
     c = cmd.config

@@ -4,11 +4,22 @@ The launcher runs the Zenoh router in its own process (a session in router
 mode) and starts replay, learner, evaluator and N actors as child processes
 (`python -m services.<role>`, the same commands the deployment files run). A
 child that dies is restarted (a restarted actor draws a new incarnation),
-unless it refused its input (exit code 2: a bad flag, device, task name or
-checkpoint), which would only fail again. The run ends when the learner
-finishes the step budget (it publishes Stop and every service exits), when
-the learner ends for good (`nasa up` then exits non-zero), on Ctrl-C, or on
-SIGTERM. Children are stopped in order (actors, evaluator, learner, replay),
+unless it refused its input (exit code 2: a bad flag, device, task name,
+checkpoint, replay folder or settings that differ from the run's), which would
+only fail again.
+
+One config per run: `nasa up` parses its config flags with the parser every
+service uses (shared.service.parse_with_preset, defaults from shared.config),
+checks the task through its environment source, and opens the run folder
+(shared.run_config.open_folder) before starting anything: a new folder gets the
+resolved config in <data>/config.json; a resumed one must have been started
+with the same settings (else exit 2 naming the fields; only --steps may
+change). Every service is then started with `--run-config <data>/config.json`,
+so all of them run that file's settings.
+
+The run ends when the learner finishes the step budget (it publishes Stop and
+every service exits), when the learner or the replay ends for good (`nasa up`
+then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM. Children are stopped in order (actors, evaluator, learner, replay),
 killed if they do not exit in time, and get SIGTERM if the launcher itself
 dies (PR_SET_PDEATHSIG, set by each service at start), so no process is left.
 """
@@ -22,12 +33,24 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
-from shared.service import EXIT_BAD_INPUT
+import tyro
+
+from shared import envs, run_config
+from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
+from shared.run_config import RunConfig
+from shared.service import EXIT_BAD_INPUT, parse_with_preset
 
 STOP_ORDER = ("actor", "evaluator", "learner", "replay")
+
+
+def service_command(role: str) -> list[str]:
+    """The command that runs one service (what the deployment files run too)."""
+    return [sys.executable, "-m", f"services.{role}"]
 
 
 def free_port() -> int:
@@ -51,8 +74,10 @@ class Supervisor:
     """Starts services as child processes, restarts the ones that die, stops them all in order."""
 
     def __init__(self, env: dict[str, str], log_dir: Path | None, max_restarts: int = 20,
-                 restart_delay_s: float = 1.0, cwd: str | None = None) -> None:
+                 restart_delay_s: float = 1.0, cwd: str | None = None,
+                 command: Callable[[str], list[str]] = service_command) -> None:
         self.env = env
+        self.command = command
         self.log_dir = log_dir
         self.max_restarts = max_restarts
         self.restart_delay_s = restart_delay_s
@@ -76,7 +101,7 @@ class Supervisor:
             out = open(log, "ab")  # noqa: SIM115 (owned by the child)
         try:
             child.proc = subprocess.Popen(
-                [sys.executable, "-m", f"services.{child.role}", *child.argv],
+                [*self.command(child.role), *child.argv],
                 # Each service asks for SIGTERM when this process dies (shared.service.die_with_parent):
                 # no preexec_fn, which is unsafe in a process with threads (Zenoh's).
                 env={**self.env, "NASA_PARENT_PID": str(os.getpid())}, stdout=out,
@@ -126,6 +151,10 @@ class Supervisor:
         lines = log.read_text(errors="replace").strip().splitlines()
         return f"{log}: {lines[-1] if lines else 'no output'}"
 
+    def ended(self, roles: tuple[str, ...]) -> Child | None:
+        """The first child of one of `roles` that ended for good (exited 0, refused, or out of restarts)."""
+        return next((c for c in self.children.values() if c.role in roles and c.exited is not None), None)
+
     def running(self) -> list[Child]:
         return [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
 
@@ -154,27 +183,22 @@ class Supervisor:
 class UpCommand:
     """Run the distributed system on this host: router, replay, learner, evaluator and N actors.
 
-    Config flags after `--` (e.g. `-- --image-size 48 --warmup-steps 100`) go to every service.
+    Config flags are `nasa train`'s (e.g. `--task cheetah-run --image-size 48`); the same
+    command again resumes the run in its folder. `--device` is the learner's device.
     """
 
-    task: str = "cartpole-balance"
-    algo: str = "nasa_td3"
+    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
+    preset: str = DEFAULT_PRESET
+    """`paper`, `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
     actors: int = 2
-    steps: int | None = None
-    """Env steps of the run (default: the preset's)."""
-    device: str = "auto"
-    """Learner device: cpu, cuda, cuda:N or auto."""
     data: Path | None = None
     """Run folder (default runs/<task>-<algo>-up); an existing one is resumed."""
-    preset: str = "auto"
-    """`paper`, `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
     port: int = 8000
     """Port of the learner's status API."""
     router_port: int = 7447
     """Port of the embedded Zenoh router (0: a free one)."""
     run_id: str | None = None
     """Key prefix nasa/<run_id>/ (default: from the run folder's name)."""
-    seed: int = 0
     evaluator: bool = True
     learner_threads: int = 0
     """torch threads of the learner; 0: the cores left after actors, evaluator and replay (at least 1)."""
@@ -182,17 +206,38 @@ class UpCommand:
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
 
 
-def service_argv(cmd: UpCommand, preset: str, data: Path, extra: list[str]) -> dict[str, list[str]]:
-    common = ["--preset", preset, "--task", cmd.task, "--algo", cmd.algo, "--seed", str(cmd.seed)]
-    if cmd.steps is not None:
-        common += ["--steps", str(cmd.steps)]
-    common += extra
+def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
+    """`nasa up`'s flags, through the parser every service uses; returns them and the preset used.
+    A `--` (older command lines put config flags after it) is dropped."""
+    if "--" in argv:
+        i = argv.index("--")
+        argv = [*argv[:i], *argv[i + 1 :]]
+    cmd, preset = parse_with_preset(UpCommand, argv, "nasa up")
+    if cmd.actors < 1:
+        raise ConfigError(f"--actors must be >= 1, got {cmd.actors}")
+    return cmd, preset
+
+
+def run_folder(cmd: UpCommand) -> Path:
+    c = cmd.config
+    return cmd.data or Path("runs") / f"{c.env.task}-{c.algo}-up"
+
+
+def prepare(cmd: UpCommand, data: Path) -> RunConfig:
+    """Check the task and the run folder before any service starts: a new folder gets the resolved
+    config.json, a resumed one must hold the same settings (ConfigMismatch), the step budget aside."""
+    envs.check_task(cmd.config.env.task)  # here once, rather than from every service
+    return run_config.open_folder(cmd.config, data, may_change=run_config.RESUME_MAY_CHANGE)
+
+
+def service_argv(cmd: UpCommand, data: Path) -> dict[str, list[str]]:
+    """Each service's flags: the run's config.json (written by `prepare`) and its own role's flags."""
+    common = ["--run-config", str(data / run_config.CONFIG_FILE)]
     # Oversubscribed torch threads cost several times their speed on a small CPU.
     threads = cmd.learner_threads or max(1, (os.cpu_count() or 1) - cmd.actors - 2)
     out = {
         "replay": [*common, "--data", str(data)],
-        "learner": [*common, "--data", str(data), "--device", cmd.device, "--port", str(cmd.port),
-                    "--threads", str(threads)],
+        "learner": [*common, "--data", str(data), "--port", str(cmd.port), "--threads", str(threads)],
     }
     if cmd.evaluator:
         out["evaluator"] = list(common)
@@ -202,29 +247,16 @@ def service_argv(cmd: UpCommand, preset: str, data: Path, extra: list[str]) -> d
 
 
 def up(argv: list[str]) -> None:
-    import tyro
-
-    from shared.config import PRESET_NAMES, ConfigError, auto_preset
     from shared.device import resolve_device
 
-    extra: list[str] = []
-    if "--" in argv:
-        i = argv.index("--")
-        argv, extra = argv[:i], argv[i + 1 :]
-    cmd = tyro.cli(UpCommand, args=argv, prog="nasa up")
-    if cmd.preset not in PRESET_NAMES:
-        raise ConfigError(f"unknown preset {cmd.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
-    if cmd.actors < 1:
-        raise ConfigError(f"--actors must be >= 1, got {cmd.actors}")
-    from shared.envs import parse_task
-
-    parse_task(cmd.task)  # here once, rather than from every service it would start
-    device = resolve_device(cmd.device)
-    preset = auto_preset(device.type) if cmd.preset == "auto" else cmd.preset
+    cmd, preset = parse_up(argv)
+    c = cmd.config
+    data = run_folder(cmd)
+    device = resolve_device(c.device)
+    prepare(cmd, data)
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
         else f"device {device}"
-    print(f"nasa up: preset {preset} ({how}); {cmd.algo} on {cmd.task}, {cmd.actors} actor(s)", flush=True)
-    data = cmd.data or Path("runs") / f"{cmd.task}-{cmd.algo}-up"
+    print(f"nasa up: preset {preset} ({how}); {c.algo} on {c.env.task}, {cmd.actors} actor(s)", flush=True)
     run_id = cmd.run_id or re.sub(r"[^A-Za-z0-9_.\-]", "-", data.resolve().name)
     router_port = cmd.router_port or free_port()
     endpoint = f"tcp/127.0.0.1:{router_port}"
@@ -238,26 +270,28 @@ def up(argv: list[str]) -> None:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    ended: Child | None = None
     with open_router(endpoint):
         sup = Supervisor(env, data / "logs" if cmd.logs else None)
         try:
-            for name, args in service_argv(cmd, preset, data, extra).items():
+            for name, args in service_argv(cmd, data).items():
                 sup.add(name, name.split("-")[0], args)
             print(f"nasa up: run {run_id} in {data}; router {endpoint}; "
                   f"status http://127.0.0.1:{cmd.port}/status", flush=True)
-            learner = sup.children["learner"]
             while not stop["reason"]:
                 sup.poll(lambda msg: print(f"nasa up: {msg}", flush=True))
-                if learner.exited is not None:
-                    stop["reason"] = f"learner exited ({learner.exited})"
+                # The run cannot go on without its learner or its replay.
+                ended = sup.ended(("learner", "replay"))
+                if ended is not None:
+                    stop["reason"] = f"{ended.name} exited ({ended.exited})"
                     break
                 time.sleep(0.2)
         finally:
             print(f"nasa up: stopping ({stop['reason'] or 'error'})", flush=True)
             sup.stop_all()
     print("nasa up: stopped", flush=True)
-    if learner.exited:
-        sys.exit(EXIT_BAD_INPUT if learner.exited == EXIT_BAD_INPUT else 1)
+    if ended is not None and ended.exited:
+        sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
 
 
 def status(argv: list[str]) -> None:

@@ -1,8 +1,10 @@
 """Typed configuration: one home for every default.
 
-The defaults are the settings of the NaSA-TD3 reference implementation
-(../shared/DESIGN.md, section 1); SAC-AE's own settings live in
-`SAC_AE_OVERRIDES`. `validate()` rejects bad values with a clear message
+The defaults are the settings of the NaSA-TD3 reference implementation;
+SAC-AE's own settings live in `SAC_AE_OVERRIDES`, the cheaper settings of a
+CPU run in `PRESETS`. `nasa train`, `nasa up` and every service read their
+flags through `shared.service.parse_with_preset`, so each default is declared
+here and nowhere else. `validate()` rejects bad values with a clear message
 before any work starts.
 """
 
@@ -15,6 +17,7 @@ from typing import Literal
 
 Algo = Literal["nasa_td3", "td3_ae", "pixel_td3", "sac_ae"]
 ALGOS: tuple[str, ...] = ("nasa_td3", "td3_ae", "pixel_td3", "sac_ae")
+DEFAULT_PRESET = "auto"
 
 
 class ConfigError(ValueError):
@@ -24,7 +27,8 @@ class ConfigError(ValueError):
 @dataclass
 class EnvConfig:
     task: str = "cartpole-balance"
-    """dm_control task as `domain-task`, e.g. cheetah-run."""
+    """A task of an environment source (shared.envs): for the DeepMind Control Suite
+    `domain-task`, e.g. cheetah-run."""
     image_size: int = 84
     frame_stack: int = 3
     action_repeat: int = 1
@@ -54,9 +58,10 @@ class AgentConfig:
     ensemble_lr: float = 1e-4
     ensemble_weight_decay: float = 1e-3
     ensemble_every: int = 1
-    """Train the ensemble on every n-th update: 1 as DESIGN.md (every update, same
-    minibatch); G for the reference code's schedule (once per env step, on the last
-    of its G minibatches)."""
+    """Train the ensemble on every n-th update. 1 (default): at every update, on the
+    critic's minibatch, as the reference's current code does. `updates_per_step` (G):
+    once per env step, on the last of its G minibatches, the schedule of the
+    reference's revisions of mid-2023."""
     gamma: float = 0.99
     tau: float = 0.005
     """Soft-update rate of the Q heads and actor MLP (TD3) or of the critic (SAC-AE)."""
@@ -114,11 +119,17 @@ class TrainConfig:
     updates_per_step: int = 5
     """G: gradient updates per environment step after warm-up."""
     batch_size: int = 128
+    sample_without_replacement: bool = False
+    """Draw each batch without repeated rows, as the reference does; the default draws
+    rows independently (with replacement), which differs only while the replay is small."""
     replay_capacity: int = 1_000_000
     replay_compression: Literal["lz4", "zstd"] = "lz4"
-    """Replay frame compressor: lz4 samples about 2x faster, zstd stores about 12% fewer bytes."""
+    """Replay frame compressor: lz4 decodes faster, zstd stores fewer bytes."""
     eval_every: int = 10_000
     eval_episodes: int = 10
+    eval_at_start: bool = True
+    """Evaluate the untrained policy at step 0; False reproduces the reference, whose
+    first evaluation comes after `eval_every` steps."""
     checkpoint_every: int = 10_000
     device: str = "auto"
     """`cpu`, `cuda`, `cuda:N` or `auto` (cuda when present)."""
@@ -246,7 +257,7 @@ def apply_preset(config: TrainConfig, preset: str) -> TrainConfig:
 
 
 def auto_preset(device_type: str) -> str:
-    """The paper's settings on a GPU; on a CPU they take ~13 s per env step, so the small preset."""
+    """The paper's settings on a GPU; on a CPU they are too slow to train, so the small preset."""
     return "paper" if device_type == "cuda" else "cpu-small"
 
 

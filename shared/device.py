@@ -29,8 +29,8 @@ def keep_freed_memory() -> bool:
     """Let glibc's malloc keep freed blocks of up to 1 GiB instead of unmapping them.
 
     By default a freed block over 32 MiB (a batch's decoded images, its gradients)
-    goes back to the OS, and the next update page-faults it in afresh, zeroed: about
-    15% of an update on this CPU. The process keeps its peak footprint instead.
+    goes back to the OS, and the next update page-faults it in afresh, zeroed, a
+    measurable part of a CPU update. The process keeps its peak footprint instead.
     A no-op (False) where the C library is not glibc."""
     try:
         mallopt = ctypes.CDLL(None).mallopt  # the process's own C library

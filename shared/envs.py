@@ -1,9 +1,18 @@
-"""dm_control pixel environments: task names, rendering quality and frame stacking.
+"""Pixel environments behind one seam: environment sources, a spec, and `from_config`.
 
-`make()` composes thin layers the way DrQ-v2's `dmc.py` does: the suite task, a
-pixel renderer, action repeat and a frame stack. Every environment the system
-steps (simulation, the valve stand-in, the real gripper) exposes this `PixelEnv`
-interface, so actors never care which one they hold.
+An environment *source* owns a set of task names and knows, for each, the
+environment's spec (frame shape, frame stack, action size) without rendering,
+and how to build it. `spec()`, `check_task()` and `from_config()` find the
+source by the task name, so a new source (the gripper bridge, say) is one
+object passed to `register()`: nothing that reads a spec or steps a
+`PixelEnv` changes. The one source today is `dmc`, the DeepMind Control Suite.
+
+A source's environment is composed of thin layers the way DrQ-v2's `dmc.py`
+does: the task, a pixel renderer with action repeat, and a frame stack that
+stacks the last k frames along channels. Every `PixelEnv` exposes the same
+interface, so actors and the trainer never care which one they hold, and a
+service that does not step an environment reads its `EnvSpec` from the run's
+config instead of building one.
 """
 
 from __future__ import annotations
@@ -33,15 +42,49 @@ PAPER_TASKS = (
 
 
 class UnknownTaskError(ValueError):
-    """A task name that is not `domain-task` of the DeepMind Control Suite."""
+    """A task name that no environment source owns."""
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """What a learner, a replay or a network needs to know about an environment."""
+
+    frame_shape: tuple[int, int, int]
+    """(C, H, W) of one rendered frame, uint8."""
+    frame_stack: int
+    action_dim: int
+    """Actions are float vectors in [-1, 1] of this size."""
+
+    def __post_init__(self) -> None:
+        # Normalise lists (from JSON or msgpack) to tuples, so equal specs compare equal.
+        object.__setattr__(self, "frame_shape", tuple(int(n) for n in self.frame_shape))
+        if len(self.frame_shape) != 3 or min(self.frame_shape) < 1:
+            raise ValueError(f"frame_shape must be (C, H, W) of positive sizes, got {self.frame_shape}")
+        if self.frame_stack < 1 or self.action_dim < 1:
+            raise ValueError(f"frame_stack and action_dim must be >= 1, got {self.frame_stack}, "
+                             f"{self.action_dim}")
+
+    @property
+    def obs_shape(self) -> tuple[int, int, int]:
+        """(C * k, H, W): the last k frames stacked along channels."""
+        c, h, w = self.frame_shape
+        return (c * self.frame_stack, h, w)
+
+    def to_dict(self) -> dict:
+        return {"frame_shape": list(self.frame_shape), "frame_stack": self.frame_stack,
+                "action_dim": self.action_dim}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EnvSpec:
+        return cls(tuple(d["frame_shape"]), int(d["frame_stack"]), int(d["action_dim"]))
 
 
 @dataclass(frozen=True)
 class TimeStep:
     """One environment step as seen by an agent.
 
-    `frame` is the newest rendered frame (3, H, W); `obs` is the stack of the
-    last `frame_stack` frames along channels. `discount` is the suite's: 1.0 at
+    `frame` is the newest rendered frame (C, H, W); `obs` is the stack of the
+    last `frame_stack` frames along channels. `discount` is the source's: 1.0 at
     a time-limit ending, 0.0 at a true terminal.
     """
 
@@ -54,6 +97,7 @@ class TimeStep:
 
 
 class PixelEnv(Protocol):
+    spec: EnvSpec
     action_dim: int
     obs_shape: tuple[int, int, int]
 
@@ -63,21 +107,100 @@ class PixelEnv(Protocol):
     def set_rng_state(self, state: dict) -> None: ...
 
 
+class Pixels(Protocol):
+    """One rendered frame per step (what `FrameStack` stacks): a source's bottom layer."""
+
+    frame_shape: tuple[int, int, int]
+    action_dim: int
+
+    def reset(self) -> tuple[np.ndarray, float, float, bool]: ...
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool]: ...
+    def rng_state(self) -> dict: ...
+    def set_rng_state(self, state: dict) -> None: ...
+
+
+class EnvSource(Protocol):
+    """A family of environments: its task names, their spec, and how to build one."""
+
+    name: str
+
+    def tasks(self) -> list[str]: ...
+    def spec(self, config: EnvConfig) -> EnvSpec: ...
+    def make(self, config: EnvConfig, seed: int) -> PixelEnv: ...
+
+
+_SOURCES: list[EnvSource] = []
+
+
+def register(source: EnvSource) -> EnvSource:
+    """Add an environment source. Its task names are read only when a task is looked up
+    (listing the suite's imports dm_control), and must not be another source's."""
+    if any(s.name == source.name for s in _SOURCES):
+        raise ValueError(f"an environment source named {source.name!r} is already registered")
+    _SOURCES.append(source)
+    return source
+
+
+def sources() -> list[EnvSource]:
+    return list(_SOURCES)
+
+
+def all_task_names() -> list[str]:
+    """Every task of every source, sorted."""
+    return sorted(t for s in _SOURCES for t in s.tasks())
+
+
+def source_for(task: str) -> EnvSource:
+    """The source that owns `task`; UnknownTaskError lists every valid name."""
+    for source in _SOURCES:
+        if task in source.tasks():
+            return source
+    raise UnknownTaskError(f"unknown task {task!r}; valid tasks are: {', '.join(all_task_names())}")
+
+
+def check_task(name: str) -> None:
+    """Raise UnknownTaskError (listing every valid name of every source) unless a source owns `name`."""
+    source_for(name)
+
+
+def spec(config: EnvConfig) -> EnvSpec:
+    """The spec of the environment `config` describes, from its source; renders nothing."""
+    return source_for(config.task).spec(config)
+
+
+def from_config(config: EnvConfig, seed: int) -> PixelEnv:
+    """The environment an `EnvConfig` describes (trainer, actors and evaluator alike)."""
+    return source_for(config.task).make(config, seed)
+
+
+# -- the DeepMind Control Suite -------------------------------------------------------
+
+
 def all_tasks() -> list[str]:
+    """The suite's task names, `domain-task`."""
     from dm_control import suite
 
     return sorted(f"{domain}-{task}" for domain, task in suite.ALL_TASKS)
 
 
 def parse_task(name: str) -> tuple[str, str]:
-    """Split `domain-task`, failing with the list of valid names."""
-    valid = all_tasks()
-    if name not in valid:
-        raise UnknownTaskError(
-            f"unknown task {name!r}; valid tasks are: {', '.join(valid)}"
-        )
+    """Split a suite task `domain-task`, failing with the list of valid names."""
+    if name not in all_tasks():
+        check_task(name)  # owned by another source, or unknown: the error lists every name
+        raise UnknownTaskError(f"task {name!r} is not a DeepMind Control Suite task")
     domain, task = name.split("-", 1)
     return domain, task
+
+
+def _load_suite_task(task: str, seed: int):  # noqa: ANN202 (a dm_control environment)
+    from dm_control import suite
+
+    domain, task_name = parse_task(task)
+    env = suite.load(domain, task_name, task_kwargs={"random": seed})
+    bounds = env.action_spec()
+    if not (np.all(bounds.minimum == -1.0) and np.all(bounds.maximum == 1.0)):
+        raise ValueError(f"task {task} has actions outside [-1, 1]: {bounds}")
+    return env
 
 
 class DMCPixels:
@@ -92,25 +215,20 @@ class DMCPixels:
         action_repeat: int = 1,
         render_quality: RenderQuality = "paper",
     ) -> None:
-        from dm_control import suite
-
-        domain, task_name = parse_task(task)
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
-        self._env = suite.load(domain, task_name, task_kwargs={"random": seed})
+        if render_quality not in ("paper", "fast"):
+            raise ValueError(f"render_quality must be 'paper' or 'fast', got {render_quality!r}")
+        self._env = _load_suite_task(task, seed)
         if render_quality == "fast":
             # Shadows and multisampling are most of the software-GL render cost;
             # the quality struct is read when the GL context is first made.
             quality = self._env.physics.model.vis.quality
             quality.shadowsize = 512
             quality.offsamples = 0
-        elif render_quality != "paper":
-            raise ValueError(f"render_quality must be 'paper' or 'fast', got {render_quality!r}")
-        spec = self._env.action_spec()
-        if not (np.all(spec.minimum == -1.0) and np.all(spec.maximum == 1.0)):
-            raise ValueError(f"task {task} has actions outside [-1, 1]: {spec}")
-        self.action_dim = int(spec.shape[0])
+        self.action_dim = int(self._env.action_spec().shape[0])
         self.image_size = image_size
+        self.frame_shape = (3, image_size, image_size)
         self.camera_id = camera_id
         self.action_repeat = action_repeat
 
@@ -152,14 +270,15 @@ class DMCPixels:
 class FrameStack:
     """Stacks the last k frames along channels; an episode starts with its first frame k times."""
 
-    def __init__(self, env: DMCPixels, k: int = 3) -> None:
+    def __init__(self, env: Pixels, k: int = 3) -> None:
         if k < 1:
             raise ValueError(f"frame_stack must be >= 1, got {k}")
         self._env = env
         self._frames: deque[np.ndarray] = deque(maxlen=k)
         self.k = k
+        self.spec = EnvSpec(env.frame_shape, k, env.action_dim)
         self.action_dim = env.action_dim
-        self.obs_shape = (3 * k, env.image_size, env.image_size)
+        self.obs_shape = self.spec.obs_shape
 
     def rng_state(self) -> dict:
         return self._env.rng_state()
@@ -190,24 +309,45 @@ def make(
     camera_id: int = 0,
     render_quality: RenderQuality = "paper",
 ) -> FrameStack:
-    """The pixel environment every actor and the trainer step."""
+    """A suite task as a PixelEnv (what the `dmc` source builds)."""
     pixels = DMCPixels(task, seed, image_size, camera_id, action_repeat, render_quality)
     return FrameStack(pixels, frame_stack)
+
+
+class DmcSource:
+    """The DeepMind Control Suite: tasks `domain-task`, rendered by MuJoCo."""
+
+    name = "dmc"
+
+    def __init__(self) -> None:
+        self._tasks: list[str] | None = None
+
+    def tasks(self) -> list[str]:
+        if self._tasks is None:
+            self._tasks = all_tasks()
+        return self._tasks
+
+    def spec(self, config: EnvConfig) -> EnvSpec:
+        # Loading the task builds its physics (to read the action spec) but no GL context.
+        action_dim = int(_load_suite_task(config.task, 0).action_spec().shape[0])
+        size = config.image_size
+        return EnvSpec((3, size, size), config.frame_stack, action_dim)
+
+    def make(self, config: EnvConfig, seed: int) -> FrameStack:
+        c = config
+        return make(c.task, seed, c.frame_stack, c.action_repeat, c.image_size, c.camera_id, c.render_quality)
+
+
+DMC = register(DmcSource())
 
 
 def stored_discount(ts: TimeStep, time_limit: Literal["bootstrap", "terminal"]) -> float:
     """The discount a transition is stored with.
 
-    `bootstrap` keeps the suite's discount (1.0 at a time-limit ending, so the
+    `bootstrap` keeps the source's discount (1.0 at a time-limit ending, so the
     critic bootstraps through it, as SAC-AE does); `terminal` reproduces the
     NaSA-TD3 reference, which treats every episode end as terminal.
     """
     if time_limit == "terminal" and ts.last:
         return 0.0
     return ts.discount
-
-
-def from_config(config: EnvConfig, seed: int) -> FrameStack:
-    """The environment an `EnvConfig` describes (trainer, actors and evaluator alike)."""
-    c = config
-    return make(c.task, seed, c.frame_stack, c.action_repeat, c.image_size, c.camera_id, c.render_quality)

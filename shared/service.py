@@ -3,25 +3,44 @@
 Each service (`python -m services.<role>`) is configured by flags (a
 `TrainConfig` under the same names as `nasa train`, with a preset) and by
 environment variables for what a deployment sets per host: NASA_ZENOH_CONNECT
-and NASA_RUN_ID. All services of a run must get the same config flags;
-`nasa up` and deploy/docker-compose.yml pass them.
+and NASA_RUN_ID. The defaults of every config flag are shared.config's; this
+module only chooses which of them apply (--preset, --algo, --device first).
+
+`--run-config FILE` (a run's config.json, which `nasa up` writes and passes to
+every service it starts) makes that file's config the service's: config flags
+given as well must agree with it, or the service refuses (ConfigMismatch, exit 2).
+Services started with flags alone (deploy/docker-compose.yml) must all get the
+same ones; the replay checks them against its run folder, the others against
+the replay (shared.run_config).
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
+import dataclasses
 import os
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 import tyro
 
-from shared.config import PRESET_NAMES, ConfigError, auto_preset, default_config, validate
+from shared.config import (
+    DEFAULT_PRESET,
+    PRESET_NAMES,
+    ConfigError,
+    TrainConfig,
+    auto_preset,
+    default_config,
+    from_dict,
+    to_dict,
+    validate,
+)
 
 T = TypeVar("T")
 
@@ -31,12 +50,17 @@ EXIT_BAD_INPUT = 2
 
 
 def bad_input_errors() -> tuple[type[Exception], ...]:
-    """The errors that mean the user's input is wrong, not that something crashed."""
+    """The errors that mean the user's input is wrong, not that something crashed.
+
+    ConfigError covers shared.run_config.ConfigMismatch (settings that differ from the
+    run's); StoreFormatError is a replay folder this config or version cannot open.
+    """
     from shared.checkpoint import CheckpointError  # torch: imported only when needed
     from shared.device import DeviceError
     from shared.envs import UnknownTaskError
+    from shared.replay.log import StoreFormatError
 
-    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError)
+    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError)
 
 
 def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
@@ -45,26 +69,53 @@ def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
     return parse_with_preset(cls, sys.argv[1:] if argv is None else argv, prog)
 
 
-def parse_with_preset(cls: type[T], argv: list[str], prog: str) -> tuple[T, str]:
+def parse_with_preset(cls: type[T], argv: list[str], prog: str, base: TrainConfig | None = None,
+                      ) -> tuple[T, str]:
     """Parse a dataclass with fields `config` and `preset`; returns it and the preset used.
 
-    --preset, --algo and --device are read first: they choose the defaults every other flag overrides.
+    --preset, --algo and --device are read first: they choose the defaults (shared.config's)
+    every other flag overrides. With `base` (a run's config), or when `cls` has a
+    `run_config` field and --run-config FILE is given, that config is the default
+    instead, and the preset returned is "run".
     """
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--preset", default="auto")
-    pre.add_argument("--algo", default="nasa_td3")
-    pre.add_argument("--device", default="auto")
+    defaults = TrainConfig()
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre.add_argument("--preset", default=DEFAULT_PRESET)
+    pre.add_argument("--algo", default=defaults.algo)
+    pre.add_argument("--device", default=defaults.device)
+    pre.add_argument("--run-config", type=Path, default=None)
     known, _ = pre.parse_known_args(argv)
     if known.preset not in PRESET_NAMES:
         raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
-    preset = known.preset
-    if preset == "auto":
-        # Only the device's type matters here; do not import torch for --help.
-        preset = auto_preset(_device_type(known.device))
-    default = cls(config=default_config(known.algo, preset), preset=known.preset)  # type: ignore[call-arg]
+    run_file = known.run_config if _has_field(cls, "run_config") else None
+    if run_file is not None:
+        base = _read_run_config(run_file)
+    if base is not None:
+        preset, config = "run", from_dict(to_dict(base))
+    else:
+        preset = known.preset
+        if preset == "auto":
+            # Only the device's type matters here; do not import torch for --help.
+            preset = auto_preset(_device_type(known.device))
+        config = default_config(known.algo, preset)
+    default = cls(config=config, preset=known.preset)  # type: ignore[call-arg]
     args = tyro.cli(cls, args=argv, default=default, prog=prog)
     validate(args.config)  # type: ignore[attr-defined]
+    if run_file is not None:
+        from shared.run_config import check_same
+
+        check_same(args.config, base, f"--run-config {run_file}")  # type: ignore[attr-defined,arg-type]
     return args, preset
+
+
+def _has_field(cls: type, name: str) -> bool:
+    return any(f.name == name for f in dataclasses.fields(cls))  # type: ignore[arg-type]
+
+
+def _read_run_config(path: Path) -> TrainConfig:
+    from shared.run_config import read_config
+
+    return read_config(path)
 
 
 def die_with_parent() -> None:

@@ -14,12 +14,13 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Annotated
 
 import tyro
 import zenoh
 
-from shared.config import TrainConfig
+from shared.config import DEFAULT_PRESET, TrainConfig
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
@@ -68,8 +69,11 @@ class ServiceArgs:
     """The flags every service of a run takes: the run's config and where the router is."""
 
     config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
-    preset: str = "auto"
+    preset: str = DEFAULT_PRESET
     """`paper`, `cpu-small`, or `auto` (paper on a GPU, cpu-small on a CPU)."""
+    run_config: Path | None = None
+    """The run's config.json (`nasa up` passes it): its settings are this service's; config
+    flags given as well must agree with it."""
     connect: str = field(default_factory=env_connect)
     """Zenoh router endpoint(s), comma-separated (env NASA_ZENOH_CONNECT)."""
     run_id: str = field(default_factory=env_run_id)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import httpx
 
-from nasa.up import Supervisor, UpCommand, free_port, service_argv
+from nasa.up import Supervisor, free_port, parse_up, prepare, service_argv
 from shared.zenoh_session import open_router
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,9 +38,16 @@ class System:
         env = {**os.environ, "NASA_ZENOH_CONNECT": self.endpoint, "NASA_RUN_ID": f"t{self.port}",
                "PYTHONPATH": str(REPO)}
         self.sup = Supervisor(env, data / "logs", restart_delay_s=restart_delay_s, cwd=str(REPO))
-        cmd = UpCommand(task="cartpole-balance", algo="nasa_td3", actors=actors, steps=steps, device="cpu",
-                        data=data, port=self.port, evaluator=evaluator, learner_threads=1)
-        argv = service_argv(cmd, "cpu-small", data, [*TINY, *(extra or [])])
+        # As `nasa up` does: one parse, the run's config.json written once, each service pointed at it.
+        cmd, _ = parse_up([
+            "--preset", "cpu-small", "--task", "cartpole-balance", "--algo", "nasa_td3",
+            "--steps", str(steps),
+            "--device", "cpu", "--actors", str(actors), "--port", str(self.port), "--learner-threads", "1",
+            *TINY, *(extra or []),
+        ])
+        cmd.evaluator = evaluator
+        prepare(cmd, data)
+        argv = service_argv(cmd, data)
         argv["replay"] += ["--error-buffer", str(ERROR_BUFFER), *(replay_extra or [])]
         for name, args in argv.items():
             self.sup.add(name, name.split("-")[0], args)
