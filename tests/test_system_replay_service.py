@@ -1,9 +1,9 @@
-"""The replay service's insert and sample paths, without Zenoh; bad sample requests over a real
-Zenoh session on loopback."""
+"""The replay service over real Zenoh on loopback: the learner's client, the actor's writer, the run's
+config, and bad requests (answered with an error, nothing lost)."""
 
 from __future__ import annotations
 
-import math
+import copy
 import threading
 import time
 
@@ -11,139 +11,121 @@ import numpy as np
 import pytest
 
 from nasa.up import free_port
-from services.replay.service import ReplayArgs, ReplayService
-from shared import wire
-from shared.config import default_config
-from shared.service import StopFlag
+from shared import run_config, wire
+from shared.replay.adder import ZenohWriter
+from shared.replay.client import ZenohReplayClient
+from shared.service import Log, StopFlag
 from shared.zenoh_session import open_client, open_router
-
-SHAPE = (3, 16, 16)
-
-
-def make_service(tmp_path, warmup=4, steps=100, session=None, stop=None):
-    config = default_config("nasa_td3", "cpu-small")
-    config.env.image_size, config.warmup_steps, config.steps = 16, warmup, steps
-    args = ReplayArgs(config=config, data=tmp_path, error_buffer=4)
-    return ReplayService(args, session, StopFlag() if stop is None else stop, action_dim=2)  # type: ignore[arg-type]
+from tests.test_replay_service import SPEC, batch, make_service
 
 
-def batch(actor=0, inc=1, episode=0, start=0, n=3, last=False, seed=0, shape=SHAPE):
-    rng = np.random.default_rng(seed)
-    frames = rng.integers(0, 256, (n, *shape), dtype=np.uint8)
-    first = rng.integers(0, 256, (1, *shape), dtype=np.uint8) if start == 0 else None
-    lasts = np.zeros(n, np.uint8)
-    lasts[-1] = last
-    return wire.TransitionBatch(
-        actor, inc, episode, start, 0, n, list(shape), wire.encode_frames(frames),
-        wire.encode_frames(first) if first is not None else None,
-        rng.uniform(-1, 1, (n, 2)).astype("<f4").tobytes(), np.ones(n, "<f4").tobytes(),
-        np.ones(n, "<f4").tobytes(), lasts.tobytes(), np.arange(n, dtype="<i8").tobytes(),
-    ), frames, first
+def wait_for(predicate, what: str, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
 
 
-def test_inserts_are_stitched_by_episode_and_step(tmp_path):
-    svc = make_service(tmp_path)
-    msg, frames, first = batch(n=3)
-    assert svc.insert_batch(msg) == 3
-    assert svc.insert_batch(batch(start=3, n=2, seed=1)[0]) == 2
-    # a gap, another episode, or a restarted actor's old episode are never stitched
-    assert svc.insert_batch(batch(start=9, n=2)[0]) == 0
-    assert svc.insert_batch(batch(episode=5, start=5, n=2)[0]) == 0
-    assert svc.insert_batch(batch(inc=2, start=5, n=2)[0]) == 0
-    assert svc.dropped == 6 and svc.store.num_inserted == 5
-    # a new incarnation starting an episode is accepted; the replay rejects an older one
-    assert svc.insert_batch(batch(inc=2, n=2, last=True)[0]) == 2
-    with pytest.raises(ValueError, match="older"):
-        svc.insert_batch(batch(inc=1, n=1)[0])
-    with pytest.raises(wire.WireError, match="frame shape"):
-        svc.insert_batch(batch(inc=3, shape=(3, 8, 8))[0])
-    svc.store.close()
+class Serving:
+    """A router, the replay service on its own session and thread, and a second session."""
+
+    def __init__(self, tmp_path, **kwargs) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.stop = StopFlag()
+        self.tmp_path, self.kwargs = tmp_path, kwargs
+
+    def __enter__(self):
+        self.router = open_router(self.endpoint)
+        self.replay_session = open_client(self.endpoint)
+        self.session = open_client(self.endpoint)
+        self.svc = make_service(self.tmp_path, session=self.replay_session, stop=self.stop, **self.kwargs)
+        self.thread = threading.Thread(target=self.svc.run)
+        return self
+
+    def start(self) -> None:
+        self.thread.start()
+        # Its liveliness token is declared after its queryables: once seen, requests reach it.
+        key = self.svc.keys.alive("replay", 0)
+        wait_for(lambda: list(self.session.liveliness().get(key, timeout=1.0)), "the replay never came up")
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set("test done")
+        self.thread.join(timeout=15)
+        for s in (self.session, self.replay_session, self.router):
+            s.close()
 
 
-def test_warmup_transitions_carry_zero_intrinsic_and_samples_follow_the_ratio(tmp_path):
-    svc = make_service(tmp_path, warmup=4)
-    rng = np.random.default_rng(0)
-    req = wire.SampleRequest(8, wait_s=0.0)
-    msg, frames, first = batch(n=5)
-    msg4 = wire.TransitionBatch(**{**msg.__dict__, "n": 4, "frames": wire.encode_frames(frames[:4]),
-                                   "actions": msg.actions[:32], "rewards": msg.rewards[:16],
-                                   "discounts": msg.discounts[:16], "lasts": msg.lasts[:4],
-                                   "policy_versions": msg.policy_versions[:32]})
-    assert svc.insert_batch(msg4) == 4
-    assert not svc.sample(req, rng).ok  # the first sample needs warm-up + 1 inserts
-    rest = wire.TransitionBatch(**{**msg.__dict__, "start": 4, "n": 1, "first_frame": None,
-                                   "frames": wire.encode_frames(frames[4:]), "actions": msg.actions[32:],
-                                   "rewards": msg.rewards[16:], "discounts": msg.discounts[16:],
-                                   "lasts": msg.lasts[4:], "policy_versions": msg.policy_versions[32:]})
-    assert svc.insert_batch(rest) == 1
-    intr = svc.store._intrinsic[:5]
-    assert np.all(intr[:4] == 0) and math.isnan(intr[4])
-    oks = [svc.sample(req, rng).ok for _ in range(10)]
-    assert sum(oks) == 4  # the error buffer of 4 samples, then inserts must come
-    assert svc.insert_batch(batch(start=5, n=2, seed=2)[0]) == 2
-    reply = svc.sample(req, rng)
-    assert reply.ok and reply.window_shape == [8, 12, 16, 16]
-    window = wire.array(reply.window, "u1", tuple(reply.window_shape))
-    index = wire.array(reply.index, "<i8", (8,))
-    for row, g in zip(window, index, strict=True):
-        # newest frame of the window is the transition's next frame
-        if g < 5:
-            np.testing.assert_array_equal(row[9:], frames[g])
-    svc.store.close()
-
-
-def test_unscored_requests_return_the_oldest_unscored_rows_outside_the_ratio(tmp_path):
-    svc = make_service(tmp_path, warmup=4)
-    rng = np.random.default_rng(0)
-    msg, frames, first = batch(n=7, last=True)
-    assert svc.insert_batch(msg) == 7  # rows 0-3 warm-up (scored 0), rows 4-6 unscored
-    samples = svc.limiter.samples
-    reply = svc.sample(wire.SampleRequest(2, unscored_after=0), rng)
-    assert reply.ok and reply.batch_size == 2 and reply.num_inserted == 7
-    np.testing.assert_array_equal(wire.array(reply.index, "<i8", (2,)), [4, 5])
-    window = wire.array(reply.window, "u1", tuple(reply.window_shape))
-    np.testing.assert_array_equal(window[0, 9:], frames[4])  # row 4's newest frame
-    assert np.isnan(wire.array(reply.intrinsic, "<f4", (2,))).all()
-    svc.store.set_intrinsic(np.array([4, 5]), np.array([0.5, 0.5]))
-    reply = svc.sample(wire.SampleRequest(8, unscored_after=0), rng)
-    np.testing.assert_array_equal(wire.array(reply.index, "<i8", (reply.batch_size,)), [6])
-    svc.store.set_intrinsic(np.array([6]), np.array([0.5]))
-    reply = svc.sample(wire.SampleRequest(8, unscored_after=5), rng)
-    assert not reply.ok and reply.reason == "none unscored" and reply.num_inserted == 7
-    assert svc.limiter.samples == samples  # scoring requests are not training samples
-    svc.store.close()
-
-
-def test_bad_sample_requests_get_an_error_reply_and_lose_nothing(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    stop = StopFlag()
-    with open_router(endpoint), open_client(endpoint) as replay_session, open_client(endpoint) as learner:
-        svc = make_service(tmp_path, session=replay_session, stop=stop)
+def test_the_learners_client_samples_scores_and_joins_the_run(tmp_path):
+    with Serving(tmp_path, warmup=4) as srv:
+        svc = srv.svc
         assert svc.insert_batch(batch(n=7, last=True)[0]) == 7
-        serving = threading.Thread(target=svc.run)
-        serving.start()
-        try:
-            # Its liveliness token is declared after its queryable: once seen, requests reach it.
-            deadline = time.monotonic() + 10
-            while not list(learner.liveliness().get(svc.keys.alive("replay", 0), timeout=1.0)):
-                assert time.monotonic() < deadline, "the replay never came up"
-                time.sleep(0.1)
-            requests = {
-                "malformed": b"not a sample request",  # rejected in the Zenoh callback
-                "impossible": wire.encode(wire.SampleRequest(0)),  # rejected by the sampling thread
-                "scoring": wire.encode(wire.SampleRequest(2, unscored_after=0)),
-            }
-            replies = {
-                name: list(learner.get(svc.keys.sample, payload=payload, timeout=10.0))
-                for name, payload in requests.items()
-            }
-        finally:
-            stop.set("test done")
-            serving.join(timeout=15)
-    for name in ("malformed", "impossible"):
+        srv.start()
+        client = ZenohReplayClient(srv.session, svc.keys, SPEC, Log("test"), timeout_s=10.0)
+        rows, seen = client.unscored(after=0, limit=2)
+        np.testing.assert_array_equal(rows["index"], [0, 1])
+        assert seen == 7 and np.isnan(rows["intrinsic"]).all()
+        client.set_intrinsic(rows["index"], np.array([0.25, 0.5], np.float32))
+        wait_for(lambda: svc.store._intrinsic[1] == 0.5, "the write-back never landed")
+        rows, seen = client.unscored(after=0, limit=8)
+        np.testing.assert_array_equal(rows["index"], [2, 3, 4, 5, 6])
+        b = client.sample(4, wait_s=2.0)
+        assert b is not None and b["obs"].shape == (4, 9, 16, 16) and b["next_obs"].shape == (4, 9, 16, 16)
+        assert b["action"].shape == (4, 2) and b["policy_version"].dtype == np.int64
+        assert set(b["index"].tolist()) <= set(range(7)) and client.num_inserted == 7
+        b["intrinsic"][:] = 1.0  # writable: the scorer fills it in place
+        # The run's config, as the replay holds it: a learner with other settings is refused.
+        joined = run_config.join(svc.config, srv.session, svc.keys, StopFlag())
+        assert joined is not None and joined.spec == SPEC
+        other = copy.deepcopy(svc.config)
+        other.batch_size += 1
+        with pytest.raises(run_config.ConfigMismatch, match="batch_size"):
+            run_config.join(other, srv.session, svc.keys, StopFlag())
+
+
+def test_bad_requests_get_an_error_reply_and_lose_nothing(tmp_path):
+    with Serving(tmp_path) as srv:
+        svc = srv.svc
+        assert svc.insert_batch(batch(n=7, last=True)[0]) == 7
+        srv.start()
+        k = svc.keys
+        requests = {
+            "malformed": (k.sample, b"not a sample request"),  # rejected in the Zenoh callback
+            "impossible": (k.sample, wire.encode(wire.SampleRequest(0))),  # rejected by its thread
+            "wrong type": (k.unscored, wire.encode(wire.SampleRequest(2))),
+            "impossible unscored": (k.unscored, wire.encode(wire.UnscoredRequest(0, 0))),
+            "unscored": (k.unscored, wire.encode(wire.UnscoredRequest(0, 2))),
+        }
+        replies = {
+            name: list(srv.session.get(key, payload=payload, timeout=10.0))
+            for name, (key, payload) in requests.items()
+        }
+    for name in ("malformed", "impossible", "wrong type", "impossible unscored"):
         [reply] = replies[name]
         assert reply.ok is None and reply.err is not None, name
     assert b"batch_size 0" in replies["impossible"][0].err.payload.to_bytes()
-    [reply] = replies["scoring"]  # the service still answers, and its data is intact
+    [reply] = replies["unscored"]  # the service still answers, and its data is intact
     assert wire.decode(reply.ok.payload.to_bytes(), wire.SampleReply).batch_size == 2
-    assert svc.invalid == 2 and svc.store.num_inserted == 7
+    assert svc.invalid == 4 and svc.store.num_inserted == 7
+
+
+def test_the_actors_writer_inserts_with_backpressure_and_sees_the_replay_go(tmp_path):
+    with Serving(tmp_path, warmup=100) as srv:
+        svc = srv.svc
+        srv.start()
+        frames = np.random.default_rng(0).integers(0, 256, (8, *SPEC.frame_shape), dtype=np.uint8)
+        writer = ZenohWriter(srv.session, svc.keys, actor_id=3, incarnation=5, frame_shape=SPEC.frame_shape,
+                             send_batch=3, max_in_flight=1, stop=StopFlag(), log=Log("test"))
+        with writer:
+            assert writer.wait_for_replay()
+            writer.add_first(frames[0])
+            for t in range(1, 8):  # 7 steps: batches of 3, 3 and 1, one in flight at a time
+                writer.add(np.full(2, t / 10, np.float32), float(t), 1.0, frames[t], t == 7, policy_version=t)
+            wait_for(lambda: writer.global_steps == 7, "the acknowledgements never came")
+            assert writer.window.in_flight == 0 and not writer.broken
+            b = svc.store.get(np.arange(7))
+            np.testing.assert_array_equal(b["next_obs"][:, 6:], frames[1:])
+            np.testing.assert_array_equal(b["policy_version"], np.arange(1, 8))
+            assert np.isnan(b["intrinsic"]).all()
+            srv.stop.set("the replay goes away")
+            wait_for(lambda: not writer.window.alive, "the writer never saw the replay go")
+            assert writer.broken  # the loop abandons the episode under way

@@ -1,24 +1,30 @@
 """The replay store behind Zenoh: inserts from actors, batches for the learner, stats.
 
+- Config: the run folder's config.json (shared.run_config.open_folder) gives
+  the EnvSpec (frame shape, frame stack, action size): the replay builds no
+  environment. It serves that RunConfig on `replay/config`, so every other
+  service of the run checks its own settings against it.
 - Inserts: actors publish `TransitionBatch`es (BLOCK). The subscriber callback
   only queues the bytes; one insert thread decodes, waits on the rate limiter,
   adds to the store, and acknowledges each batch (`InsertAck`). Actors keep a
-  bounded number of unacknowledged batches, so when the limiter holds inserts
-  back the actors wait: that is the backpressure.
+  bounded number of unacknowledged batches (shared.replay.adder.ZenohWriter),
+  so when the limiter holds inserts back the actors wait: that is the
+  backpressure.
 - Episodes are stitched by (actor_id, incarnation, episode, step): a batch that
   does not continue its episode exactly (an actor restarted, a batch was lost,
   this service restarted) is dropped, counted, and its episode ignored until
   the actor begins a new one. A restarted actor has a new incarnation, so its
   half episode is never stitched to a new one.
 - Sampling: a queryable on `replay/sample`; sampler threads wait on the limiter
-  (up to the request's wait_s, else reply ok=False) and reply with the batch.
-  The learner keeps several requests in flight, so it is never left waiting.
-- Intrinsic rewards: transitions of the global warm-up (index < warmup_steps)
-  are stored with intrinsic 0, as the reference does; later ones unscored
-  (NaN) until the learner writes their score back (`replay/intrinsic`).
+  (up to the request's wait_s, else reply ok=False) and reply with the batch,
+  with or without replacement (config.sample_without_replacement).
+- Intrinsic rewards: every row is stored unscored (NaN); the learner's scorer
+  asks for the oldest unscored rows on `replay/unscored` (served on its own
+  thread, outside the rate limiter: not a training sample) and writes the
+  scores back on `replay/intrinsic`.
 - Rate limit: `SampleToInsertRatio` with samples_per_insert = G (one sample =
   one batch = one update), min size warmup_steps + 1 (the trainer's first
-  update follows step warmup + 1). On restart its counts are set from the
+  update follows step warmup + 1). On restart its counts are restored from the
   store: inserts = num_inserted, samples = G * (num_inserted - warmup).
 - Persistence: the store logs every add in its data directory and is
   snapshotted every `snapshot_every` inserts; the run's step budget
@@ -27,7 +33,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import queue
 import threading
@@ -38,9 +43,11 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from shared import wire
+from shared import run_config, wire
+from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import ReplayStore
+from shared.run_config import RunConfig
 from shared.service import Log, StopFlag
 from shared.zenoh_session import ServiceArgs
 
@@ -53,7 +60,7 @@ class ReplayArgs(ServiceArgs):
     """The replay service: stores transitions from actors and serves batches to the learner."""
 
     data: Path = field(default_factory=lambda: Path(os.environ.get("NASA_DATA", "runs/default")))
-    """Run folder; the store lives in <data>/replay (env NASA_DATA)."""
+    """Run folder: config.json, and the store in <data>/replay (env NASA_DATA)."""
     error_buffer: float = 0.0
     """Rate limiter tolerance in samples; 0: 2 * G * 16 + 8 (two 8-transition batches of two actors)."""
     no_rate_limit: bool = False
@@ -68,33 +75,40 @@ def default_error_buffer(updates_per_step: int) -> float:
     return 2.0 * updates_per_step * 16 + 8
 
 
+def open_store(run: RunConfig, data_dir: Path | None) -> ReplayStore:
+    """The store of a run (in `data_dir`, or in memory for None)."""
+    c, spec = run.config, run.spec
+    return ReplayStore(
+        capacity=c.replay_capacity,
+        frame_shape=spec.frame_shape,
+        frame_stack=spec.frame_stack,
+        action_dim=spec.action_dim,
+        data_dir=data_dir,
+        compression=c.replay_compression,
+    )
+
+
 class ReplayService:
-    def __init__(self, args: ReplayArgs, session: zenoh.Session, stop: StopFlag, action_dim: int) -> None:
-        c = args.config
-        self.args = args
-        self.config = c
+    def __init__(self, args: ReplayArgs, session: zenoh.Session, stop: StopFlag, run: RunConfig) -> None:
+        c = run.config
+        self.args, self.run_config, self.config = args, run, c
         self.session = session
         self.stop = stop
         self.keys = wire.Keys(args.run_id)
         self.log = Log("replay")
-        self.frame_shape = (3, c.env.image_size, c.env.image_size)
-        self.action_dim = action_dim
-        self.store = ReplayStore(
-            capacity=c.replay_capacity,
-            frame_shape=self.frame_shape,
-            frame_stack=c.env.frame_stack,
-            action_dim=action_dim,
-            data_dir=Path(args.data) / "replay",
-            compression=c.replay_compression,
-        )
-        g = c.updates_per_step
+        self.frame_shape = run.spec.frame_shape
+        self.action_dim = run.spec.action_dim
+        self.store = open_store(run, Path(args.data) / "replay")
         self.limiter: SampleToInsertRatio | None = None
         if not args.no_rate_limit:
-            eb = args.error_buffer or default_error_buffer(g)
-            self.limiter = SampleToInsertRatio(g, c.warmup_steps + 1, eb)
+            g = c.updates_per_step
+            error_buffer = args.error_buffer or default_error_buffer(g)
+            self.limiter = SampleToInsertRatio(g, c.warmup_steps + 1, error_buffer)
             n = self.store.num_inserted
-            self.limiter.inserts = n
-            self.limiter.samples = g * max(0, n - c.warmup_steps)
+            self.limiter.restore(inserts=n, samples=g * max(0, n - c.warmup_steps))
+        self.replace = not c.sample_without_replacement
+        # Sampling through the client's in-process side; each sampler thread has its own rng.
+        self.local = LocalReplay(self.store, np.random.default_rng(0), self.limiter, self.replace)
         self.invalid = 0
         self.dropped = 0
         self.samples_served = 0
@@ -102,7 +116,7 @@ class ReplayService:
         self._episodes: dict[tuple[int, int], list[int]] = {}
         self._inserts: queue.Queue[bytes] = queue.Queue()
         self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
-        self._scoring_queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
+        self._unscored: queue.Queue[tuple[zenoh.Query, wire.UnscoredRequest]] = queue.Queue()
         self._last_snapshot = self.store.num_inserted
         self._threads: list[threading.Thread] = []
         if self.store.num_inserted:
@@ -113,16 +127,21 @@ class ReplayService:
     def _on_insert(self, sample: zenoh.Sample) -> None:
         self._inserts.put(sample.payload.to_bytes())
 
-    def _on_query(self, query: zenoh.Query) -> None:
+    def _on_sample_query(self, query: zenoh.Query) -> None:
+        self._queue_query(query, wire.SampleRequest, self._queries)
+
+    def _on_unscored_query(self, query: zenoh.Query) -> None:
+        self._queue_query(query, wire.UnscoredRequest, self._unscored)
+
+    def _queue_query(self, query: zenoh.Query, cls: type[wire.Message], into: queue.Queue) -> None:
         try:
             payload = query.payload
-            req = wire.decode(payload.to_bytes() if payload is not None else b"", wire.SampleRequest)
+            req = wire.decode(payload.to_bytes() if payload is not None else b"", cls)
         except wire.WireError as err:
             self._reject(query, err)
             query.drop()
             return
-        # Scoring requests get their own thread: training requests may wait on the rate limiter.
-        (self._scoring_queries if req.unscored_after >= 0 else self._queries).put((query, req))
+        into.put((query, req))
 
     def _on_intrinsic(self, sample: zenoh.Sample) -> None:
         try:
@@ -146,8 +165,8 @@ class ReplayService:
         self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
 
     def _reject(self, query: zenoh.Query, err: wire.WireError) -> None:
-        """Counts and answers a bad sample request (a malformed message or impossible values)."""
-        self._invalid(f"sample request: {err}")
+        """Counts and answers a bad request (a malformed message or impossible values)."""
+        self._invalid(f"request on {query.key_expr}: {err}")
         query.reply_err(str(err).encode())
 
     # -- inserts ------------------------------------------------------------------------
@@ -160,17 +179,17 @@ class ReplayService:
                 continue
             try:
                 msg = wire.decode(payload, wire.TransitionBatch)
-                accepted = self.insert_batch(msg)
+                self.insert_batch(msg)
             except (wire.WireError, ValueError) as err:
                 self._invalid(f"transitions: {err}")
                 continue
             except RateLimiterClosed:
                 return
-            ack = wire.InsertAck(msg.actor_id, msg.incarnation, msg.seq, accepted, self.store.num_inserted)
+            ack = wire.InsertAck(msg.actor_id, msg.incarnation, self.store.num_inserted)
             self.session.put(self.keys.ack(msg.actor_id), wire.encode(ack), congestion_control=BLOCK)
 
     def insert_batch(self, msg: wire.TransitionBatch) -> int:
-        """Add a batch's transitions; returns how many were stored. ValueError if malformed."""
+        """Add a batch's transitions, unscored; returns how many were stored. ValueError if malformed."""
         n, a = msg.n, self.action_dim
         if not 1 <= n <= MAX_BATCH:
             raise wire.WireError(f"batch of {n} transitions")
@@ -195,22 +214,19 @@ class ReplayService:
             self.dropped += n
             self.log.every("orphan", 5.0, f"dropped {n} transitions of actor {key} episode {msg.episode}")
             return 0
-        c = self.config
         accepted = 0
         for i in range(n):
-            if self.store.num_inserted >= c.steps:
+            if self.store.num_inserted >= self.config.steps:
                 self.dropped += n - i
                 break
             if self.limiter is not None:
                 while not self.limiter.await_insert(timeout=0.5):
                     if self.stop:
                         raise RateLimiterClosed("stopping")
-            g = self.store.num_inserted
-            intrinsic = 0.0 if g < c.warmup_steps else math.nan
             last = bool(lasts[i])
             self.store.add(
                 entry[1], actions[i], float(rewards[i]), float(discounts[i]), frames[i], last,
-                policy_version=int(versions[i]), intrinsic=intrinsic,
+                policy_version=int(versions[i]),
             )
             if self.limiter is not None:
                 self.limiter.insert()
@@ -223,16 +239,15 @@ class ReplayService:
 
     # -- sampling -----------------------------------------------------------------------
 
-    def _sample_loop(self, seed: int, queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]]) -> None:
-        rng = np.random.default_rng(seed)
+    def _serve_loop(self, queries: queue.Queue, answer) -> None:  # noqa: ANN001
+        """Answer the queued queries of one kind, one at a time (answer(request) -> SampleReply)."""
         while not self.stop:
             try:
                 query, req = queries.get(timeout=0.2)
             except queue.Empty:
                 continue
             try:
-                reply = self.sample(req, rng)
-                query.reply(self.keys.sample, wire.encode(reply))
+                query.reply(query.key_expr, wire.encode(answer(req)))
             except wire.WireError as err:
                 self._reject(query, err)
             except RateLimiterClosed:
@@ -240,48 +255,36 @@ class ReplayService:
             finally:
                 query.drop()
 
-    def sample(self, req: wire.SampleRequest, rng: np.random.Generator) -> wire.SampleReply:
+    def sampler(self, seed: int):  # noqa: ANN201 (request -> reply)
+        """The answer function of one sampler thread: its own rng over the shared store and limiter."""
+        local = LocalReplay(self.store, np.random.default_rng(seed), self.limiter, self.replace)
+        return lambda req: self.sample(req, local)
+
+    def sample(self, req: wire.SampleRequest, local: LocalReplay | None = None) -> wire.SampleReply:
+        """A training batch (paced by the rate limiter), or ok=False after up to req.wait_s."""
         if not 1 <= req.batch_size <= MAX_BATCH:
             raise wire.WireError(f"batch_size {req.batch_size}")
-        if req.unscored_after >= 0:
-            return self.unscored(req)
         wait = min(max(float(req.wait_s), 0.0), 10.0)
-        if self.limiter is not None:
-            if not self.limiter.await_sample(1, timeout=wait):
-                return wire.SampleReply(False, "rate limited", self.store.num_inserted)
-            self.limiter.sample(1)
-        elif len(self.store) == 0:
-            time.sleep(min(wait, 0.2))
-            return wire.SampleReply(False, "empty", self.store.num_inserted)
-        b = self.store.sample(req.batch_size, rng)
+        batch, reason = (local or self.local).draw(req.batch_size, wait)
+        if batch is None:
+            if reason != "rate limited":  # answered at once: keep a polling learner from spinning
+                time.sleep(min(wait, 0.2))
+            return wire.SampleReply(False, reason, self.store.num_inserted)
         self.samples_served += 1
-        return self._reply(b)
+        return self._reply(batch)
 
-    def unscored(self, req: wire.SampleRequest) -> wire.SampleReply:
-        """The oldest unscored transitions from req.unscored_after on, for the learner to score
-        soon after they are stored (collect timing). Not a training sample: not rate limited."""
+    def unscored(self, req: wire.UnscoredRequest) -> wire.SampleReply:
+        """The oldest unscored rows from req.after on (collect-timing scoring); not rate limited."""
+        if not 1 <= req.limit <= MAX_BATCH or req.after < 0:
+            raise wire.WireError(f"unscored request after {req.after}, limit {req.limit}")
         n = self.store.num_inserted  # read first: anything newer is past the scan
-        index = self.store.unscored(req.unscored_after, req.batch_size)
+        index = self.store.unscored(req.after, req.limit)
         if len(index) == 0:
             return wire.SampleReply(False, "none unscored", n)
-        return self._reply(self.store.get(index))
+        return encode_reply(self.store.get(index), n)
 
-    def _reply(self, b: dict[str, np.ndarray]) -> wire.SampleReply:
-        window = b["window"]
-        return wire.SampleReply(
-            ok=True,
-            reason="",
-            num_inserted=self.store.num_inserted,
-            batch_size=len(window),
-            window_shape=list(window.shape),
-            window=window.tobytes(),
-            action=b["action"].astype("<f4").tobytes(),
-            reward=b["reward"].astype("<f4").tobytes(),
-            intrinsic=b["intrinsic"].astype("<f4").tobytes(),
-            discount=b["discount"].astype("<f4").tobytes(),
-            index=b["index"].astype("<i8").tobytes(),
-            policy_version=b["policy_version"].astype("<i8").tobytes(),
-        )
+    def _reply(self, batch: dict[str, np.ndarray]) -> wire.SampleReply:
+        return encode_reply(batch, self.store.num_inserted)
 
     # -- stats and lifetime ------------------------------------------------------------
 
@@ -305,17 +308,21 @@ class ReplayService:
             s.declare_subscriber(k.insert_all, self._on_insert),
             s.declare_subscriber(k.intrinsic, self._on_intrinsic),
             s.declare_subscriber(k.stop, self._on_stop),
-            s.declare_queryable(k.sample, self._on_query),
-            s.liveliness().declare_token(k.alive("replay", 0)),
+            s.declare_queryable(k.sample, self._on_sample_query),
+            s.declare_queryable(k.unscored, self._on_unscored_query),
+            run_config.serve(s, k, self.run_config),
+            s.liveliness().declare_token(k.alive("replay", 0)),  # last: once seen, all of the above answer
         ):
             self._threads = [threading.Thread(target=self._insert_loop, name="insert", daemon=True)]
             for i in range(max(1, self.args.sample_threads)):
                 seed = self.config.seed * 1000 + self.store.num_inserted + i
                 self._threads.append(threading.Thread(
-                    target=self._sample_loop, args=(seed, self._queries), name=f"sample{i}", daemon=True
+                    target=self._serve_loop, args=(self._queries, self.sampler(seed)), name=f"sample{i}",
+                    daemon=True,
                 ))
+            # Unscored rows on their own thread: training requests may wait on the rate limiter.
             self._threads.append(threading.Thread(
-                target=self._sample_loop, args=(0, self._scoring_queries), name="unscored", daemon=True
+                target=self._serve_loop, args=(self._unscored, self.unscored), name="unscored", daemon=True
             ))
             for t in self._threads:
                 t.start()
@@ -337,10 +344,12 @@ class ReplayService:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared import envs
     from shared.service import run_service
 
     def run(args: ReplayArgs, session: zenoh.Session, stop: StopFlag) -> None:
-        ReplayService(args, session, stop, envs.from_config(args.config.env, 0).action_dim).run()
+        # The run folder's config (written now if new; else compared: ConfigMismatch, exit 2).
+        # A replay restarted with a new step budget continues its run.
+        run = run_config.open_folder(args.config, Path(args.data), may_change=run_config.RESUME_MAY_CHANGE)
+        ReplayService(args, session, stop, run).run()
 
     run_service(ReplayArgs, argv, "python -m services.replay", run)

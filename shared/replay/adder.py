@@ -1,0 +1,296 @@
+"""The replay's writing side: an environment loop hands each step to an `Adder`.
+
+- `StoreAdder`: straight into a ReplayStore in this process (`nasa train`).
+- `ZenohWriter`: the actor's adder. Steps are sent in batches of `send_batch`
+  transitions (fewer at an episode end) as `TransitionBatch`es: each new frame
+  once, delta-coded and zstd-compressed, on a publisher with congestion control
+  BLOCK. At most `max_in_flight` batches wait for the replay's acknowledgement;
+  when the replay's rate limiter holds inserts back, `add` waits
+  (backpressure). The writer watches the replay's liveliness token: when it
+  goes, the unacknowledged batches count as lost and the episode under way is
+  `broken` (the loop abandons it; the replay never stitches across a gap).
+
+Both store every row unscored (intrinsic NaN): scoring is the scorer's business.
+The in-flight accounting is `SendWindow`, plain Python with no Zenoh.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from shared import wire
+
+if TYPE_CHECKING:
+    from shared.replay.store import ReplayStore
+    from shared.service import Log, StopFlag
+
+ACK_TIMEOUT_S = 60.0
+"""No acknowledgement for this long while the window is full: the replay restarted and lost them."""
+
+
+class Adder(Protocol):
+    def add_first(self, frame: np.ndarray) -> None:
+        """Begin an episode with its reset frame."""
+        ...
+
+    def add(self, action: np.ndarray, reward: float, discount: float, frame: np.ndarray,
+            last: bool, policy_version: int) -> None:
+        """One transition: the action taken, its reward and stored discount, the next frame."""
+        ...
+
+
+class StoreAdder:
+    """Adds to a ReplayStore in this process; `last_index` is the global index of the newest row."""
+
+    def __init__(self, store: ReplayStore) -> None:
+        self.store = store
+        self.last_index = -1
+        self._episode: int | None = None
+
+    def add_first(self, frame: np.ndarray) -> None:
+        self._episode = self.store.begin_episode(frame)
+
+    def add(self, action: np.ndarray, reward: float, discount: float, frame: np.ndarray,
+            last: bool, policy_version: int) -> None:
+        if self._episode is None:
+            raise RuntimeError("add() before add_first(): an episode begins with its reset frame")
+        self.last_index = self.store.add(
+            self._episode, action, reward, discount, frame, last, policy_version=policy_version
+        )
+        if last:
+            self._episode = None
+
+
+class SendWindow:
+    """A writer's flow control: batches in flight, acknowledgements, the replay's presence.
+
+    Thread-safe: Zenoh callbacks call on_ack / on_replay / observe while the loop's
+    thread blocks in acquire / wait_alive. `clock` and `poll_s` are for tests.
+    """
+
+    def __init__(self, max_in_flight: int, log: Callable[[str], None] = print,
+                 ack_timeout_s: float = ACK_TIMEOUT_S, poll_s: float = 0.5,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be >= 1, got {max_in_flight}")
+        self.max_in_flight = max_in_flight
+        self.log = log
+        self.ack_timeout_s = ack_timeout_s
+        self.poll_s = poll_s
+        self.clock = clock
+        self.in_flight = 0
+        self.alive = False  # the replay's liveliness token is present
+        self.broken = False  # the replay went away during the episode under way
+        self.global_steps = 0  # newest replay count seen (acks, stats)
+        self.replay_done = False
+        self.lost = 0  # batches counted lost (replay gone, or never acknowledged)
+        self._cv = threading.Condition()
+
+    def acquire(self, stop: StopFlag) -> bool:
+        """Wait until one more batch may be in flight and count it; False (nothing counted) if
+        stop is set or the episode is broken: that batch must not be sent."""
+        with self._cv:
+            waited = self.clock()
+            while self.in_flight >= self.max_in_flight and not stop and not self.broken:
+                self._cv.wait(self.poll_s)
+                if self.clock() - waited > self.ack_timeout_s:
+                    self.log(f"no acknowledgement for {self.ack_timeout_s:.0f} s: "
+                             f"assuming the {self.in_flight} in-flight batches lost")
+                    self.lost += self.in_flight
+                    self.in_flight = 0
+            if stop or self.broken:
+                return False
+            self.in_flight += 1
+            return True
+
+    def on_ack(self, num_inserted: int) -> None:
+        with self._cv:
+            self.in_flight = max(0, self.in_flight - 1)
+            self.global_steps = max(self.global_steps, num_inserted)
+            self._cv.notify_all()
+
+    def on_replay(self, alive: bool) -> None:
+        """The replay's liveliness token appeared (alive) or went away."""
+        with self._cv:
+            was_alive, self.alive = self.alive, alive
+            if not alive:
+                # Never acknowledged: the replay did not store them, or its acks were lost.
+                self.lost += self.in_flight
+                self.in_flight = 0
+                self.broken = True
+                if was_alive:
+                    self.log("the replay is gone: pausing, and abandoning the episode under way")
+            self._cv.notify_all()
+
+    def observe(self, num_inserted: int, done: bool | None = None) -> None:
+        """A replay count seen elsewhere (replay stats, weights); `done`: the step budget is reached."""
+        with self._cv:
+            self.global_steps = max(self.global_steps, num_inserted)
+            if done is not None:
+                self.replay_done = done
+            self._cv.notify_all()
+
+    def begin_episode(self) -> None:
+        """A new episode starts with its reset frame: the replay accepts it whatever came before."""
+        with self._cv:
+            self.broken = False
+
+    def wait_alive(self, stop: StopFlag, what: str = "the replay") -> bool:
+        """Block until the replay is alive (True) or stop is set (False)."""
+        last_log = None
+        with self._cv:
+            while not self.alive and not stop:
+                now = self.clock()
+                if last_log is None or now - last_log >= 10.0:
+                    last_log = now
+                    self.log(f"waiting for {what}")
+                self._cv.wait(self.poll_s)
+            return self.alive and not stop
+
+    def wake(self) -> None:
+        """Wake every waiter (e.g. when stop was set)."""
+        with self._cv:
+            self._cv.notify_all()
+
+
+def transition_batch(actor_id: int, incarnation: int, episode: int, start: int,
+                     first: np.ndarray | None, steps: list[tuple]) -> wire.TransitionBatch:
+    """The message of consecutive steps (action, reward, discount, frame, last, policy_version)."""
+    actions, rewards, discounts, frames, lasts, versions = zip(*steps, strict=True)
+    return wire.TransitionBatch(
+        actor_id=actor_id,
+        incarnation=incarnation,
+        episode=episode,
+        start=start,
+        n=len(steps),
+        frame_shape=list(frames[0].shape),
+        frames=wire.encode_frames(np.stack(frames)),
+        first_frame=wire.encode_frames(first[None]) if first is not None else None,
+        actions=np.asarray(actions, "<f4").tobytes(),
+        rewards=np.asarray(rewards, "<f4").tobytes(),
+        discounts=np.asarray(discounts, "<f4").tobytes(),
+        lasts=np.asarray(lasts, "u1").tobytes(),
+        policy_versions=np.asarray(versions, "<i8").tobytes(),
+    )
+
+
+class ZenohWriter:
+    """The actor's adder over Zenoh (module docstring). A context manager: it declares the
+    insert publisher and the ack, stats and replay-liveliness subscribers."""
+
+    def __init__(self, session, keys: wire.Keys, actor_id: int, incarnation: int,
+                 frame_shape: tuple[int, int, int], send_batch: int, max_in_flight: int,
+                 stop: StopFlag, log: Log) -> None:
+        self.session, self.keys, self.stop, self.log = session, keys, stop, log
+        self.actor_id, self.incarnation = actor_id, incarnation
+        self.frame_shape = tuple(frame_shape)
+        self.send_batch = max(1, send_batch)
+        self.window = SendWindow(max_in_flight, log)
+        self.invalid = 0
+        self._episode = -1
+        self._start = 0
+        self._first: np.ndarray | None = None
+        self._steps: list[tuple] = []
+        self._declared: list = []
+        self._publisher = None
+
+    # -- the adder ---------------------------------------------------------------------------
+
+    @property
+    def global_steps(self) -> int:
+        return self.window.global_steps
+
+    @property
+    def replay_done(self) -> bool:
+        return self.window.replay_done
+
+    @property
+    def broken(self) -> bool:
+        return self.window.broken
+
+    def observe(self, num_inserted: int) -> None:
+        """A global step count seen elsewhere (the weights' env_steps)."""
+        self.window.observe(num_inserted)
+
+    def wait_for_replay(self) -> bool:
+        return self.window.wait_alive(self.stop, f"the replay ({self.keys.alive('replay', 0)})")
+
+    def add_first(self, frame: np.ndarray) -> None:
+        self._check(frame)
+        self.window.begin_episode()
+        self._episode += 1
+        self._start, self._first, self._steps = 0, frame, []
+
+    def add(self, action: np.ndarray, reward: float, discount: float, frame: np.ndarray,
+            last: bool, policy_version: int) -> None:
+        if self._episode < 0:
+            raise RuntimeError("add() before add_first(): an episode begins with its reset frame")
+        self._check(frame)
+        self._steps.append((action, reward, discount, frame, last, policy_version))
+        if len(self._steps) >= self.send_batch or last:
+            self._send()
+
+    def _check(self, frame: np.ndarray) -> None:
+        if frame.shape != self.frame_shape or frame.dtype != np.uint8:
+            raise ValueError(f"frame {frame.dtype} {frame.shape}, expected uint8 {self.frame_shape}")
+
+    def _send(self) -> None:
+        steps, self._steps = self._steps, []
+        if not self.window.acquire(self.stop):
+            return  # stopping, or the episode is broken: the loop abandons it
+        msg = transition_batch(self.actor_id, self.incarnation, self._episode, self._start, self._first,
+                               steps)
+        self._publisher.put(wire.encode(msg))
+        self._start += len(steps)
+        self._first = None
+
+    # -- Zenoh -------------------------------------------------------------------------------
+
+    def _on_ack(self, sample) -> None:
+        try:
+            ack = wire.decode(sample.payload.to_bytes(), wire.InsertAck)
+        except wire.WireError as err:
+            return self._invalid(f"ack: {err}")
+        if ack.actor_id == self.actor_id and ack.incarnation == self.incarnation:
+            self.window.on_ack(ack.num_inserted)
+
+    def _on_stats(self, sample) -> None:
+        try:
+            stats = wire.decode(sample.payload.to_bytes(), wire.ReplayStats)
+        except wire.WireError as err:
+            return self._invalid(f"replay stats: {err}")
+        self.window.observe(stats.num_inserted, stats.done)
+
+    def _on_replay_alive(self, sample) -> None:
+        import zenoh
+
+        self.window.on_replay(sample.kind == zenoh.SampleKind.PUT)
+
+    def _invalid(self, what: str) -> None:
+        self.invalid += 1
+        self.log.every("writer-invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
+
+    def __enter__(self) -> ZenohWriter:
+        import zenoh
+
+        s, k = self.session, self.keys
+        self._publisher = s.declare_publisher(k.insert(self.actor_id),
+                                              congestion_control=zenoh.CongestionControl.BLOCK)
+        self._declared = [
+            self._publisher,
+            s.declare_subscriber(k.ack(self.actor_id), self._on_ack),
+            s.declare_subscriber(k.replay_stats, self._on_stats),
+            s.liveliness().declare_subscriber(k.alive("replay", 0), self._on_replay_alive, history=True),
+        ]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.window.wake()
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self._declared = []

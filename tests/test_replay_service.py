@@ -1,0 +1,136 @@
+"""The replay service's insert, sample and unscored paths, in process (no Zenoh session)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.replay.service import ReplayArgs, ReplayService
+from shared import wire
+from shared.config import default_config
+from shared.envs import EnvSpec
+from shared.replay.client import decode_reply
+from shared.run_config import RunConfig
+from shared.service import StopFlag
+
+SHAPE = (3, 16, 16)
+SPEC = EnvSpec(SHAPE, 3, 2)
+
+
+def make_service(tmp_path, warmup=4, steps=100, session=None, stop=None, without_replacement=False,
+                 no_rate_limit=False):
+    config = default_config("nasa_td3", "cpu-small")
+    config.env.image_size, config.warmup_steps, config.steps = 16, warmup, steps
+    config.sample_without_replacement = without_replacement
+    args = ReplayArgs(config=config, data=tmp_path, error_buffer=4, no_rate_limit=no_rate_limit)
+    run = RunConfig(config, SPEC)
+    return ReplayService(args, session, StopFlag() if stop is None else stop, run)  # type: ignore[arg-type]
+
+
+def batch(actor=0, inc=1, episode=0, start=0, n=3, last=False, seed=0, shape=SHAPE):
+    rng = np.random.default_rng(seed)
+    frames = rng.integers(0, 256, (n, *shape), dtype=np.uint8)
+    first = rng.integers(0, 256, (1, *shape), dtype=np.uint8) if start == 0 else None
+    lasts = np.zeros(n, np.uint8)
+    lasts[-1] = last
+    return wire.TransitionBatch(
+        actor, inc, episode, start, n, list(shape), wire.encode_frames(frames),
+        wire.encode_frames(first) if first is not None else None,
+        rng.uniform(-1, 1, (n, 2)).astype("<f4").tobytes(), np.ones(n, "<f4").tobytes(),
+        np.ones(n, "<f4").tobytes(), lasts.tobytes(), np.arange(n, dtype="<i8").tobytes(),
+    ), frames, first
+
+
+def test_inserts_are_stitched_by_episode_and_step(tmp_path):
+    svc = make_service(tmp_path)
+    msg, frames, first = batch(n=3)
+    assert svc.insert_batch(msg) == 3
+    assert svc.insert_batch(batch(start=3, n=2, seed=1)[0]) == 2
+    # a gap, another episode, or a restarted actor's old episode are never stitched
+    assert svc.insert_batch(batch(start=9, n=2)[0]) == 0
+    assert svc.insert_batch(batch(episode=5, start=5, n=2)[0]) == 0
+    assert svc.insert_batch(batch(inc=2, start=5, n=2)[0]) == 0
+    assert svc.dropped == 6 and svc.store.num_inserted == 5
+    # a new incarnation starting an episode is accepted; the replay rejects an older one
+    assert svc.insert_batch(batch(inc=2, n=2, last=True)[0]) == 2
+    with pytest.raises(ValueError, match="older"):
+        svc.insert_batch(batch(inc=1, n=1)[0])
+    with pytest.raises(wire.WireError, match="frame shape"):
+        svc.insert_batch(batch(inc=3, shape=(3, 8, 8))[0])
+    svc.store.close()
+
+
+def test_every_row_is_stored_unscored_and_samples_follow_the_ratio(tmp_path):
+    svc = make_service(tmp_path, warmup=4)
+    req = wire.SampleRequest(8, wait_s=0.0)
+    msg, frames, first = batch(n=5)
+    msg4 = wire.TransitionBatch(**{**msg.__dict__, "n": 4, "frames": wire.encode_frames(frames[:4]),
+                                   "actions": msg.actions[:32], "rewards": msg.rewards[:16],
+                                   "discounts": msg.discounts[:16], "lasts": msg.lasts[:4],
+                                   "policy_versions": msg.policy_versions[:32]})
+    assert svc.insert_batch(msg4) == 4
+    assert not svc.sample(req).ok  # the first sample needs warm-up + 1 inserts
+    rest = wire.TransitionBatch(**{**msg.__dict__, "start": 4, "n": 1, "first_frame": None,
+                                   "frames": wire.encode_frames(frames[4:]), "actions": msg.actions[32:],
+                                   "rewards": msg.rewards[16:], "discounts": msg.discounts[16:],
+                                   "lasts": msg.lasts[4:], "policy_versions": msg.policy_versions[32:]})
+    assert svc.insert_batch(rest) == 1
+    # warm-up rows too: the scorer, not the replay, gives them their zero
+    assert np.isnan(svc.store._intrinsic[:5]).all()
+    oks = [svc.sample(req).ok for _ in range(10)]
+    assert sum(oks) == 4  # the error buffer of 4 samples, then inserts must come
+    assert svc.insert_batch(batch(start=5, n=2, seed=2)[0]) == 2
+    reply = svc.sample(req)
+    assert reply.ok and reply.window_shape == [8, 12, 16, 16]
+    b = decode_reply(reply, SPEC)
+    for i, g in enumerate(b["index"].tolist()):
+        if g < 5:  # newest frame of the window is the transition's next frame
+            np.testing.assert_array_equal(b["next_obs"][i, 6:], frames[g])
+            assert b["policy_version"][i] == g
+    svc.store.close()
+
+
+def test_a_restarted_replay_restores_its_rate_limiter_from_the_store(tmp_path):
+    svc = make_service(tmp_path, warmup=4)
+    assert svc.insert_batch(batch(n=9, last=True)[0]) == 9
+    svc.store.close()
+    again = make_service(tmp_path, warmup=4)
+    # G samples per insert past warm-up count as done: inserts 9, samples G * (9 - 4)
+    g = again.config.updates_per_step
+    assert again.limiter.stats()["inserts"] == 9 and again.limiter.stats()["samples"] == g * 5
+    again.store.close()
+
+
+def test_unscored_requests_return_the_oldest_unscored_rows_outside_the_ratio(tmp_path):
+    svc = make_service(tmp_path, warmup=4)
+    msg, frames, first = batch(n=7, last=True)
+    assert svc.insert_batch(msg) == 7
+    samples = svc.limiter.samples
+    reply = svc.unscored(wire.UnscoredRequest(after=0, limit=2))
+    assert reply.ok and reply.batch_size == 2 and reply.num_inserted == 7
+    b = decode_reply(reply, SPEC)
+    np.testing.assert_array_equal(b["index"], [0, 1])
+    np.testing.assert_array_equal(b["next_obs"][1, 6:], frames[1])  # row 1's newest frame
+    assert np.isnan(b["intrinsic"]).all()
+    svc.store.set_intrinsic(np.arange(6), np.full(6, 0.5))
+    reply = svc.unscored(wire.UnscoredRequest(after=0, limit=8))
+    np.testing.assert_array_equal(decode_reply(reply, SPEC)["index"], [6])
+    svc.store.set_intrinsic(np.array([6]), np.array([0.5]))
+    reply = svc.unscored(wire.UnscoredRequest(after=5, limit=8))
+    assert not reply.ok and reply.reason == "none unscored" and reply.num_inserted == 7
+    assert svc.limiter.samples == samples  # scoring requests are not training samples
+    with pytest.raises(wire.WireError, match="limit 0"):
+        svc.unscored(wire.UnscoredRequest(after=0, limit=0))
+    svc.store.close()
+
+
+def test_sampling_without_replacement_waits_for_a_full_batch_and_never_repeats(tmp_path):
+    svc = make_service(tmp_path, warmup=4, without_replacement=True, no_rate_limit=True)
+    assert svc.insert_batch(batch(n=7)[0]) == 7
+    reply = svc.sample(wire.SampleRequest(8, wait_s=0.0))
+    assert not reply.ok and "fewer than 8" in reply.reason  # not ready yet: no smaller batch
+    assert svc.insert_batch(batch(start=7, n=3, seed=1, last=True)[0]) == 3
+    for _ in range(20):
+        index = decode_reply(svc.sample(wire.SampleRequest(8, wait_s=0.0)), SPEC)["index"]
+        assert len(set(index.tolist())) == 8
+    svc.store.close()

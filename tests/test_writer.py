@@ -1,0 +1,224 @@
+"""The actor's side of the replay without Zenoh: backpressure, acknowledgements, replay loss, ack
+timeout (SendWindow), batching and episode abandonment (ZenohWriter on a fake publisher), and the
+in-process StoreAdder."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from shared import wire
+from shared.replay.adder import SendWindow, StoreAdder, ZenohWriter
+from shared.replay.store import ReplayStore
+from shared.service import Log, StopFlag
+
+SHAPE = (3, 8, 8)
+
+
+class FakeClock:
+    """Each reading advances the clock by `step` seconds: a wait of a minute takes microseconds."""
+
+    def __init__(self, step: float) -> None:
+        self.now, self.step = 0.0, step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
+def window(max_in_flight=2, clock=None, messages=None) -> SendWindow:
+    log = (messages.append if messages is not None else lambda _: None)
+    return SendWindow(max_in_flight, log, poll_s=0.001, clock=clock or FakeClock(0.0))
+
+
+def test_at_most_max_in_flight_batches_then_the_writer_waits_for_an_ack():
+    w, stop = window(max_in_flight=2), StopFlag()
+    w.on_replay(True)
+    assert w.acquire(stop) and w.acquire(stop) and w.in_flight == 2
+    acquired = threading.Event()
+    t = threading.Thread(target=lambda: w.acquire(stop) and acquired.set())
+    t.start()
+    assert not acquired.wait(0.05)  # backpressure: a third batch waits
+    w.on_ack(num_inserted=16)
+    t.join(5)
+    assert acquired.is_set() and w.in_flight == 2 and w.global_steps == 16
+    w.on_ack(num_inserted=8)  # an older count never moves global_steps back
+    assert w.global_steps == 16 and w.in_flight == 1
+
+
+def test_stop_releases_a_waiting_writer_without_counting_the_batch():
+    w, stop = window(max_in_flight=1), StopFlag()
+    assert w.acquire(stop)
+    result = []
+    t = threading.Thread(target=lambda: result.append(w.acquire(stop)))
+    t.start()
+    stop.set("test")
+    w.wake()
+    t.join(5)
+    assert result == [False] and w.in_flight == 1
+
+
+def test_replay_gone_loses_the_in_flight_batches_and_breaks_the_episode():
+    messages: list[str] = []
+    w, stop = window(max_in_flight=3, messages=messages), StopFlag()
+    w.on_replay(True)
+    w.acquire(stop)
+    w.acquire(stop)
+    w.on_replay(False)
+    assert w.in_flight == 0 and w.lost == 2 and w.broken and not w.alive
+    assert any("gone" in m for m in messages)
+    assert not w.acquire(stop)  # no batch of the broken episode is sent
+    w.on_replay(True)
+    assert w.broken  # still: the episode under way stays abandoned
+    w.begin_episode()  # a new episode starts from its reset frame: accepted whatever came before
+    assert not w.broken and w.acquire(stop) and w.in_flight == 1
+
+
+def test_a_writer_blocked_when_the_replay_goes_is_released_and_sends_nothing():
+    w, stop = window(max_in_flight=1), StopFlag()
+    w.on_replay(True)
+    w.acquire(stop)
+    result = []
+    t = threading.Thread(target=lambda: result.append(w.acquire(stop)))
+    t.start()
+    w.on_replay(False)
+    t.join(5)
+    assert result == [False] and w.in_flight == 0
+
+
+def test_no_ack_for_the_timeout_counts_the_in_flight_batches_lost():
+    messages: list[str] = []
+    w = window(max_in_flight=1, clock=FakeClock(step=7.0), messages=messages)
+    stop = StopFlag()
+    w.on_replay(True)
+    assert w.acquire(stop)
+    assert w.acquire(stop)  # returns once the (fake) minute has passed without an ack
+    assert w.lost == 1 and w.in_flight == 1
+    assert any("no acknowledgement for 60 s" in m for m in messages)
+
+
+def test_wait_alive_returns_when_the_replay_appears_or_on_stop():
+    w, stop = window(), StopFlag()
+    t = threading.Thread(target=lambda: w.on_replay(True))
+    t.start()
+    assert w.wait_alive(stop)
+    t.join()
+    w.on_replay(False)
+    stop.set("test")
+    assert not w.wait_alive(stop)
+
+
+def test_observe_tracks_the_newest_count_and_done():
+    w = window()
+    w.observe(100, done=False)
+    w.observe(50)
+    assert w.global_steps == 100 and not w.replay_done
+    w.observe(200, done=True)
+    assert w.global_steps == 200 and w.replay_done
+
+
+# -- ZenohWriter's batching, on a fake publisher ----------------------------------------------
+
+
+class FakePublisher:
+    def __init__(self) -> None:
+        self.sent: list[wire.TransitionBatch] = []
+
+    def put(self, payload: bytes) -> None:
+        self.sent.append(wire.decode(payload, wire.TransitionBatch))
+
+
+def make_writer(send_batch=3, max_in_flight=8) -> tuple[ZenohWriter, FakePublisher]:
+    writer = ZenohWriter(None, wire.Keys("t"), actor_id=4, incarnation=9, frame_shape=SHAPE,
+                         send_batch=send_batch, max_in_flight=max_in_flight, stop=StopFlag(), log=Log("test"))
+    writer._publisher = publisher = FakePublisher()
+    writer.window.on_replay(True)
+    return writer, publisher
+
+
+def frames(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (n, *SHAPE), dtype=np.uint8)
+
+
+def ack(actor_id: int, incarnation: int, n: int) -> SimpleNamespace:
+    data = wire.encode(wire.InsertAck(actor_id, incarnation, n))
+    return SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data))
+
+
+def test_steps_go_in_batches_with_the_first_frame_once_and_the_last_batch_short():
+    writer, pub = make_writer(send_batch=3)
+    f = frames(8)
+    writer.add_first(f[0])
+    for t in range(1, 8):
+        writer.add(np.full(2, 0.1, np.float32), float(t), 1.0, f[t], t == 7, policy_version=t)
+    assert [(m.episode, m.start, m.n) for m in pub.sent] == [(0, 0, 3), (0, 3, 3), (0, 6, 1)]
+    assert pub.sent[0].first_frame is not None and pub.sent[1].first_frame is None
+    np.testing.assert_array_equal(wire.decode_frames(pub.sent[0].first_frame, 1, SHAPE)[0], f[0])
+    sent = np.concatenate([wire.decode_frames(m.frames, m.n, SHAPE) for m in pub.sent])
+    np.testing.assert_array_equal(sent, f[1:])
+    versions = np.concatenate([wire.array(m.policy_versions, "<i8", (m.n,)) for m in pub.sent])
+    np.testing.assert_array_equal(versions, np.arange(1, 8))
+    assert all(m.actor_id == 4 and m.incarnation == 9 for m in pub.sent)
+    writer.add_first(f[0])  # the next episode numbers on
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[1], True, 7)
+    assert (pub.sent[-1].episode, pub.sent[-1].start) == (1, 0)
+
+
+def test_acks_of_another_incarnation_are_ignored():
+    writer, _ = make_writer(max_in_flight=2)
+    writer.window.acquire(writer.stop)
+    writer._on_ack(ack(4, 8, 100))  # a previous incarnation's ack
+    assert writer.window.in_flight == 1 and writer.global_steps == 0
+    writer._on_ack(ack(4, 9, 100))
+    assert writer.window.in_flight == 0 and writer.global_steps == 100
+
+
+def test_a_broken_episode_sends_nothing_more_and_the_next_one_starts_clean():
+    writer, pub = make_writer(send_batch=2)
+    f = frames(6)
+    writer.add_first(f[0])
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[1], False, 0)
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[2], False, 0)
+    assert len(pub.sent) == 1
+    writer.window.on_replay(False)  # the replay goes
+    writer.window.on_replay(True)  # and comes back
+    assert writer.broken
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[3], False, 0)
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[4], True, 0)
+    assert len(pub.sent) == 1  # the rest of the broken episode is never sent
+    writer.add_first(f[0])
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[5], True, 0)
+    assert (pub.sent[-1].episode, pub.sent[-1].start, pub.sent[-1].first_frame is not None) == (1, 0, True)
+
+
+def test_writer_rejects_frames_of_another_shape_and_steps_before_an_episode():
+    writer, _ = make_writer()
+    with pytest.raises(RuntimeError, match="add_first"):
+        writer.add(np.zeros(2, np.float32), 0.0, 1.0, frames(1)[0], False, 0)
+    with pytest.raises(ValueError, match="expected uint8"):
+        writer.add_first(np.zeros((3, 4, 4), np.uint8))
+
+
+# -- StoreAdder ---------------------------------------------------------------------------------
+
+
+def test_store_adder_writes_unscored_rows_in_order():
+    store = ReplayStore(100, SHAPE, 2, 2)
+    adder = StoreAdder(store)
+    f = frames(5)
+    with pytest.raises(RuntimeError, match="add_first"):
+        adder.add(np.zeros(2), 0.0, 1.0, f[1], False, 0)
+    adder.add_first(f[0])
+    for t in range(1, 5):
+        adder.add(np.full(2, 0.5), float(t), 0.99, f[t], t == 4, policy_version=3)
+        assert adder.last_index == t - 1
+    b = store.get(np.arange(4))
+    np.testing.assert_array_equal(b["next_obs"][:, 3:], f[1:])
+    np.testing.assert_array_equal(b["obs"][0], np.concatenate([f[0], f[0]]))  # reset frame repeated
+    assert np.isnan(b["intrinsic"]).all() and (b["policy_version"] == 3).all()
+    assert np.allclose(b["discount"], 0.99) and store.stats()["open_episodes"] == 0
+    with pytest.raises(RuntimeError, match="add_first"):  # the episode ended with its last step
+        adder.add(np.zeros(2), 0.0, 1.0, f[1], False, 0)
