@@ -23,7 +23,7 @@ from typing import Literal
 import tyro
 
 from shared.config import ALGOS, PRESETS, ConfigError, check_algo
-from shared.envs import PAPER_TASKS, parse_task
+from shared.envs import PAPER_TASKS, check_task
 from shared.runlog import read_rows
 
 Action = Literal["start", "resume", "skip"]
@@ -186,7 +186,7 @@ def reproduce(argv: list[str]) -> None:
     if not tasks or not algos:
         raise ConfigError("--tasks and --algos must each name at least one")
     for task in tasks:
-        parse_task(task)  # UnknownTaskError lists the valid names
+        check_task(task)  # UnknownTaskError lists the valid names of every environment source
     for algo in algos:
         check_algo(algo)
     if cmd.preset not in PRESETS:

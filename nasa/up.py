@@ -19,9 +19,10 @@ so all of them run that file's settings.
 
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
-then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM. Children are stopped in order (actors, evaluator, learner, replay),
-killed if they do not exit in time, and get SIGTERM if the launcher itself
-dies (PR_SET_PDEATHSIG, set by each service at start), so no process is left.
+then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM.
+Children are stopped in order (actors, evaluator, learner, replay), killed if
+they do not exit in time, and get SIGTERM if the launcher itself dies
+(PR_SET_PDEATHSIG, set by each service at start), so no process is left.
 """
 
 from __future__ import annotations

@@ -82,15 +82,15 @@ def test_presets_touch_only_existing_fields_and_round_trip():
         apply_preset(TrainConfig(), "huge")
 
 
-def test_every_config_field_has_a_cli_flag():
-    import subprocess
-    import sys
-
+@pytest.mark.parametrize("command", ["train", "up"])
+def test_every_config_field_has_a_cli_flag(command, capsys):
+    from nasa.cli import main
     from shared.config import AgentConfig, EnvConfig
 
-    help_text = subprocess.run(
-        [sys.executable, "-m", "nasa.cli", "train", "--help"], capture_output=True, text=True, check=True
-    ).stdout
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--help"])
+    assert exit_.value.code == 0
+    help_text = capsys.readouterr().out
     for cls in (TrainConfig, EnvConfig, AgentConfig):
         for f in dataclasses.fields(cls):
             if f.name in ("env", "agent"):
@@ -144,6 +144,38 @@ def test_unknown_task_lists_the_valid_ones():
     assert "cartpole-balance" in str(err.value) and "cheetah-run" in str(err.value)
     for task in envs.PAPER_TASKS:
         envs.parse_task(task)
+        envs.check_task(task)
+
+
+def test_the_faithful_options_default_to_the_project_choice_and_reach_the_command_line():
+    from nasa.cli import parse_train
+
+    c = TrainConfig()
+    assert c.sample_without_replacement is False and c.eval_at_start is True
+    assert c.agent.ensemble_every == 1  # the reference's current code: the ensemble at every update
+    cmd, _, _ = parse_train(["--sample-without-replacement", "--no-eval-at-start", "--ensemble-every", "5"])
+    assert cmd.config.sample_without_replacement and not cmd.config.eval_at_start
+    assert cmd.config.agent.ensemble_every == 5
+
+
+def test_service_defaults_are_shared_configs(monkeypatch):
+    from shared import service
+    from shared.zenoh_session import ServiceArgs
+
+    args, preset = service.parse_with_preset(ServiceArgs, ["--preset", "paper"], "svc")
+    assert preset == "paper" and args.config == default_config(TrainConfig().algo, "paper")
+    # The pre-parser has no copy of its own: a changed default in shared.config is what it uses.
+    monkeypatch.setattr(TrainConfig, "__init__", _with_default_algo(TrainConfig.__init__, "sac_ae"))
+    args, _ = service.parse_with_preset(ServiceArgs, ["--preset", "paper"], "svc")
+    assert args.config.agent == agent_defaults("sac_ae")
+
+
+def _with_default_algo(init, algo):  # noqa: ANN001, ANN202
+    def patched(self, *args, **kwargs):  # noqa: ANN001, ANN202
+        kwargs.setdefault("algo", algo)
+        init(self, *args, **kwargs)
+
+    return patched
 
 
 def test_frame_stack_starts_with_the_first_frame_repeated_and_shifts():

@@ -145,3 +145,24 @@ def test_nasa_up_rejects_an_unknown_task_before_starting_anything(tmp_path):
     assert "nasa up: error: unknown task 'cartpole-juggle'; valid tasks are" in result.stderr
     assert "Traceback" not in result.stderr
     assert not data.exists()  # no service was started
+
+
+def test_nasa_up_refuses_to_resume_a_run_with_other_settings_before_starting_anything(tmp_path):
+    # The run folder of an earlier `nasa up --image-size 32`; this one asks for 48.
+    from nasa.up import parse_up, prepare
+
+    data = tmp_path / "run"
+    first, _ = parse_up(["--task", "cartpole-balance", "--image-size", "32", "--data", str(data)])
+    prepare(first, data)
+    before = (data / "config.json").read_bytes()
+    result = subprocess.run(
+        [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--image-size", "48",
+         "--data", str(data), "--router-port", "0", "--port", str(free_port()), "--logs"],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 2, result.stderr
+    assert "nasa up: error: settings differ from the run's" in result.stderr
+    assert "env.image_size (48 here, 32 in the run)" in result.stderr
+    assert "Traceback" not in result.stderr and result.stdout == ""  # nothing started
+    assert sorted(p.name for p in data.iterdir()) == ["config.json"]
+    assert (data / "config.json").read_bytes() == before

@@ -1,0 +1,125 @@
+"""`nasa train --resume` and `nasa up` read their flags properly and refuse settings that differ
+from the run's before anything starts (in process: no service, no training)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+import nasa.train
+from nasa import cli
+from nasa.up import UpCommand, parse_up, prepare, service_argv
+from shared.config import TrainConfig, default_config, to_dict
+
+
+@pytest.fixture
+def resumed(tmp_path, monkeypatch) -> tuple[Path, list[int | None]]:
+    """A run folder as `nasa train` leaves it, and Trainer.resume replaced by a recorder."""
+    out = tmp_path / "run"
+    out.mkdir()
+    config = default_config("sac_ae", "cpu-small")
+    config.steps, config.device = 3000, "cpu"
+    (out / "config.json").write_text(json.dumps(to_dict(config), indent=2) + "\n")
+    calls: list[int | None] = []
+
+    class Recorded:
+        def run(self) -> None:
+            pass
+
+    def resume(folder, steps=None):  # noqa: ANN001, ANN202
+        assert Path(folder) == out
+        calls.append(steps)
+        return Recorded()
+
+    monkeypatch.setattr(nasa.train.Trainer, "resume", staticmethod(resume))
+    return out, calls
+
+
+@pytest.mark.parametrize("flags", [["--steps=5000"], ["--steps", "5000"]])
+def test_resume_takes_a_new_step_budget_however_it_is_written(resumed, flags):
+    out, calls = resumed
+    cli.main(["train", "--resume", str(out), *flags])
+    assert calls == [5000]
+
+
+def test_resume_without_flags_keeps_the_run_settings(resumed):
+    out, calls = resumed
+    cli.main(["train", "--resume", str(out)])  # no --algo sac_ae, no --preset: the run's
+    cli.main(["train", "--resume", str(out), "--algo", "sac_ae", "--latent-dim", "50", "--steps", "3000"])
+    assert calls == [None, None]
+
+
+@pytest.mark.parametrize(
+    ("flags", "named"),
+    [
+        (["--latent-dim", "7"], "agent.latent_dim (7 here, 50 in the run)"),
+        (["--algo", "nasa_td3", "--steps=9000"], "algo ('nasa_td3' here, 'sac_ae' in the run)"),
+        (["--device", "auto"], "device ('auto' here, 'cpu' in the run)"),
+    ],
+)
+def test_resume_refuses_other_settings_naming_them(resumed, capsys, flags, named):
+    out, calls = resumed
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--resume", str(out), *flags])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("nasa train: error: settings differ from the run's") and named in err
+    assert calls == []
+
+
+def test_resume_of_a_folder_without_a_run_is_a_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--resume", str(tmp_path / "none")])
+    assert exit_.value.code == 2 and "no run there" in capsys.readouterr().err
+
+
+def test_nasa_up_declares_no_config_field_of_its_own():
+    launcher = {f.name for f in dataclasses.fields(UpCommand)}
+    assert not launcher & {f.name for f in dataclasses.fields(TrainConfig)}
+    cmd, preset = parse_up(["--preset", "cpu-small", "--task", "reacher-hard", "--seed", "4", "--steps", "77",
+                            "--actors", "3", "--", "--latent-dim", "12"])
+    expected = default_config("nasa_td3", "cpu-small")
+    expected.env.task, expected.seed, expected.steps, expected.agent.latent_dim = "reacher-hard", 4, 77, 12
+    assert preset == "cpu-small" and cmd.config == expected and cmd.actors == 3
+
+
+def test_every_service_of_nasa_up_gets_the_run_config(tmp_path):
+    cmd, _ = parse_up(["--preset", "cpu-small", "--actors", "2", "--port", "9", "--learner-threads", "1"])
+    argv = service_argv(cmd, tmp_path)
+    assert sorted(argv) == ["actor-0", "actor-1", "evaluator", "learner", "replay"]
+    for args in argv.values():
+        assert args[:2] == ["--run-config", str(tmp_path / "config.json")]
+    assert argv["learner"][2:] == ["--data", str(tmp_path), "--port", "9", "--threads", "1"]
+    cmd.evaluator = False
+    assert "evaluator" not in service_argv(cmd, tmp_path)
+
+
+def up_in_process(argv: list[str], capsys) -> tuple[int, str]:  # noqa: ANN001
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["up", "--router-port", "0", *argv])
+    return exit_.value.code, capsys.readouterr().err
+
+
+def test_nasa_up_refuses_a_resumed_folder_started_with_other_flags(tmp_path, capsys, monkeypatch):
+    data = tmp_path / "run"
+    cmd, _ = parse_up(["--preset", "cpu-small", "--image-size", "32", "--data", str(data)])
+    prepare(cmd, data)  # the first `nasa up` wrote its config
+    before = (data / "config.json").read_bytes()
+    started = []
+    monkeypatch.setattr("nasa.up.Supervisor.add", lambda *a, **k: started.append(a))
+    code, err = up_in_process(["--preset", "cpu-small", "--image-size", "48", "--batch-size", "16",
+                               "--data", str(data)], capsys)
+    assert code == 2
+    assert "nasa up: error: settings differ from the run's" in err
+    assert "batch_size (16 here, 64 in the run), env.image_size (48 here, 32 in the run)" in err
+    assert started == [] and sorted(p.name for p in data.iterdir()) == ["config.json"]
+    assert (data / "config.json").read_bytes() == before
+
+
+def test_nasa_up_rejects_an_unknown_task_before_writing_anything(tmp_path, capsys):
+    code, err = up_in_process(["--task", "cartpole-juggle", "--data", str(tmp_path / "run")], capsys)
+    assert code == 2 and "unknown task 'cartpole-juggle'; valid tasks are" in err
+    assert not (tmp_path / "run").exists()

@@ -1,0 +1,129 @@
+"""The environment seam: EnvSpec, sources chosen by task name, a spec without rendering, any channel count."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from shared import envs
+from shared.config import EnvConfig
+
+
+class GreyPixels:
+    """A one-channel stand-in environment: frame t is filled with t; ends after 4 steps."""
+
+    def __init__(self, size: int) -> None:
+        self.frame_shape = (1, size, size)
+        self.action_dim = 2
+        self.t = 0
+
+    def _frame(self) -> np.ndarray:
+        return np.full(self.frame_shape, self.t, np.uint8)
+
+    def reset(self):  # noqa: ANN201
+        self.t = 0
+        return self._frame(), 0.0, 1.0, False
+
+    def step(self, action):  # noqa: ANN001, ANN201
+        self.t += 1
+        return self._frame(), 1.0, 1.0, self.t == 4
+
+    def rng_state(self) -> dict:
+        return {}
+
+    def set_rng_state(self, state: dict) -> None:
+        pass
+
+
+@dataclass
+class GreySource:
+    name: str = "grey"
+    made: int = 0
+
+    def tasks(self) -> list[str]:
+        return ["grey-one", "grey-two"]
+
+    def spec(self, config: EnvConfig) -> envs.EnvSpec:
+        return envs.EnvSpec((1, config.image_size, config.image_size), config.frame_stack, 2)
+
+    def make(self, config: EnvConfig, seed: int) -> envs.PixelEnv:
+        self.made += 1
+        return envs.FrameStack(GreyPixels(config.image_size), config.frame_stack)
+
+
+@pytest.fixture
+def grey():
+    before = list(envs._SOURCES)
+    source = envs.register(GreySource())
+    yield source
+    envs._SOURCES[:] = before
+
+
+def test_env_spec_shapes_and_round_trip():
+    spec = envs.EnvSpec((3, 84, 84), 3, 6)
+    assert spec.obs_shape == (9, 84, 84)
+    assert envs.EnvSpec((1, 16, 16), 4, 1).obs_shape == (4, 16, 16)
+    back = envs.EnvSpec.from_dict(spec.to_dict())
+    assert back == spec and isinstance(back.frame_shape, tuple)
+    assert envs.EnvSpec([3, 84, 84], 3, 6) == spec  # a list (from JSON) compares equal
+    with pytest.raises(ValueError, match="frame_shape"):
+        envs.EnvSpec((84, 84), 3, 6)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=">= 1"):
+        envs.EnvSpec((3, 84, 84), 0, 6)
+
+
+def test_dmc_spec_reads_the_action_size_without_rendering(monkeypatch):
+    from dm_control.mujoco import Physics
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("spec() rendered a frame")
+
+    monkeypatch.setattr(Physics, "render", no_render)
+    config = EnvConfig(task="cheetah-run", image_size=48, frame_stack=2)
+    spec = envs.spec(config)
+    assert spec == envs.EnvSpec((3, 48, 48), 2, 6)
+
+
+def test_the_built_environment_has_the_spec_of_its_config():
+    config = EnvConfig(task="reacher-hard", image_size=16, render_quality="fast")
+    env = envs.from_config(config, seed=0)
+    assert env.spec == envs.spec(config)
+    assert env.obs_shape == env.spec.obs_shape and env.action_dim == env.spec.action_dim == 2
+    ts = env.reset()
+    assert ts.obs.shape == env.spec.obs_shape and ts.frame.shape == env.spec.frame_shape
+
+
+def test_a_second_source_is_one_registered_object(grey):
+    config = EnvConfig(task="grey-two", image_size=8, frame_stack=3)
+    envs.check_task("grey-two")
+    assert envs.spec(config) == envs.EnvSpec((1, 8, 8), 3, 2)
+    env = envs.from_config(config, seed=0)
+    assert grey.made == 1 and env.spec == envs.spec(config)
+    # Frames of one channel stack to k channels: no 3-channel assumption.
+    ts = env.reset()
+    assert ts.obs.shape == (3, 8, 8)
+    nxt = env.step(np.zeros(2))
+    assert nxt.obs.shape == (3, 8, 8) and list(nxt.obs[:, 0, 0]) == [0, 0, 1]
+    assert envs.source_for("cartpole-balance").name == "dmc"
+    assert envs.source_for("grey-one") is grey
+
+
+def test_an_unknown_task_lists_the_names_of_every_source(grey):
+    with pytest.raises(envs.UnknownTaskError) as err:
+        envs.check_task("cartpole-juggle")
+    message = str(err.value)
+    assert message.startswith("unknown task 'cartpole-juggle'; valid tasks are: ")
+    for name in ("cartpole-balance", "cheetah-run", "grey-one", "grey-two"):
+        assert name in message
+    with pytest.raises(envs.UnknownTaskError):
+        envs.spec(EnvConfig(task="grey-three"))
+    with pytest.raises(ValueError, match="already registered"):
+        envs.register(GreySource())
+
+
+def test_a_dmc_task_name_of_another_source_is_not_a_suite_task(grey):
+    with pytest.raises(envs.UnknownTaskError, match="not a DeepMind Control Suite task"):
+        envs.parse_task("grey-one")
+    assert envs.parse_task("ball_in_cup-catch") == ("ball_in_cup", "catch")

@@ -1,0 +1,119 @@
+"""nasa up's Supervisor with real, tiny child processes (no Zenoh): restart, exit 0, exit 2, stop order."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from nasa.up import STOP_ORDER, Supervisor
+
+# Each child runs `python -c SCRIPT <role> <folder>`.
+EXIT_WITH = "import sys; print('child says: bad flag --x', flush=True); sys.exit(int(sys.argv[2]))"
+WAIT_FOR_SIGTERM = """
+import pathlib, signal, sys, time
+role, folder = sys.argv[1], pathlib.Path(sys.argv[2])
+def on_term(signum, frame):
+    with open(folder / "stopped", "a") as f:
+        f.write(role + "\\n")
+    sys.exit(0)
+signal.signal(signal.SIGTERM, on_term)
+(folder / f"ready-{role}").touch()
+while True:
+    time.sleep(0.05)
+"""
+IGNORE_SIGTERM = """
+import pathlib, signal, sys, time
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+(pathlib.Path(sys.argv[2]) / f"ready-{sys.argv[1]}").touch()
+while True:
+    time.sleep(0.05)
+"""
+
+
+def supervisor(tmp_path: Path, script: str, **kwargs) -> Supervisor:
+    return Supervisor({}, tmp_path / "logs", restart_delay_s=0.0,
+                      command=lambda role: [sys.executable, "-c", script, role], **kwargs)
+
+
+def poll_until(sup: Supervisor, done, events: list[str], timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"supervisor did not get there; events: {events}"
+        sup.poll(events.append)
+        time.sleep(0.02)
+
+
+def wait_ready(folder: Path, roles: list[str], timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not all((folder / f"ready-{r}").exists() for r in roles):
+        assert time.monotonic() < deadline, "children did not start"
+        time.sleep(0.02)
+
+
+def test_a_child_that_dies_is_restarted_up_to_max_restarts(tmp_path):
+    sup = supervisor(tmp_path, EXIT_WITH, max_restarts=2)
+    child = sup.add("actor-0", "actor", ["1"])
+    events: list[str] = []
+    poll_until(sup, lambda: child.exited is not None, events)
+    assert child.restarts == 2 and child.exited == 1
+    assert len(child.pids) == 3 and len(set(child.pids)) == 3
+    assert [e for e in events if "restarting" in e] == [
+        "actor-0 exited with 1: restarting it (1)", "actor-0 exited with 1: restarting it (2)"]
+    assert events[-1] == "actor-0 exited with 1; not restarted after 2 restarts"
+    assert sup.ended(("actor",)) is child and sup.ended(("learner",)) is None
+
+
+def test_a_child_that_exits_0_is_not_restarted(tmp_path):
+    sup = supervisor(tmp_path, EXIT_WITH)
+    child = sup.add("learner", "learner", ["0"])
+    events: list[str] = []
+    poll_until(sup, lambda: child.exited is not None, events)
+    assert child.exited == 0 and child.restarts == 0 and len(child.pids) == 1
+    assert events == []
+
+
+def test_a_child_that_refuses_its_input_is_not_restarted_and_its_error_is_reported(tmp_path):
+    sup = supervisor(tmp_path, EXIT_WITH)
+    child = sup.add("replay", "replay", ["2"])
+    events: list[str] = []
+    poll_until(sup, lambda: child.exited is not None, events)
+    assert child.exited == 2 and child.restarts == 0 and len(child.pids) == 1
+    assert events == [f"replay refused its input: {tmp_path / 'logs' / 'replay.log'}: "
+                      "child says: bad flag --x; not restarted"]
+    assert sup.ended(("learner", "replay")) is child
+
+
+def test_stop_all_stops_role_by_role_in_order(tmp_path):
+    sup = supervisor(tmp_path, WAIT_FOR_SIGTERM)
+    roles = ["replay", "learner", "actor", "evaluator"]  # started in another order than stopped
+    for role in roles:
+        sup.add(role, role, [str(tmp_path)])
+    wait_ready(tmp_path, roles)
+    sup.stop_all(timeout_s=10.0)
+    assert (tmp_path / "stopped").read_text().split() == list(STOP_ORDER)
+    assert sup.running() == []
+    assert all(c.proc.returncode == 0 for c in sup.children.values())
+
+
+def test_stop_all_kills_a_child_that_ignores_sigterm(tmp_path):
+    sup = supervisor(tmp_path, IGNORE_SIGTERM)
+    child = sup.add("actor-0", "actor", [str(tmp_path)])
+    wait_ready(tmp_path, ["actor"])
+    sup.stop_all(timeout_s=0.5)
+    assert child.proc.returncode == -9  # SIGKILL after the timeout
+    events: list[str] = []
+    sup.poll(events.append)  # stopping: nothing is restarted
+    assert child.exited == -9 and events == [] and len(child.pids) == 1
+
+
+@pytest.mark.parametrize("code", [1, 2])
+def test_nothing_is_restarted_while_stopping(tmp_path, code):
+    sup = supervisor(tmp_path, EXIT_WITH)
+    child = sup.add("actor-0", "actor", [str(code)])
+    child.proc.wait()
+    sup.stopping = True
+    sup.poll(lambda msg: None)
+    assert child.exited == code and child.restarts == 0
