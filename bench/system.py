@@ -54,21 +54,23 @@ def inprocess_actor_loop(args: argparse.Namespace) -> tuple[float, float]:
 
     from shared import envs
     from shared.agents import make_agent
+    from shared.env_loop import EnvLoop
 
     torch.set_num_threads(1)
     c = preset_config(args)
     env = envs.from_config(c.env, 0)
-    agent = make_agent(c.algo, env.obs_shape, env.action_dim, c.agent, torch.device("cpu"))
+    agent = make_agent(c.algo, env.spec.obs_shape, env.spec.action_dim, c.agent, torch.device("cpu"))
     rng = np.random.default_rng(0)
-    ts = env.reset()
-    for _ in range(20):  # warm up GL and torch
-        ts = env.step(agent.act(ts.obs, True, rng))
-    steps, start, cpu = 0, time.perf_counter(), time.process_time()
-    while time.perf_counter() - start < args.seconds:
-        ts = env.step(agent.act(ts.obs, True, rng))
-        steps += 1
+    loop = EnvLoop(env)
+    ts = loop.reset()
+    start, cpu = time.perf_counter(), time.process_time()
+    while loop.steps < 20 or time.perf_counter() - start < args.seconds:
+        if loop.steps == 20:  # GL and torch warmed up: start measuring
+            start, cpu = time.perf_counter(), time.process_time()
+        ts = loop.step(agent.act(ts.obs, True, rng))
         if ts.last:
-            ts = env.reset()
+            ts = loop.reset()
+    steps = loop.steps - 20
     return steps / (time.perf_counter() - start), steps / (time.process_time() - cpu)
 
 
@@ -79,26 +81,27 @@ def inprocess_update_loop(args: argparse.Namespace) -> float:
     from shared import envs
     from shared.agents import batch_to_device, make_agent
     from shared.device import resolve_device
+    from shared.env_loop import EnvLoop
+    from shared.replay.adder import StoreAdder
     from shared.replay.store import ReplayStore
 
     torch.set_num_threads(args.learner_threads)
     c = preset_config(args)
     env = envs.from_config(c.env, 0)
+    spec = env.spec
     device = resolve_device(args.device)  # as `nasa train` and the learner service
-    agent = make_agent(c.algo, env.obs_shape, env.action_dim, c.agent, device)
+    agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
     rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory() as tmp:
-        store = ReplayStore(c.replay_capacity, (3, c.env.image_size, c.env.image_size), c.env.frame_stack,
-                            env.action_dim, data_dir=Path(tmp) / "replay")
-        ts = env.reset()
-        ep = store.begin_episode(ts.frame)
-        for _ in range(args.fill):
-            action = rng.uniform(-1, 1, env.action_dim).astype(np.float32)
-            ts = env.step(action)
-            store.add(ep, action, ts.reward, ts.discount, ts.frame, ts.last, intrinsic=0.0)
-            if ts.last:
-                ts = env.reset()
-                ep = store.begin_episode(ts.frame)
+        store = ReplayStore(c.replay_capacity, spec.frame_shape, spec.frame_stack, spec.action_dim,
+                            data_dir=Path(tmp) / "replay")
+        loop = EnvLoop(env, StoreAdder(store))
+        loop.reset()
+        while loop.steps < args.fill:
+            if loop.step(rng.uniform(-1, 1, spec.action_dim).astype(np.float32)).last:
+                loop.reset()
+        n = store.num_inserted
+        store.set_intrinsic(np.arange(n), np.zeros(n, np.float32))  # warm-up rows: intrinsic 0
         for _ in range(3):
             agent.update(batch_to_device(store.sample(c.batch_size, rng), device))
         n, start = 0, time.perf_counter()

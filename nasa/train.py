@@ -1,76 +1,78 @@
-"""The single-process trainer: one env, the replay store and the agent in one loop.
+"""The single-process trainer: one environment, the replay and the agent in one loop.
 
-It is the reference runner: the distributed services are assembled from the
-same parts (env, agent, replay store, run log) and measured against it.
+It is the reference runner, built from the same parts as the services: the
+environment loop hands transitions to the replay store (`StoreAdder`), the
+intrinsic scorer scores each new transition as the learner does, batches come
+through the in-process replay client (`LocalReplay`), and the recorder writes
+the same rows and checkpoint core as the learner.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from shared import checkpoint, envs
+from shared import checkpoint, envs, run_config
 from shared.agents import Agent, batch_to_device, collect_action, make_agent
-from shared.config import TrainConfig, from_dict, to_dict, validate
+from shared.config import TrainConfig, validate
 from shared.device import resolve_device
+from shared.env_loop import EnvLoop
 from shared.evaluation import evaluate
+from shared.recorder import Counters, MetricMeans, Recorder
+from shared.replay.adder import StoreAdder
+from shared.replay.client import LocalReplay
 from shared.replay.store import ReplayStore
-from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
+from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
 
 
 class Trainer:
     def __init__(self, config: TrainConfig, out: str | Path) -> None:
-        self.config = validate(config)
+        c = self.config = validate(config)
         self.out = Path(out)
-        self.device = resolve_device(config.device)
-        torch.manual_seed(config.seed)  # before any network is built
-        self.env = envs.from_config(config.env, config.seed)
-        self.eval_env = envs.from_config(config.env, config.seed + 1_000_000)
-        self.agent: Agent = make_agent(
-            config.algo, self.env.obs_shape, self.env.action_dim, config.agent, self.device
-        )
-        self.rng = np.random.default_rng(config.seed)
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.replay = ReplayStore(
-            capacity=config.replay_capacity,
-            frame_shape=(3, config.env.image_size, config.env.image_size),
-            frame_stack=config.env.frame_stack,
-            action_dim=self.env.action_dim,
-            data_dir=self.out / "replay",
-            compression=config.replay_compression,
-        )
-        self.eval_log = CsvLog(self.out / "eval.csv", eval_fields(config.eval_episodes))
-        self.train_log = CsvLog(self.out / "train.csv", TRAIN_FIELDS)
-        self.step = 0
-        self.episode = 0
+        self.device = resolve_device(c.device)
+        torch.manual_seed(c.seed)  # before any network is built
+        self.env = envs.from_config(c.env, c.seed)
+        self.eval_env = envs.from_config(c.env, c.seed + 1_000_000)
+        self.run_config = run_config.RunConfig(c, self.env.spec)
+        spec = self.env.spec
+        self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)
+        self.rng = np.random.default_rng(c.seed)
+        self.recorder = Recorder(self.out, c.eval_episodes)
+        self.store = ReplayStore(c.replay_capacity, spec.frame_shape, spec.frame_stack, spec.action_dim,
+                                 data_dir=self.out / "replay", compression=c.replay_compression)
+        self.replay = LocalReplay(self.store, self.rng, replace=not c.sample_without_replacement)
+        self.loop = EnvLoop(self.env, StoreAdder(self.store), c.env.time_limit)
+        self.scorer = (IntrinsicScorer(self.agent, self.replay, c.warmup_steps, c.batch_size)
+                       if collect_scoring(self.agent, c) else None)
+        self.counters = Counters()
+        self.means = MetricMeans()
         self.last_checkpoint_step = 0
-        self.wall_s = 0.0
 
     # -- run folder -------------------------------------------------------------
 
     @classmethod
     def create(cls, config: TrainConfig, out: str | Path) -> Trainer:
         out = Path(out)
-        if (out / CHECKPOINT_FILE).exists() or (out / "config.json").exists():
+        if (out / CHECKPOINT_FILE).exists() or (out / run_config.CONFIG_FILE).exists():
             raise FileExistsError(f"{out} already holds a run; continue it with --resume {out}")
         trainer = cls(config, out)
-        (out / "config.json").write_text(json.dumps(to_dict(trainer.config), indent=2) + "\n")
+        run_config.write_folder(out, trainer.run_config)
         return trainer
 
     @classmethod
     def resume(cls, out: str | Path, steps: int | None = None) -> Trainer:
         """Continue the run in `out` exactly from its last checkpoint (optionally to a new step total)."""
         out = Path(out)
-        config = from_dict(json.loads((out / "config.json").read_text()))
+        body = run_config.read_folder(out)
+        if body is None:
+            raise FileNotFoundError(f"{out} holds no run ({run_config.CONFIG_FILE} is missing)")
+        config = run_config.config_from_dict({k: v for k, v in body.items() if k != "spec"})
         # Read the checkpoint before touching the folder: one this version cannot
         # continue is refused with the run left as it was.
         state = None
@@ -78,159 +80,79 @@ class Trainer:
             state = checkpoint.load(out / CHECKPOINT_FILE, resolve_device(config.device))
         if steps is not None:
             config.steps = steps
-            (out / "config.json").write_text(json.dumps(to_dict(config), indent=2) + "\n")
         trainer = cls(config, out)
+        if steps is not None:
+            run_config.write_folder(out, trainer.run_config)
         if state is not None:
             trainer.restore(state)
         else:  # killed before its first checkpoint: start over
-            trainer.replay.truncate(0)
-            trainer.eval_log.truncate(0)
-            trainer.train_log.truncate(0)
+            trainer.store.truncate(0)
+            trainer.recorder.clear()
         return trainer
 
     def save_checkpoint(self) -> None:
-        self.replay.flush()
-        checkpoint.save(
-            self.out / CHECKPOINT_FILE,
-            {
-                "agent": self.agent.state_dict(),
-                "rng": checkpoint.rng_state(self.rng),
-                "env_rng": self.env.rng_state(),
-                "eval_env_rng": self.eval_env.rng_state(),
-                "step": self.step,
-                "episode": self.episode,
-                "wall_s": self.wall_s,
-                "replay_inserted": self.replay.num_inserted,
-                "eval_rows": self.eval_log.rows(),
-                "train_rows": self.train_log.rows(),
-            },
+        self.store.flush()
+        self.recorder.checkpoint(
+            self.out / CHECKPOINT_FILE, self.agent, self.rng, self.counters,
+            env_rng=self.env.rng_state(), eval_env_rng=self.eval_env.rng_state(),
+            replay_inserted=self.store.num_inserted,
         )
-        self.last_checkpoint_step = self.step
+        self.last_checkpoint_step = self.counters.env_steps
 
     def restore(self, state: dict) -> None:
-        self.agent.load_state_dict(state["agent"])
-        checkpoint.restore_rng_state(self.rng, state["rng"])
+        self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=True)
         self.env.set_rng_state(state["env_rng"])
         self.eval_env.set_rng_state(state["eval_env_rng"])
-        self.step = self.last_checkpoint_step = int(state["step"])
-        self.episode = int(state["episode"])
-        self.wall_s = float(state["wall_s"])
-        self.replay.truncate(int(state["replay_inserted"]))
-        self.eval_log.truncate(int(state["eval_rows"]))
-        self.train_log.truncate(int(state["train_rows"]))
+        self.last_checkpoint_step = self.counters.env_steps
+        self.store.truncate(int(state["replay_inserted"]))
 
     # -- the loop -----------------------------------------------------------------
 
     def run(self) -> None:
-        c = self.config
-        agent, env = self.agent, self.env
-        if self.step == 0 and self.eval_log.rows() == 0:
+        c, n = self.config, self.counters
+        if n.env_steps == 0 and self.recorder.eval_log.rows() == 0 and c.eval_at_start:
             self.run_evaluation()
-        progress = tqdm(total=c.steps, initial=self.step, unit="step", dynamic_ncols=True, mininterval=1.0)
-        ts = env.reset()
-        episode_id = self.replay.begin_episode(ts.frame)
-        episode = EpisodeStats()
-        started = time.monotonic()
-        wall_at_start = self.wall_s
-        while self.step < c.steps:
-            action = collect_action(agent, ts.obs, self.step < c.warmup_steps, self.rng, env.action_dim)
-            next_ts = env.step(action)
-            self.step += 1
-            bonus = self.score_transition(ts.obs, action, next_ts.obs, episode)
-            self.replay.add(
-                episode_id,
-                action,
-                next_ts.reward,
-                envs.stored_discount(next_ts, c.env.time_limit),
-                next_ts.frame,
-                next_ts.last,
-                policy_version=agent.num_updates,
-                intrinsic=bonus,
-            )
-            episode.add_reward(next_ts.reward)
-            if self.step > c.warmup_steps:
-                for _ in range(c.updates_per_step):
-                    batch = batch_to_device(self.replay.sample(c.batch_size, self.rng), self.device)
-                    episode.add_metrics(agent.update(batch))
-            self.wall_s = wall_at_start + time.monotonic() - started
-            if self.step % c.eval_every == 0:
+        progress = tqdm(total=c.steps, initial=n.env_steps, unit="step", dynamic_ncols=True, mininterval=1.0)
+        ts = self.loop.reset()
+        started, wall0, episode_started = time.monotonic(), n.wall_s, time.monotonic()
+        while n.env_steps < c.steps:
+            warming_up = n.env_steps < c.warmup_steps
+            action = collect_action(self.agent, ts.obs, warming_up, self.rng, self.env.spec.action_dim)
+            ts = self.loop.step(action, self.agent.num_updates)
+            n.env_steps += 1
+            if self.scorer is not None:
+                self.scorer.score_new()
+            if n.env_steps > c.warmup_steps:
+                self.update()
+            n.wall_s = wall0 + time.monotonic() - started
+            if n.env_steps % c.eval_every == 0:
                 self.run_evaluation()
-            ts = next_ts
             progress.update(1)
             if ts.last:
-                self.episode += 1
-                self.train_log.append(episode.row(self.step, self.episode, agent, self.wall_s))
-                progress.set_postfix(ret=f"{episode.total:.1f}", refresh=False)
-                if self.step - self.last_checkpoint_step >= c.checkpoint_every or self.step >= c.steps:
-                    self.save_checkpoint()
-                ts = env.reset()
-                episode_id = self.replay.begin_episode(ts.frame)
-                episode = EpisodeStats()
+                self.end_episode(progress, time.monotonic() - episode_started)
+                ts, episode_started = self.loop.reset(), time.monotonic()
         progress.close()
-        self.replay.close()
+        self.store.close()
 
-    def score_transition(
-        self, obs: np.ndarray, action: np.ndarray, next_obs: np.ndarray, episode: EpisodeStats
-    ) -> float:
-        """The intrinsic reward stored with a transition (`collect` timing, as the paper).
+    def update(self) -> None:
+        """G updates on batches from the replay (the collect-timing scores are already stored)."""
+        for _ in range(self.config.updates_per_step):
+            batch = self.replay.sample(self.config.batch_size, wait_s=0.0)
+            self.means.add(self.agent.update(batch_to_device(batch, self.device)))
 
-        During warm-up the reference stores none (0); `fresh` timing and agents
-        without intrinsic rewards leave the slot unscored (NaN).
-        """
-        c = self.config
-        if not self.agent.uses_intrinsic or c.agent.intrinsic_timing != "collect":
-            return math.nan
-        if self.step <= c.warmup_steps:
-            return 0.0
-        d = self.device
-        scores = self.agent.score(
-            torch.as_tensor(obs, device=d)[None],
-            torch.as_tensor(action, device=d)[None],
-            torch.as_tensor(next_obs, device=d)[None],
-        )
-        episode.add_intrinsic(scores["novelty"].item(), scores["surprise"].item())
-        return scores["intrinsic"].item()
+    def end_episode(self, progress: tqdm, elapsed_s: float) -> None:
+        c, n, loop = self.config, self.counters, self.loop
+        n.episodes += 1
+        means = self.means.take() | (self.scorer.take_episode_means() if self.scorer else {})
+        self.recorder.train_row(n.env_steps, n.episodes, loop.episode_return, loop.episode_length,
+                                self.agent.num_updates, n.wall_s, means,
+                                steps_per_s=loop.episode_length / max(elapsed_s, 1e-9))
+        progress.set_postfix(ret=f"{loop.episode_return:.1f}", refresh=False)
+        if n.env_steps - self.last_checkpoint_step >= c.checkpoint_every or n.env_steps >= c.steps:
+            self.save_checkpoint()
 
     def run_evaluation(self) -> None:
         returns = evaluate(self.agent, self.eval_env, self.config.eval_episodes)
-        row = {"step": self.step, "mean": float(np.mean(returns)), "std": float(np.std(returns))}
-        row |= {f"return_{i}": r for i, r in enumerate(returns)}
-        self.eval_log.append(row)
-        tqdm.write(f"eval step {self.step}: mean return {row['mean']:.1f} +- {row['std']:.1f}")
+        row = self.recorder.eval_row(self.counters.env_steps, returns)
+        tqdm.write(f"eval step {self.counters.env_steps}: mean return {row['mean']:.1f} +- {row['std']:.1f}")
 
-
-class EpisodeStats:
-    """Running sums for one train.csv row."""
-
-    def __init__(self) -> None:
-        self.total = 0.0
-        self.length = 0
-        self.sums: dict[str, float] = defaultdict(float)
-        self.counts: dict[str, int] = defaultdict(int)
-        self.started = time.monotonic()
-
-    def add_reward(self, reward: float) -> None:
-        self.total += reward
-        self.length += 1
-
-    def add_intrinsic(self, novelty: float, surprise: float) -> None:
-        self.add_metrics({"novelty_mean": novelty, "surprise_mean": surprise})
-
-    def add_metrics(self, metrics: dict[str, float]) -> None:
-        for key, value in metrics.items():
-            self.sums[key] += value
-            self.counts[key] += 1
-
-    def row(self, step: int, episode: int, agent: Agent, wall_s: float) -> dict:
-        means = {k: self.sums[k] / self.counts[k] for k in self.sums if k in TRAIN_FIELDS}
-        elapsed = max(time.monotonic() - self.started, 1e-9)
-        return {
-            "step": step,
-            "episode": episode,
-            "return": self.total,
-            "length": self.length,
-            "updates": agent.num_updates,
-            "steps_per_s": self.length / elapsed,
-            "wall_s": wall_s,
-            **means,
-        }

@@ -55,6 +55,10 @@ def prometheus_text(s: dict) -> str:
          [_line("nasa_updates_per_env_step", s["updates_per_env_step"], base)]),
         ("nasa_policy_version", "gauge", "Version of the newest published weights",
          [_line("nasa_policy_version", s["policy_version"], base)]),
+        ("nasa_policy_lag_updates", "gauge",
+         "Updates between the policy that collected a sampled transition and the learner's (mean, max)",
+         [_line("nasa_policy_lag_updates", s["policy_lag"][k], {**base, "stat": k})
+          for k in ("mean", "max")]),
         ("nasa_replay_size", "gauge", "Transitions in the replay",
          [_line("nasa_replay_size", s["replay"]["size"], base)]),
         ("nasa_replay_bytes", "gauge", "Replay memory in bytes",

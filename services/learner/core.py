@@ -1,0 +1,137 @@
+"""The learner without its messaging: agent, scorer, records, checkpoint and status.
+
+`LearnerCore` is what the learner service wraps in Zenoh plumbing: it trains
+on a batch (scoring its unscored rows first), records evaluations and
+finished episodes, checkpoints, and builds /status. It talks to the replay
+only through a `ReplayClient`, so unit tests drive it with the in-process
+`LocalReplay` and no Zenoh.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from services.learner.status import StatusBoard
+from shared import checkpoint, wire
+from shared.agents import batch_to_device, make_agent
+from shared.recorder import Counters, MetricMeans, Recorder
+from shared.replay.client import Batch, ReplayClient
+from shared.run_config import RunConfig
+from shared.scoring import IntrinsicScorer, collect_scoring
+
+CHECKPOINT = "learner/checkpoint.pt"
+
+
+class LearnerCore:
+    def __init__(self, run: RunConfig, out: Path, client: ReplayClient, device: torch.device) -> None:
+        c = self.config = run.config
+        self.run, self.device, self.out = run, device, Path(out)
+        spec = run.spec
+        self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
+        self.rng = np.random.default_rng(c.seed)
+        torch.manual_seed(c.seed)
+        self.recorder = Recorder(self.out, c.eval_episodes)
+        self.scorer = (IntrinsicScorer(self.agent, client, c.warmup_steps, c.batch_size)
+                       if collect_scoring(self.agent, c) else None)
+        self.board = StatusBoard()
+        self.counters = Counters()
+        self.means = MetricMeans()
+        self.policy_version = 0
+        self.target_updates = c.updates_per_step * max(0, c.steps - c.warmup_steps)
+        self.last_checkpoint_step = 0
+        self.resumed = False
+        self.eval = self.recorder.last_eval() or {"step": None, "mean": None, "std": None}
+        if (self.out / CHECKPOINT).exists():
+            self.restore(checkpoint.load(self.out / CHECKPOINT, device))
+
+    # -- training -----------------------------------------------------------------
+
+    def train_on(self, batch: Batch) -> dict[str, float]:
+        """One update: score what the collect timing still owes, then update on the batch."""
+        if self.scorer is not None:
+            self.scorer.score_new()
+            self.scorer.score_batch(batch)
+        self.board.record_lag(self.agent.num_updates, batch["policy_version"])
+        metrics = self.agent.update(batch_to_device(batch, self.device))
+        self.board.record_update(metrics)
+        self.means.add(metrics)
+        return metrics
+
+    def weights_message(self, epoch: int) -> bytes:
+        """The policy's weights as published; version = the update count."""
+        self.policy_version = self.agent.num_updates
+        tensors = wire.pack_tensors(self.agent.policy_state_dict())
+        return wire.encode(wire.Weights(epoch, self.policy_version, self.env_steps, tensors))
+
+    def done(self) -> bool:
+        return self.board.replay["done"] and self.agent.num_updates >= self.target_updates
+
+    @property
+    def env_steps(self) -> int:
+        return max(self.board.env_steps, self.counters.env_steps)
+
+    # -- records --------------------------------------------------------------------
+
+    def record_eval(self, r: wire.EvalResult) -> dict | None:
+        """An evaluation's row in eval.csv; None if that step is recorded already (sent again)."""
+        if self.eval["step"] is not None and r.step <= self.eval["step"]:
+            return None
+        row = self.recorder.eval_row(r.step, r.returns)
+        self.eval = {"step": r.step, "mean": row["mean"], "std": row["std"]}
+        return row
+
+    def record_episode(self, episode_return: float, length: int, wall_s: float) -> None:
+        """A training episode an actor finished: one train.csv row with the updates' means since the last."""
+        self.counters.episodes += 1
+        means = self.means.take() | (self.scorer.take_episode_means() if self.scorer else {})
+        self.recorder.train_row(self.env_steps, self.counters.episodes, episode_return, length,
+                                self.agent.num_updates, wall_s, means)
+
+    # -- checkpoint -----------------------------------------------------------------
+
+    def checkpoint_due(self) -> bool:
+        every = self.config.checkpoint_every
+        return self.env_steps // every > self.last_checkpoint_step // every
+
+    def save_checkpoint(self, wall_s: float) -> None:
+        self.counters.env_steps, self.counters.wall_s = self.env_steps, wall_s
+        self.recorder.checkpoint(self.out / CHECKPOINT, self.agent, self.rng, self.counters,
+                                 policy_version=self.policy_version)
+        self.last_checkpoint_step = self.counters.env_steps
+
+    def restore(self, state: dict) -> None:
+        self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=False)
+        self.policy_version = int(state["policy_version"])
+        self.last_checkpoint_step = self.counters.env_steps
+        self.board.seen_env_steps(self.counters.env_steps)
+        self.resumed = True
+
+    # -- status ---------------------------------------------------------------------
+
+    def status(self, run_id: str, wall_s: float) -> dict:
+        c = self.config
+        fleet = self.board.snapshot()
+        updates = self.agent.num_updates
+        learning_steps = fleet["env_steps"] - c.warmup_steps
+        return {
+            "run_id": run_id,
+            "algo": c.algo,
+            "task": c.env.task,
+            "device": str(self.device),
+            "config_digest": self.run.digest(),
+            "steps_budget": c.steps,
+            "warmup_steps": c.warmup_steps,
+            "updates": updates,
+            "updates_target_per_env_step": c.updates_per_step,
+            "updates_per_env_step": updates / learning_steps if learning_steps > 0 else 0.0,
+            "policy_version": self.policy_version,
+            "eval": dict(self.eval),
+            "intrinsic": self.scorer.status() if self.scorer else
+            {"novelty_mean": None, "surprise_mean": None, "scored": 0, "scored_at_first_sample": 0},
+            "resumed": self.resumed,
+            "wall_s": round(wall_s, 3),
+            **fleet,
+        }

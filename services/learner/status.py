@@ -1,0 +1,127 @@
+"""The learner's view of the run, fed by its Zenoh callbacks and its loop, and the /status it serves.
+
+`StatusBoard` holds what the rest of the system reports (replay stats, the
+actors' heartbeats and liveliness, invalid messages) and what the loop
+measures (losses, policy lag, rates). Callbacks run on Zenoh's threads, so
+every field they touch is guarded by one lock.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from shared import wire
+
+
+def _new_actor(actor_id: int, incarnation: int) -> dict:
+    return {"id": actor_id, "incarnation": incarnation, "alive": True, "env_steps": 0, "episodes": 0,
+            "last_seen": time.monotonic(), "policy_version": 0, "steps_per_s": 0.0}
+
+
+class StatusBoard:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.env_steps = 0
+        self.replay = {"size": 0, "bytes": 0, "done": False, "invalid": 0, "dropped": 0, "inserts": 0,
+                       "samples": 0}
+        self.actors: dict[int, dict] = {}
+        self.invalid = 0
+        self.losses: dict[str, float] = {}
+        self.lag = {"mean": None, "max": None}
+        self._rates: deque[tuple[float, int, int]] = deque(maxlen=64)
+
+    # -- what the system reports ----------------------------------------------------
+
+    def replay_stats(self, s: wire.ReplayStats) -> None:
+        with self._lock:
+            self.env_steps = max(self.env_steps, s.num_inserted)
+            self.replay = {"size": s.size, "bytes": s.bytes, "done": s.done, "invalid": s.invalid,
+                           "dropped": s.dropped, "inserts": s.inserts, "samples": s.samples}
+
+    def seen_env_steps(self, n: int) -> None:
+        with self._lock:
+            self.env_steps = max(self.env_steps, n)
+
+    def actor_status(self, s: wire.ActorStatus) -> None:
+        """A heartbeat; a newer incarnation of an actor id replaces the older one."""
+        with self._lock:
+            a = self.actors.get(s.actor_id)
+            if a is None or s.incarnation > a["incarnation"]:
+                a = self.actors[s.actor_id] = _new_actor(s.actor_id, s.incarnation)
+            if s.incarnation == a["incarnation"]:
+                a.update(env_steps=s.env_steps, policy_version=s.policy_version,
+                         steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, last_seen=time.monotonic())
+
+    def actor_alive(self, actor_id: int, incarnation: int, alive: bool) -> None:
+        """An actor's liveliness token appeared (alive) or went away."""
+        with self._lock:
+            a = self.actors.get(actor_id)
+            if alive and (a is None or incarnation > a["incarnation"]):
+                self.actors[actor_id] = _new_actor(actor_id, incarnation)
+            elif a is not None and incarnation == a["incarnation"]:
+                a["alive"] = alive
+                a["last_seen"] = time.monotonic()
+
+    def count_invalid(self) -> int:
+        with self._lock:
+            self.invalid += 1
+            return self.invalid
+
+    # -- what the loop measures --------------------------------------------------------
+
+    def record_update(self, metrics: dict[str, float]) -> None:
+        for key, value in metrics.items():
+            old = self.losses.get(key)
+            self.losses[key] = value if old is None else 0.95 * old + 0.05 * value
+
+    def record_lag(self, updates: int, versions: np.ndarray) -> None:
+        """Policy lag of a sampled batch: the learner's version minus the version that collected each row."""
+        lag = updates - versions
+        mean, worst = float(lag.mean()), int(lag.max())
+        old = self.lag["mean"]
+        self.lag = {"mean": mean if old is None else 0.95 * old + 0.05 * mean, "max": worst}
+
+    def sample_rates(self, updates: int) -> None:
+        """Keep (time, env steps, updates) every 0.5 s for the rates /status reports."""
+        now = time.monotonic()
+        if not self._rates or now - self._rates[-1][0] >= 0.5:
+            self._rates.append((now, self.env_steps, updates))
+
+    def rates(self) -> tuple[float, float]:
+        """Env steps/s and updates/s over the last ~10 s."""
+        rates = list(self._rates)
+        if len(rates) < 2:
+            return 0.0, 0.0
+        recent = [r for r in rates if r[0] >= rates[-1][0] - 10.0]
+        (t0, e0, u0), (t1, e1, u1) = recent[0], rates[-1]
+        if t1 <= t0:
+            return 0.0, 0.0
+        return (e1 - e0) / (t1 - t0), (u1 - u0) / (t1 - t0)
+
+    def snapshot(self) -> dict:
+        """The fleet and replay part of /status."""
+        with self._lock:
+            now = time.monotonic()
+            actors = [{**{k: v for k, v in a.items() if k != "last_seen"},
+                       "last_seen_s": round(now - a["last_seen"], 3)}
+                      for a in sorted(self.actors.values(), key=lambda a: a["id"])]
+            r = dict(self.replay)
+            env_steps, invalid = self.env_steps, self.invalid
+        env_rate, upd_rate = self.rates()
+        return {
+            "env_steps": env_steps,
+            "env_steps_per_s": round(env_rate, 3),
+            "updates_per_s": round(upd_rate, 3),
+            "replay": {"size": r["size"], "bytes": r["bytes"], "done": r["done"], "dropped": r["dropped"],
+                       "invalid_messages": r["invalid"], "limiter_inserts": r["inserts"],
+                       "limiter_samples": r["samples"]},
+            "actors": actors,
+            "policy_lag": {k: (round(v, 3) if v is not None else None) for k, v in self.lag.items()},
+            "losses": {k: round(v, 6) for k, v in self.losses.items() if math.isfinite(v)},
+            "invalid_messages": invalid,
+        }

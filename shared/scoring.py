@@ -1,0 +1,139 @@
+"""Collect-timing intrinsic rewards: each transition scored once, soon after it is stored.
+
+The paper scores a transition when it is collected, with the networks of that
+moment, and stores the score with it. Both runners do that through one
+`IntrinsicScorer` over a replay client: `nasa train` after every environment
+step (one new row), the learner service before every update (the oldest rows
+not scored yet, up to a batch). The replay stores every row unscored (NaN);
+the scorer owns the rule that warm-up rows (global index < warmup_steps) score
+0, as the reference stores no bonus before learning starts. A training batch
+that still brings an unscored row (the scorer fell behind, or a write-back was
+lost to a replay restart) is scored before the update uses it, so an update
+never sees NaN. A small cache keeps the first score of a row whose write-back
+has not landed yet, so no row is scored twice with different networks.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+import torch
+
+from shared.agents import Agent
+from shared.config import TrainConfig
+from shared.replay.client import Batch, ReplayClient
+
+
+def collect_scoring(agent: Agent, config: TrainConfig) -> bool:
+    """Whether transitions get a stored intrinsic score (nasa_td3 with collect timing)."""
+    return agent.uses_intrinsic and config.agent.intrinsic_timing == "collect"
+
+
+class IntrinsicScorer:
+    def __init__(self, agent: Agent, client: ReplayClient, warmup_steps: int, batch_size: int,
+                 cache_size: int = 100_000) -> None:
+        self.agent = agent
+        self.client = client
+        self.warmup_steps = warmup_steps
+        self.batch_size = batch_size
+        self.cache_size = cache_size
+        self.scored = 0  # transitions whose score was computed
+        self.scored_at_first_sample = 0  # of those, rows a training batch brought first
+        self.means: dict[str, float | None] = {"novelty": None, "surprise": None}
+        self._after = 0  # every row below this index was scored (or seen scored)
+        self._cache: OrderedDict[int, float] = OrderedDict()
+        self._sums = {"novelty": 0.0, "surprise": 0.0}
+        self._count = 0
+
+    def score_new(self) -> int:
+        """Score up to one batch of the oldest rows not scored yet; returns how many rows it saw."""
+        warm = min(self.client.num_inserted, self.warmup_steps)
+        if self._after < warm:  # warm-up rows score 0: no frames needed
+            index = np.arange(self._after, warm)
+            self.client.set_intrinsic(index, np.zeros(len(index), np.float32))
+            self._after = warm
+            return len(index)
+        batch, seen = self.client.unscored(self._after, self.batch_size)
+        if batch is None:
+            self._after = max(self._after, seen)
+            return 0
+        self.score_batch(batch, on_arrival=True)
+        self._after = max(self._after, int(batch["index"].max()) + 1)
+        return len(batch["index"])
+
+    def catch_up(self) -> None:
+        """Score every row stored so far (the end of a run: the last arrivals)."""
+        while self.score_new():
+            pass
+
+    def score_batch(self, batch: Batch, on_arrival: bool = False) -> None:
+        """Fill the batch's unscored rows in place and write their scores back to the replay.
+
+        `on_arrival`: the rows come from score_new; else a training batch brought them first.
+        A row drawn twice into one batch is scored once.
+        """
+        rows = np.flatnonzero(np.isnan(batch["intrinsic"]))
+        if len(rows) == 0:
+            return
+        index, values = batch["index"], batch["intrinsic"]
+        todo = []
+        for r in rows.tolist():
+            i = int(index[r])
+            if i < self.warmup_steps:
+                values[r] = 0.0
+            elif i in self._cache:
+                values[r] = self._cache[i]
+            else:
+                todo.append(r)
+        if todo:
+            self._compute(batch, np.array(todo), on_arrival)
+        self.client.set_intrinsic(index[rows], values[rows])
+
+    def _compute(self, batch: Batch, rows: np.ndarray, on_arrival: bool) -> None:
+        index = batch["index"]
+        _, first, inverse = np.unique(index[rows], return_index=True, return_inverse=True)
+        sel = rows[first]  # one row per distinct transition
+        d = self.agent.device
+        scores = self.agent.score(
+            torch.as_tensor(batch["obs"][sel], device=d),
+            torch.as_tensor(batch["action"][sel], device=d),
+            torch.as_tensor(batch["next_obs"][sel], device=d),
+        )
+        values = scores["intrinsic"].float().cpu().numpy()
+        batch["intrinsic"][rows] = values[inverse]
+        for i, v in zip(index[sel].tolist(), values.tolist(), strict=True):
+            self._cache[i] = v
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        self._account(scores, len(sel), on_arrival)
+
+    def _account(self, scores: dict[str, torch.Tensor], n: int, on_arrival: bool) -> None:
+        total = self.scored + n
+        for name in ("novelty", "surprise"):
+            batch_sum = scores[name].double().sum().item()
+            self._sums[name] += batch_sum
+            old = self.means[name]
+            mean = batch_sum / n
+            self.means[name] = mean if old is None else old + (mean - old) * n / total
+        self._count += n
+        self.scored = total
+        if not on_arrival:
+            self.scored_at_first_sample += n
+
+    def take_episode_means(self) -> dict[str, float]:
+        """Mean novelty and surprise per transition scored since the previous call (train.csv)."""
+        if self._count == 0:
+            return {}
+        means = {f"{k}_mean": v / self._count for k, v in self._sums.items()}
+        self._sums = {"novelty": 0.0, "surprise": 0.0}
+        self._count = 0
+        return means
+
+    def status(self) -> dict:
+        return {
+            "novelty_mean": self.means["novelty"],
+            "surprise_mean": self.means["surprise"],
+            "scored": self.scored,
+            "scored_at_first_sample": self.scored_at_first_sample,
+        }

@@ -1,0 +1,53 @@
+"""The evaluator's schedule and results, without Zenoh: which step is due, and what it publishes."""
+
+from __future__ import annotations
+
+import torch
+
+from services.evaluator.evaluator import EvaluatorArgs, EvaluatorService
+from shared import wire
+from shared.service import StopFlag
+from tests.tiny import tiny_run
+
+
+def _service(**overrides: object) -> EvaluatorService:
+    run = tiny_run("td3_ae", steps=500, **overrides)
+    return EvaluatorService(EvaluatorArgs(config=run.config), None, StopFlag(), run)
+
+
+def _weights(ev: EvaluatorService, version: int, env_steps: int = 0) -> None:
+    tensors = wire.pack_tensors(ev.agent.policy_state_dict())
+    ev.weights.offer(wire.encode(wire.Weights(1, version, env_steps, tensors)))
+
+
+def test_step_zero_then_the_newest_multiple_reached_each_once_and_capped_at_the_budget():
+    torch.manual_seed(0)
+    ev = _service()
+    assert ev.due() is None  # no weights, no replay stats yet
+    _weights(ev, version=0)
+    assert ev.due() is None
+    ev.seen_env_steps(0)
+    assert ev.due() == 0
+    result = ev.evaluate(0)
+    assert (result.step, result.policy_version, len(result.returns)) == (0, 0, 2)
+    assert all(r >= 0.0 for r in result.returns)
+    assert ev.due() is None
+    ev.seen_env_steps(49)
+    assert ev.due() is None
+    ev.seen_env_steps(130)  # slower than training: 50 is skipped, 100 is evaluated
+    _weights(ev, version=7)
+    assert ev.due() == 100
+    assert ev.evaluate(100).policy_version == 7
+    ev.seen_env_steps(10_000)
+    assert ev.due() == 500  # never past the run's budget
+    ev.evaluate(500)
+    assert ev.due() is None
+
+
+def test_without_eval_at_start_the_first_evaluation_is_at_eval_every():
+    ev = _service(eval_at_start=False)
+    _weights(ev, version=0)
+    ev.seen_env_steps(0)
+    assert ev.due() is None
+    ev.seen_env_steps(60)
+    assert ev.due() == 50

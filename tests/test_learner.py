@@ -1,0 +1,70 @@
+"""The learner's core without Zenoh: scoring before updates, policy lag, records, checkpoint, status."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from services.learner.core import CHECKPOINT, LearnerCore
+from shared import wire
+from shared.replay.client import LocalReplay
+from shared.runlog import read_rows
+from tests.test_scoring import filled_store
+from tests.tiny import tiny_run
+
+
+def core_on(tmp_path, algo: str = "nasa_td3", n: int = 60) -> LearnerCore:  # noqa: ANN001
+    client = LocalReplay(filled_store(n), np.random.default_rng(0))
+    return LearnerCore(tiny_run(algo, steps=200), tmp_path, client, torch.device("cpu"))
+
+
+def test_an_update_scores_what_collect_timing_owes_and_reports_policy_lag(tmp_path):
+    core = core_on(tmp_path)
+    store = core.scorer.client.store
+    for _ in range(3):
+        batch = core.scorer.client.sample(16)
+        metrics = core.train_on(batch)
+        assert np.isfinite(batch["intrinsic"]).all()
+        assert {"critic_loss", "ae_loss", "ensemble_loss"} <= set(metrics)
+    assert not np.isnan(store.get(np.arange(16))["intrinsic"]).any()  # score_new wrote back the oldest rows
+    status = core.status("r", 1.0)
+    assert status["updates"] == 3 and status["intrinsic"]["scored"] > 0
+    # The rows were collected by policy versions 0..5 (t // 10); the last update was number 2.
+    assert status["policy_lag"]["max"] == 2 - int(batch["policy_version"].min())
+    assert status["config_digest"] == core.run.digest()
+
+
+def test_an_algorithm_without_intrinsic_rewards_trains_on_unscored_rows(tmp_path):
+    core = core_on(tmp_path, "td3_ae")
+    assert core.scorer is None
+    batch = LocalReplay(filled_store(40), np.random.default_rng(1)).sample(16)
+    assert np.isnan(batch["intrinsic"]).all()
+    assert "critic_loss" in core.train_on(batch)
+
+
+def test_evaluations_are_recorded_once_and_episodes_carry_the_update_means(tmp_path):
+    core = core_on(tmp_path)
+    assert core.record_eval(wire.EvalResult(0, 0, [1.0, 3.0])) == {
+        "step": 0, "mean": 2.0, "std": 1.0, "return_0": 1.0, "return_1": 3.0}
+    assert core.record_eval(wire.EvalResult(0, 0, [9.0, 9.0])) is None  # sent again after a restart
+    core.train_on(core.scorer.client.sample(16))
+    core.record_episode(12.5, 25, wall_s=3.0)
+    rows = read_rows(tmp_path / "train.csv")
+    assert len(read_rows(tmp_path / "eval.csv")) == 1 and len(rows) == 1
+    assert rows[0]["return"] == "12.5" and rows[0]["episode"] == "1" and rows[0]["critic_loss"] != ""
+    assert rows[0]["novelty_mean"] != ""
+
+
+def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path):
+    core = core_on(tmp_path)
+    for _ in range(2):
+        core.train_on(core.scorer.client.sample(16))
+    core.weights_message(epoch=1)
+    core.board.seen_env_steps(60)
+    core.save_checkpoint(wall_s=4.0)
+    assert (tmp_path / CHECKPOINT).exists()
+    again = core_on(tmp_path)
+    assert again.resumed and again.agent.num_updates == 2 and again.policy_version == 2
+    assert again.env_steps == 60 and again.counters.wall_s == 4.0
+    for name, tensor in core.agent.policy_state_dict().items():
+        assert torch.equal(tensor, again.agent.policy_state_dict()[name])

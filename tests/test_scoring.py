@@ -1,0 +1,102 @@
+"""Collect-timing scoring over the in-process replay client: warm-up zeros, once per row, write-back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from shared.agents import make_agent
+from shared.replay.adder import StoreAdder
+from shared.replay.client import LocalReplay
+from shared.replay.store import ReplayStore
+from shared.scoring import IntrinsicScorer
+from tests.tiny import WARMUP, tiny_run
+
+
+def filled_store(n: int, seed: int = 0) -> ReplayStore:
+    """n transitions of random frames in episodes of 25 steps."""
+    spec = tiny_run().spec
+    rng = np.random.default_rng(seed)
+    store = ReplayStore(1000, spec.frame_shape, spec.frame_stack, spec.action_dim)
+    adder = StoreAdder(store)
+    for t in range(n):
+        if t % 25 == 0:
+            adder.add_first(rng.integers(0, 255, spec.frame_shape, np.uint8))
+        frame = rng.integers(0, 255, spec.frame_shape, np.uint8)
+        adder.add(rng.uniform(-1, 1, spec.action_dim).astype(np.float32), 1.0, 1.0, frame,
+                  t % 25 == 24, policy_version=t // 10)
+    return store
+
+
+def nasa_agent():  # noqa: ANN201
+    run = tiny_run()
+    torch.manual_seed(0)
+    spec = run.spec
+    return make_agent("nasa_td3", spec.obs_shape, spec.action_dim, run.config.agent, torch.device("cpu"))
+
+
+class LossyClient(LocalReplay):
+    """Write-backs are lost (a replay restart between scoring and storing)."""
+
+    def set_intrinsic(self, index: np.ndarray, values: np.ndarray) -> None:
+        pass
+
+
+def test_warmup_rows_score_zero_later_rows_once_each_and_the_store_holds_the_scores():
+    store, agent = filled_store(60), nasa_agent()
+    client = LocalReplay(store, np.random.default_rng(0))
+    scorer = IntrinsicScorer(agent, client, WARMUP, batch_size=16)
+    scorer.catch_up()
+    stored = store.get(np.arange(60))["intrinsic"]
+    assert np.all(stored[:WARMUP] == 0.0)
+    assert scorer.scored == 60 - WARMUP and scorer.scored_at_first_sample == 0
+    rows = store.get(np.arange(WARMUP, 60))
+    expected = agent.score(torch.as_tensor(rows["obs"]), torch.as_tensor(rows["action"]),
+                           torch.as_tensor(rows["next_obs"]))["intrinsic"].numpy()
+    np.testing.assert_allclose(stored[WARMUP:], expected, rtol=1e-5, atol=1e-6)
+    assert scorer.score_new() == 0  # nothing left: no row is scored twice
+    assert scorer.scored == 60 - WARMUP
+
+
+def test_a_training_batch_with_unscored_rows_is_filled_in_place_once_per_distinct_row():
+    store, agent = filled_store(40), nasa_agent()
+    client = LocalReplay(store, np.random.default_rng(0))
+    scorer = IntrinsicScorer(agent, client, WARMUP, batch_size=16)
+    batch = client.store.get(np.array([5, 30, 30, 31, 5]))
+    batch = {k: batch[k] for k in ("obs", "next_obs", "action", "intrinsic", "index")}
+    assert np.isnan(batch["intrinsic"]).all()
+    scorer.score_batch(batch)
+    values = batch["intrinsic"]
+    assert values[0] == 0.0 and values[4] == 0.0  # warm-up row
+    assert values[1] == values[2] and np.isfinite(values).all()
+    assert scorer.scored == 2 and scorer.scored_at_first_sample == 2  # rows 30 and 31
+    np.testing.assert_array_equal(store.get(np.array([5, 30, 31]))["intrinsic"], values[[0, 1, 3]])
+
+
+def test_a_lost_write_back_returns_the_first_score_not_a_second_one():
+    store, agent = filled_store(40), nasa_agent()
+    scorer = IntrinsicScorer(agent, LossyClient(store, np.random.default_rng(0)), WARMUP, batch_size=8)
+    scorer.score_new()  # rows 0..7: warm-up
+    first = {k: v for k, v in store.get(np.arange(30, 34)).items()}
+    scorer.score_batch(first)
+    scored = scorer.scored
+    with torch.no_grad():  # the networks change: a second computation would differ
+        for p in agent.decoder.parameters():
+            p.add_(0.5)
+    again = store.get(np.arange(30, 34))
+    assert np.isnan(again["intrinsic"]).all()  # the write-back never landed
+    scorer.score_batch(again)
+    np.testing.assert_array_equal(again["intrinsic"], first["intrinsic"])
+    assert scorer.scored == scored
+
+
+def test_episode_means_are_per_scored_transition_and_reset_when_taken():
+    store, agent = filled_store(60), nasa_agent()
+    scorer = IntrinsicScorer(agent, LocalReplay(store, np.random.default_rng(0)), WARMUP, batch_size=16)
+    assert scorer.take_episode_means() == {}
+    scorer.catch_up()
+    means = scorer.take_episode_means()
+    assert set(means) == {"novelty_mean", "surprise_mean"}
+    assert means["novelty_mean"] == pytest.approx(scorer.means["novelty"])
+    assert scorer.take_episode_means() == {}

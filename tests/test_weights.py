@@ -1,0 +1,59 @@
+"""The weights subscriber: latest wins, older weights never replace newer ones, bad ones are counted."""
+
+from __future__ import annotations
+
+import torch
+
+from shared import wire
+from shared.agents import make_agent
+from shared.weights import WeightsSubscriber
+from tests.tiny import tiny_run
+
+
+def _agent(seed: int):  # noqa: ANN202
+    run = tiny_run("td3_ae")
+    torch.manual_seed(seed)
+    c = run.config
+    return make_agent(c.algo, run.spec.obs_shape, run.spec.action_dim, c.agent, torch.device("cpu"))
+
+
+def _message(agent, epoch: int, version: int, env_steps: int = 0) -> bytes:  # noqa: ANN001
+    return wire.encode(wire.Weights(epoch, version, env_steps, wire.pack_tensors(agent.policy_state_dict())))
+
+
+def _same(a, b) -> bool:  # noqa: ANN001
+    sa, sb = a.policy_state_dict(), b.policy_state_dict()
+    return all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_the_newest_offer_is_loaded_once_and_older_weights_never_replace_it():
+    actor, learner_a, learner_b = _agent(0), _agent(1), _agent(2)
+    bad: list[str] = []
+    sub = WeightsSubscriber(actor, bad.append)
+    assert not sub.maybe_load() and sub.version is None
+    sub.offer(_message(learner_b, epoch=5, version=1))
+    sub.offer(_message(learner_a, epoch=5, version=3, env_steps=120))  # latest wins
+    assert sub.maybe_load() and _same(actor, learner_a)
+    assert (sub.version, sub.env_steps) == (3, 120)
+    assert not sub.maybe_load()  # nothing new parked
+    sub.offer(_message(learner_b, epoch=5, version=2))  # older than what it holds
+    assert not sub.maybe_load() and _same(actor, learner_a)
+    sub.offer(_message(learner_b, epoch=6, version=0))  # a restarted learner: a newer epoch wins
+    assert sub.maybe_load() and _same(actor, learner_b) and sub.version == 0
+    assert bad == []
+
+
+def test_malformed_weights_are_reported_and_leave_the_agent_as_it_was():
+    actor, other = _agent(0), _agent(1)
+    before = {k: v.clone() for k, v in actor.policy_state_dict().items()}
+    bad: list[str] = []
+    sub = WeightsSubscriber(actor, bad.append)
+    sub.offer(b"not msgpack at all")
+    assert not sub.maybe_load()
+    tensors = wire.pack_tensors(other.policy_state_dict())
+    name = next(iter(tensors))
+    tensors[name][1] = [1, 2, 3]  # a shape that does not match its bytes
+    sub.offer(wire.encode(wire.Weights(1, 1, 0, tensors)))
+    assert not sub.maybe_load()
+    assert len(bad) == 2 and sub.version is None
+    assert all(torch.equal(before[k], v) for k, v in actor.policy_state_dict().items())
