@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 # 2: the encoder's and decoder's fc layers index conv features in (h, w, c) order.
-CHECKPOINT_FORMAT = 2
+# 3: one payload for both runners (shared/recorder.py): env_steps, episodes, wall_s, CSV row counts.
+CHECKPOINT_FORMAT = 3
 
 
 class CheckpointError(ValueError):
