@@ -94,7 +94,7 @@ def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, args, message):
 @pytest.mark.parametrize(
     ("spoil", "message"),
     [
-        (lambda state: {**state, "format": 1}, "has format 1 and this version reads format 2"),
+        (lambda state: {**state, "format": 1}, "has format 1 and this version reads format 3"),
         (None, "is not a readable checkpoint"),
     ],
 )
