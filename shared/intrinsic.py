@@ -9,9 +9,16 @@ K1 = 0.01, K2 = 0.03, data_range = max - min of the target image, the mean of
 the SSIM map over the valid (border-cropped) region, averaged over channels.
 On the CPU it runs as a compiled kernel (`ssim_kernel`), elsewhere in torch
 (`ssim_torch`); tests check both against scikit-image on rendered frames.
+
+Surprise needs Enc(next_obs). Transitions scored in the order they were stored
+chain: a row's next stack is a later row's obs stack, whose latent the scorer
+already has. `encode_next` takes those latents from Enc(obs) (`chained_rows`
+finds the pairs) and encodes only the rest.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -19,6 +26,8 @@ import torch.nn.functional as F
 from shared import ssim_kernel
 
 WIN = ssim_kernel.WIN
+_FINGERPRINT_STRIDE = 12  # chained_rows: a stack's key holds every 12th image row of every channel
+_MAX_CANDIDATES = 4  # chained_rows: stacks compared whole per row, at most
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -76,3 +85,44 @@ def ssim_torch(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     numerator = (2 * uxuy + c1) * (uxy - uxuy).mul_(2 * cov_norm).add_(c2)
     denominator = (u2 + c1) * (u_sq - u2).mul_(cov_norm).add_(c2)
     return numerator.div_(denominator).mean(dim=(1, 2, 3))
+
+
+def encode_next(
+    encode: Callable[[torch.Tensor], torch.Tensor], obs: torch.Tensor, z: torch.Tensor, next_obs: torch.Tensor
+) -> torch.Tensor:
+    """Enc(next_obs), given z = Enc(obs) computed with the same weights by `encode`.
+
+    A row whose next stack equals another row's obs stack takes that row's latent;
+    the others are encoded. Rows in stored order chain that way (each next stack is
+    its successor's obs), so one encoder pass serves most of them; an i.i.d. batch
+    finds no chain and only pays the lookup."""
+    source = chained_rows(obs, next_obs)
+    unchained = source < 0
+    z_next = z[source.clamp(min=0)]
+    if unchained.any():
+        z_next[unchained] = encode(next_obs[unchained])
+    return z_next
+
+
+def chained_rows(obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """For each row i, a row j with obs[j] equal to next_obs[i] (exactly), else -1.
+
+    Candidates share a fingerprint (every 12th image row of every channel); each is
+    then compared whole, so a shared fingerprint never pairs two different stacks.
+    At most a few candidates are compared per row, which bounds the cost when many
+    stacks share a fingerprint (a still scene): a missed pair only costs an encoder pass."""
+    candidates: dict[bytes, list[int]] = {}
+    for j, key in enumerate(_fingerprints(obs)):
+        candidates.setdefault(key, []).append(j)
+    source = [-1] * len(next_obs)
+    for i, key in enumerate(_fingerprints(next_obs)):
+        for j in candidates.get(key, [])[:_MAX_CANDIDATES]:
+            if torch.equal(next_obs[i], obs[j]):
+                source[i] = j
+                break
+    return torch.tensor(source, dtype=torch.long, device=obs.device)
+
+
+def _fingerprints(stacks: torch.Tensor) -> list[bytes]:
+    """A short key per (C, H, W) stack: a few image rows of every channel."""
+    return [row.tobytes() for row in stacks[:, :, ::_FINGERPRINT_STRIDE].cpu().numpy()]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from shared.agents import make_agent
+from shared.agents import SACAE, TD3, TD3AE, NaSATD3, PixelTD3, UnscoredBatchError, make_agent
 from shared.config import ALGOS, agent_defaults
 
 OBS_SHAPE = (9, 48, 48)
@@ -225,54 +225,75 @@ def test_actions_are_bounded():
     assert action.shape == (ACTION_DIM,) and np.all(np.abs(action) <= 1.0)
 
 
+# What a checkpoint holds per algorithm: the names existing checkpoints were saved under.
+TD3_KEYS = {"encoder", "actor", "critic", "actor_target", "critic_target", "actor_opt", "critic_opt",
+            "num_updates"}
+CHECKPOINT_KEYS = {
+    "pixel_td3": TD3_KEYS,
+    "td3_ae": TD3_KEYS | {"decoder", "encoder_opt", "decoder_opt"},
+    "nasa_td3": TD3_KEYS | {"decoder", "encoder_opt", "decoder_opt", "ensemble", "ensemble_opt"},
+    "sac_ae": {
+        "critic_encoder", "actor_encoder", "critic", "actor", "critic_encoder_target", "critic_target",
+        "decoder", "actor_opt", "critic_opt", "alpha_opt", "encoder_opt", "decoder_opt", "log_alpha",
+        "num_updates",
+    },
+}
+
+
+@pytest.mark.parametrize(
+    ("algo", "cls"), [("nasa_td3", NaSATD3), ("td3_ae", TD3AE), ("pixel_td3", PixelTD3), ("sac_ae", SACAE)]
+)
+def test_each_algorithm_is_its_own_class_with_its_checkpoint_keys(algo, cls):
+    agent = make(algo)
+    assert type(agent) is cls and agent.algo == algo
+    assert set(agent.state_dict()) == CHECKPOINT_KEYS[algo]
+    assert {k.split(".")[0] for k in agent.policy_state_dict()} == {"encoder", "actor"}
+    assert agent.uses_intrinsic == (algo == "nasa_td3")
+
+
+def test_pixel_td3_is_td3_alone():
+    agent = make("pixel_td3")
+    assert isinstance(agent, TD3) and not isinstance(agent, TD3AE)
+    assert not hasattr(agent, "decoder") and not hasattr(agent, "ensemble")
+    with pytest.raises(RuntimeError, match="no intrinsic rewards"):
+        agent.score(*(random_batch()[k] for k in ("obs", "action", "next_obs")))
+
+
+def test_a_collect_update_refuses_unscored_rows_and_changes_nothing():
+    agent = make("nasa_td3")
+    batch = random_batch()
+    batch["intrinsic"][[1, 4, 6]] = float("nan")
+    before = copy.deepcopy(agent.state_dict())
+    with pytest.raises(UnscoredBatchError, match="3 of 8 rows of the batch have no intrinsic score") as err:
+        agent.update(batch)
+    assert isinstance(err.value, ValueError)
+    assert agent.num_updates == 0
+    for name, module in agent._modules().items():
+        for key, value in module.state_dict().items():
+            assert torch.equal(value, before[name][key]), f"{name}.{key}"
+    batch["intrinsic"] = torch.nan_to_num(batch["intrinsic"])
+    agent.update(batch)  # once scored, the same batch updates
+    assert agent.num_updates == 1
+
+
+@pytest.mark.parametrize(("algo", "timing"), [
+    ("nasa_td3", "fresh"), ("td3_ae", "collect"), ("pixel_td3", "collect"), ("sac_ae", "collect"),
+])
+def test_agents_that_store_no_score_ignore_the_intrinsic_column(algo, timing):
+    agent = make(algo, intrinsic_timing=timing)
+    batch = random_batch()
+    batch["intrinsic"] = torch.full((8,), float("nan"))
+    for _ in range(2):
+        metrics = agent.update(batch)
+    assert all(np.isfinite(v) for v in metrics.values())
+
+
 def test_fresh_timing_rescores_and_collect_reads_the_batch():
     fresh, collect = make("nasa_td3", intrinsic_timing="fresh"), make("nasa_td3")
     batch = random_batch()
     batch["intrinsic"] = torch.full((8,), 123.0)
     assert collect.update(batch)["intrinsic_batch_mean"] == pytest.approx(123.0)
     assert fresh.update(batch)["intrinsic_batch_mean"] != pytest.approx(123.0)
-
-
-def stored_rows(actors: int = 2, steps: int = 5, seed: int = 0):
-    """Rows as the replay stores them: actors' steps interleaved, each next stack the obs
-    stack of the same actor's next row. Returns obs, next_obs and each row's successor."""
-    g = torch.Generator().manual_seed(seed)
-    frames = torch.randint(0, 256, (actors, steps + 3, 3, *OBS_SHAPE[1:]), dtype=torch.uint8, generator=g)
-    obs, next_obs, successor = [], [], []
-    for t in range(steps):
-        for a in range(actors):
-            obs.append(frames[a, t : t + 3].flatten(0, 1))
-            next_obs.append(frames[a, t + 1 : t + 4].flatten(0, 1))
-            successor.append(len(successor) + actors if t + 1 < steps else -1)
-    return torch.stack(obs), torch.stack(next_obs), successor
-
-
-def test_chained_rows_pairs_each_next_stack_with_its_successors_obs_only():
-    from shared.agents.td3_ae import chained_rows
-
-    obs, next_obs, successor = stored_rows()
-    assert chained_rows(obs, next_obs).tolist() == successor
-    # A decoy equal to an unchained next stack on every fingerprint row (each 12th) but
-    # one pixel: it must not be taken for it.
-    last = successor.index(-1)
-    decoy = next_obs[last].clone()
-    decoy[0, 5, 5] ^= 1
-    found = chained_rows(torch.cat([obs, decoy[None]]), next_obs)
-    assert found[last] == -1 and found.tolist() == successor
-    assert (chained_rows(obs, next_obs.flip(-1)) == -1).all()  # an i.i.d.-like batch: no chain
-
-
-def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
-    agent = make("nasa_td3")
-    obs, next_obs, successor = stored_rows()
-    action = torch.rand(len(obs), ACTION_DIM) * 2 - 1
-    scores = agent.score(obs, action, next_obs)
-    with torch.no_grad():
-        rows = zip(obs, action, next_obs, strict=True)
-        alone = [agent.score(o[None], a[None], n[None]) for o, a, n in rows]
-    for name in ("novelty", "surprise", "intrinsic"):
-        torch.testing.assert_close(scores[name], torch.cat([s[name] for s in alone]), rtol=1e-4, atol=1e-6)
-    assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains
 
 
 @pytest.mark.parametrize("shared_encoder_pass", [False, True])

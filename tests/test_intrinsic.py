@@ -1,5 +1,6 @@
 """Novelty matches scikit-image's SSIM (the reference's) on real frames, in both implementations
-(the CPU kernel and the torch one other devices use); surprise is the ensemble MSE."""
+(the CPU kernel and the torch one other devices use); surprise is the ensemble MSE; scoring
+in stored order reuses the latents of chained rows and gives the same scores."""
 
 import os
 import subprocess
@@ -133,3 +134,68 @@ def test_novelty_reads_obs_in_the_replay_s_layout(rendered_stacks):
     reconstruction = torch.rand(obs.shape).contiguous(memory_format=torch.channels_last)
     torch.testing.assert_close(intrinsic.novelty(obs, reconstruction),
                                intrinsic.novelty(obs.contiguous(), reconstruction))
+
+
+OBS_SHAPE = (9, 48, 48)
+
+
+def small_nasa_td3():
+    config = agent_defaults("nasa_td3")
+    config.latent_dim, config.hidden_dim, config.ensemble_hidden_dim, config.num_filters = 32, 64, 32, 16
+    return make_agent("nasa_td3", OBS_SHAPE, 2, config, torch.device("cpu"))
+
+
+def stored_rows(actors: int = 2, steps: int = 5, seed: int = 0):
+    """Rows as the replay stores them: actors' steps interleaved, each next stack the obs
+    stack of the same actor's next row. Returns obs, next_obs and each row's successor."""
+    g = torch.Generator().manual_seed(seed)
+    frames = torch.randint(0, 256, (actors, steps + 3, 3, *OBS_SHAPE[1:]), dtype=torch.uint8, generator=g)
+    obs, next_obs, successor = [], [], []
+    for t in range(steps):
+        for a in range(actors):
+            obs.append(frames[a, t : t + 3].flatten(0, 1))
+            next_obs.append(frames[a, t + 1 : t + 4].flatten(0, 1))
+            successor.append(len(successor) + actors if t + 1 < steps else -1)
+    return torch.stack(obs), torch.stack(next_obs), successor
+
+
+def test_chained_rows_pairs_each_next_stack_with_its_successors_obs_only():
+    obs, next_obs, successor = stored_rows()
+    assert intrinsic.chained_rows(obs, next_obs).tolist() == successor
+    # A decoy equal to an unchained next stack on every fingerprint row (each 12th) but
+    # one pixel: it must not be taken for it.
+    last = successor.index(-1)
+    decoy = next_obs[last].clone()
+    decoy[0, 5, 5] ^= 1
+    found = intrinsic.chained_rows(torch.cat([obs, decoy[None]]), next_obs)
+    assert found[last] == -1 and found.tolist() == successor
+    assert (intrinsic.chained_rows(obs, next_obs.flip(-1)) == -1).all()  # an i.i.d.-like batch: no chain
+
+
+def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
+    agent = small_nasa_td3()
+    obs, next_obs, successor = stored_rows()
+    action = torch.rand(len(obs), 2) * 2 - 1
+    scores = agent.score(obs, action, next_obs)
+    with torch.no_grad():
+        rows = zip(obs, action, next_obs, strict=True)
+        alone = [agent.score(o[None], a[None], n[None]) for o, a, n in rows]
+    for name in ("novelty", "surprise", "intrinsic"):
+        torch.testing.assert_close(scores[name], torch.cat([s[name] for s in alone]), rtol=1e-4, atol=1e-6)
+    assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains
+
+
+def test_encode_next_encodes_only_the_rows_no_other_row_chains_to():
+    agent = small_nasa_td3()
+    obs, next_obs, successor = stored_rows()
+    encoded = []
+
+    def encode(x):
+        encoded.append(len(x))
+        return agent.encoder(x)
+
+    with torch.no_grad():
+        z = agent.encoder(obs)
+        z_next = intrinsic.encode_next(encode, obs, z, next_obs)
+        torch.testing.assert_close(z_next, agent.encoder(next_obs), rtol=1e-5, atol=1e-6)
+    assert encoded == [successor.count(-1)]

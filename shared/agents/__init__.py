@@ -1,13 +1,26 @@
-"""The agents: NaSA-TD3 and its baselines behind one constructor."""
+"""The agents: NaSA-TD3 and its baselines behind one constructor.
+
+`TD3` (td3.py) is the shared core; `PixelTD3` is TD3 alone, `TD3AE` adds the
+autoencoder, `NaSATD3` adds to TD3AE the intrinsic rewards; `SACAE` stands apart.
+"""
 
 from __future__ import annotations
 
 import torch
 
 from shared.agents.base import Agent, batch_to_device, collect_action
+from shared.agents.nasa_td3 import NaSATD3, UnscoredBatchError
 from shared.agents.sac_ae import SACAE
+from shared.agents.td3 import TD3, PixelTD3
 from shared.agents.td3_ae import TD3AE
 from shared.config import AgentConfig, check_algo
+
+AGENTS: dict[str, type[TD3] | type[SACAE]] = {
+    "nasa_td3": NaSATD3,
+    "td3_ae": TD3AE,
+    "pixel_td3": PixelTD3,
+    "sac_ae": SACAE,
+}
 
 
 def make_agent(
@@ -18,9 +31,19 @@ def make_agent(
     device: torch.device,
 ) -> Agent:
     check_algo(algo)
-    if algo == "sac_ae":
-        return SACAE(obs_shape, action_dim, config, device)
-    return TD3AE(algo, obs_shape, action_dim, config, device)
+    return AGENTS[algo](obs_shape, action_dim, config, device)
 
 
-__all__ = ["Agent", "batch_to_device", "collect_action", "make_agent"]
+__all__ = [
+    "AGENTS",
+    "Agent",
+    "NaSATD3",
+    "PixelTD3",
+    "SACAE",
+    "TD3",
+    "TD3AE",
+    "UnscoredBatchError",
+    "batch_to_device",
+    "collect_action",
+    "make_agent",
+]

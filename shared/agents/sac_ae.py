@@ -35,6 +35,9 @@ def preprocess_obs(obs: torch.Tensor, bits: int = 5) -> torch.Tensor:
 
 
 class SACAE(ModuleStateMixin):
+    algo = "sac_ae"
+    uses_intrinsic = False
+
     def __init__(
         self,
         obs_shape: tuple[int, int, int],
@@ -43,11 +46,9 @@ class SACAE(ModuleStateMixin):
         device: torch.device,
     ) -> None:
         c = config
-        self.algo = "sac_ae"
         self.config = config
         self.device = device
         self.action_dim = action_dim
-        self.uses_intrinsic = False
         make_encoder = lambda: Encoder(  # noqa: E731
             obs_shape, c.latent_dim, c.num_filters, c.num_conv_layers, pixel_scale=255.0
         )
@@ -100,7 +101,9 @@ class SACAE(ModuleStateMixin):
         action, _ = self.actor(z, sample=explore)
         return action[0].clamp(-1.0, 1.0).cpu().numpy().astype(np.float32)
 
-    def score(self, obs, action, next_obs):  # noqa: ANN001, ANN201
+    def score(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
         raise RuntimeError("sac_ae has no intrinsic rewards")
 
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
