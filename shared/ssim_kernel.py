@@ -3,11 +3,10 @@
 The same statistic as `intrinsic.ssim_torch` (scikit-image's defaults), but each
 image plane streams through cache-sized buffers and the formula runs fused,
 instead of a dozen full-size intermediates (`bench.learner` times it). Per
-input row: the
-horizontal 7-sums of x, y, x^2 + y^2 (SSIM needs only var_x + var_y) and xy go
-into a ring of the last seven rows, and the vertical window slides by adding
-the new row's sums and dropping the oldest. Rows are padded to whole vectors;
-a mask drops the padding.
+input row: the horizontal 7-sums of x, y, x^2 + y^2 (SSIM needs only
+var_x + var_y) and xy go into a ring of the last seven rows, and the vertical
+window slides by adding the new row's sums and dropping the oldest. Rows are
+padded to whole vectors; a mask drops the padding.
 """
 
 from __future__ import annotations
