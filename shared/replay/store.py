@@ -102,7 +102,18 @@ class ReplayStore:
         decode_threads = 2 if self._codec.compression == "zstd" else 1
         self._pool = ThreadPoolExecutor(decode_threads) if decode_threads > 1 else None
         self._threads = max(1, int(decode_threads))
+        self._allocate()
+        self._dir = Path(data_dir) if data_dir is not None else None
+        self._log: rlog.LogWriter | None = None
+        self._segment = 0
+        self._last_sync = time.monotonic()
+        self._snapshot_thread: threading.Thread | None = None
+        self._closed = False
+        if self._dir is not None:
+            self._open_dir()
 
+    def _allocate(self) -> None:
+        """The metadata ring (one row per transition) and the empty chunk and episode tables."""
         c, a = self.capacity, self.action_dim
         self._action = np.zeros((c, a), np.float32)
         self._reward = np.zeros(c, np.float32)
@@ -125,15 +136,6 @@ class ReplayStore:
         self._incarnations: dict[int, int] = {}  # actor_id -> newest incarnation seen
         self._blob_bytes = 0
         self._num_blobs = 0
-
-        self._dir = Path(data_dir) if data_dir is not None else None
-        self._log: rlog.LogWriter | None = None
-        self._segment = 0
-        self._last_sync = time.monotonic()
-        self._snapshot_thread: threading.Thread | None = None
-        self._closed = False
-        if self._dir is not None:
-            self._open_dir()
 
     # ------------------------------------------------------------------ config
     def _config(self) -> dict:
@@ -204,26 +206,9 @@ class ReplayStore:
     ) -> int:
         """Append one transition; returns its global index. Raises ValueError on bad input."""
         flat = self._check_frame(next_frame, "next_frame")
-        act = np.asarray(action, dtype=np.float32)
-        if act.shape != (self.action_dim,):
-            raise ValueError(f"action has shape {act.shape}, expected ({self.action_dim},)")
-        if not np.all(np.isfinite(act)):
-            raise ValueError(f"action has non-finite values: {act}")
-        if np.any(np.abs(act) > ACTION_BOUND):
-            raise ValueError(f"action {act} is outside [-{ACTION_BOUND}, {ACTION_BOUND}]")
-        reward, discount, intrinsic = float(reward), float(discount), float(intrinsic)
-        if not math.isfinite(reward):
-            raise ValueError(f"reward must be finite, got {reward}")
-        if not (0.0 <= discount <= 1.0):
-            raise ValueError(f"discount must be in [0, 1], got {discount}")
-        if math.isinf(intrinsic):
-            raise ValueError(f"intrinsic must be finite or NaN (not yet scored), got {intrinsic}")
-        if not isinstance(last, bool | np.bool_):
-            raise ValueError(f"last must be a bool, got {last!r}")
-        if isinstance(policy_version, bool) or not isinstance(policy_version, int | np.integer):
-            raise ValueError(f"policy_version must be an int, got {policy_version!r}")
-        if policy_version < 0:
-            raise ValueError(f"policy_version must be >= 0, got {policy_version}")
+        act, reward, discount, intrinsic = self._check_step(
+            action, reward, discount, intrinsic, last, policy_version
+        )
         with self._lock:
             self._check_open()
             ep = self._episodes.get(episode_id) if isinstance(episode_id, int | np.integer) else None
@@ -255,6 +240,33 @@ class ReplayStore:
             if offset == 0:
                 self._chunks[ep.chunk_ids[-1]].key = flat.copy()
             return g
+
+    def _check_step(
+        self, action: np.ndarray, reward: float, discount: float, intrinsic: float, last: bool,
+        policy_version: int,
+    ) -> tuple[np.ndarray, float, float, float]:
+        """The step's values as stored (float32 action, floats); ValueError naming a bad one."""
+        act = np.asarray(action, dtype=np.float32)
+        if act.shape != (self.action_dim,):
+            raise ValueError(f"action has shape {act.shape}, expected ({self.action_dim},)")
+        if not np.all(np.isfinite(act)):
+            raise ValueError(f"action has non-finite values: {act}")
+        if np.any(np.abs(act) > ACTION_BOUND):
+            raise ValueError(f"action {act} is outside [-{ACTION_BOUND}, {ACTION_BOUND}]")
+        reward, discount, intrinsic = float(reward), float(discount), float(intrinsic)
+        if not math.isfinite(reward):
+            raise ValueError(f"reward must be finite, got {reward}")
+        if not (0.0 <= discount <= 1.0):
+            raise ValueError(f"discount must be in [0, 1], got {discount}")
+        if math.isinf(intrinsic):
+            raise ValueError(f"intrinsic must be finite or NaN (not yet scored), got {intrinsic}")
+        if not isinstance(last, bool | np.bool_):
+            raise ValueError(f"last must be a bool, got {last!r}")
+        if isinstance(policy_version, bool) or not isinstance(policy_version, int | np.integer):
+            raise ValueError(f"policy_version must be an int, got {policy_version!r}")
+        if policy_version < 0:
+            raise ValueError(f"policy_version must be >= 0, got {policy_version}")
+        return act, reward, discount, intrinsic
 
     def set_intrinsic(self, index: np.ndarray, value: np.ndarray) -> None:
         """Fill intrinsic rewards of transitions by global index; evicted indices are ignored."""
