@@ -211,7 +211,10 @@ def join(config: TrainConfig, session, keys, stop, timeout_s: float = 5.0,  # no
         for reply in session.get(keys.config, timeout=timeout_s):
             if reply.ok is None:
                 continue
-            msg = wire.decode(reply.ok.payload.to_bytes(), wire.RunConfigMsg)
+            try:
+                msg = wire.decode(reply.ok.payload.to_bytes(), wire.RunConfigMsg)
+            except wire.WireError as err:  # another version's replay: restarting would not help
+                raise ConfigError(f"run {keys.run_id}: the replay's config is unreadable: {err}") from err
             run = RunConfig.from_dict(msg.run_config)
             check_same(config, run.config, f"run {keys.run_id}, as its replay holds it")
             return RunConfig(config, run.spec)

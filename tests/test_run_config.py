@@ -164,3 +164,13 @@ def test_join_waits_for_the_replay_and_gives_up_when_stopped(zenoh_pair):
     assert not worker.is_alive() and result[0].spec == SPEC
     stop.set()
     assert run_config.join(small(), learner, keys, stop, timeout_s=0.5) is None  # no replay, stopped
+
+
+def test_a_replay_of_another_wire_version_is_a_bad_input_error(zenoh_pair):
+    replay, learner, keys = zenoh_pair
+    queryable = replay.declare_queryable(keys.config, lambda q: q.reply(keys.config, b"\x93\x01\x02\x03"))
+    try:
+        with pytest.raises(ConfigError, match="the replay's config is unreadable"):
+            run_config.join(small(), learner, keys, StopFlag(), timeout_s=5.0)
+    finally:
+        queryable.undeclare()

@@ -111,7 +111,7 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         resumed = wait_status(
             again, port, lambda s: s["resumed"] and s["replay"]["size"] > 0, "a resumed run"
         )
-        assert resumed["updates"] >= saved["updates"] > 0
+        assert resumed["updates"] >= saved["agent"]["num_updates"] > 0
         assert resumed["replay"]["size"] >= status["replay"]["size"]
         wait_status(again, port, lambda s: s["updates"] > resumed["updates"], "learning to go on")
         stop_with_ctrl_c(again)
