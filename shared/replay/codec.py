@@ -5,14 +5,13 @@ The first frame of a chunk (the keyframe) is compressed as is; every other
 frame is stored as its wrapping uint8 difference to the keyframe. Deltas are
 taken to the keyframe rather than to the previous frame so any frame decodes
 with at most two decompressions (keyframe + its delta) instead of a chain:
-sampling is random access, and decode cost is what limits it. On the six paper
-tasks this costs ~10% more bytes than previous-frame deltas at chunk_len 8-16
-(measured, see bench/replay.py).
+sampling is random access, and decode cost is what limits it. The price is a
+few percent more bytes than previous-frame deltas (docs/benchmarks.md).
 
 Two compressors (`compression`):
-- "lz4" (default), LZ4 HC at `level` 4: decompresses an 84x84 frame in 3-6 us,
-  about 3x faster than zstd, for ~14% more bytes than zstd level 1;
-- "zstd" at `level` 1: the smallest store, sampling about half as fast.
+- "lz4" (default), LZ4 HC at level 4: decompresses several times faster than
+  zstd, for somewhat more bytes;
+- "zstd" at level 1: the smallest store, slower to sample.
 """
 
 from __future__ import annotations
@@ -31,12 +30,12 @@ DEFAULT_LEVEL = {"lz4": 4, "zstd": 1}
 class FrameCodec:
     """Compresses and decompresses single frames; one instance per thread for decompression."""
 
-    def __init__(self, frame_size: int, compression: str = "lz4", level: int | None = None) -> None:
+    def __init__(self, frame_size: int, compression: str = "lz4") -> None:
         if compression not in COMPRESSIONS:
             raise ValueError(f"unknown compression {compression!r}; choose one of {COMPRESSIONS}")
         self.frame_size = frame_size
         self.compression = compression
-        self.level = DEFAULT_LEVEL[compression] if level is None else int(level)
+        self.level = DEFAULT_LEVEL[compression]
         # decompress(blob) -> bytes of frame_size; a partial of a C function, no Python frame
         # in between: sampling calls it about 5 times per transition.
         self.decompress: Callable[[bytes], bytes]
