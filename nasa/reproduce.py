@@ -22,7 +22,7 @@ from typing import Literal
 
 import tyro
 
-from shared.config import ALGOS, PRESETS, ConfigError, check_algo
+from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_task
 from shared.runlog import read_rows
 
@@ -153,7 +153,7 @@ class ReproduceCommand:
     """
 
     tasks: str = "paper"
-    """`paper` (the six tasks of the paper) or a comma list of dm_control tasks."""
+    """`paper` (the six tasks of the paper) or a comma list of tasks (e.g. cheetah-run,walker-walk)."""
     algos: str = ",".join(ALGOS)
     """Comma list of algorithms."""
     seeds: int = 5
@@ -165,7 +165,7 @@ class ReproduceCommand:
     evaluation reached this step, so use a multiple of the evaluation interval."""
     preset: str = "paper"
     """Settings preset of new runs: `paper` (the reference's) or `cpu-small`."""
-    device: str = "auto"
+    device: str = TrainConfig.device
     """Device for new runs (a resumed run keeps its config.json's)."""
     parallel: int | None = None
     """Runs at a time (default: 1 on a CPU, 4 on CUDA)."""
