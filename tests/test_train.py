@@ -80,6 +80,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
         (["--preset", "huge"], "unknown preset 'huge'"),
     ],
 )
+@pytest.mark.system  # a `nasa train` process
 def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, args, message):
     import torch
 
@@ -98,6 +99,7 @@ def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, args, message):
         (None, "is not a readable checkpoint"),
     ],
 )
+@pytest.mark.system  # a `nasa train` process
 def test_resume_refuses_a_checkpoint_it_cannot_continue_and_leaves_the_run_as_it_was(
     tmp_path, spoil, message
 ):
