@@ -129,3 +129,26 @@ def test_the_actors_writer_inserts_with_backpressure_and_sees_the_replay_go(tmp_
             srv.stop.set("the replay goes away")
             wait_for(lambda: not writer.window.alive, "the writer never saw the replay go")
             assert writer.broken  # the loop abandons the episode under way
+
+
+def test_a_replay_started_with_other_settings_than_its_run_folder_exits_2(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from shared.config import default_config
+
+    config = default_config("nasa_td3", "cpu-small")
+    config.env.task = "cartpole-swingup"
+    run_config.open_folder(config, tmp_path)  # the run folder, as `nasa up` writes it
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with open_router(endpoint):
+        env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": "mismatch"}
+        proc = subprocess.run(
+            [sys.executable, "-m", "services.replay", "--preset", "cpu-small", "--task", "cartpole-swingup",
+             "--batch-size", str(config.batch_size + 1), "--data", str(tmp_path)],
+            env=env, capture_output=True, text=True, timeout=120,
+        )
+    assert proc.returncode == 2, proc.stderr
+    assert "batch_size" in proc.stderr
+    assert not (tmp_path / "replay").exists()  # refused before opening a store
