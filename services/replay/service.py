@@ -46,7 +46,7 @@ import zenoh
 from shared import run_config, wire
 from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
-from shared.replay.store import ReplayStore
+from shared.replay.store import open_store
 from shared.run_config import RunConfig
 from shared.service import Log, StopFlag
 from shared.zenoh_session import ServiceArgs
@@ -73,19 +73,6 @@ class ReplayArgs(ServiceArgs):
 
 def default_error_buffer(updates_per_step: int) -> float:
     return 2.0 * updates_per_step * 16 + 8
-
-
-def open_store(run: RunConfig, data_dir: Path | None) -> ReplayStore:
-    """The store of a run (in `data_dir`, or in memory for None)."""
-    c, spec = run.config, run.spec
-    return ReplayStore(
-        capacity=c.replay_capacity,
-        frame_shape=spec.frame_shape,
-        frame_stack=spec.frame_stack,
-        action_dim=spec.action_dim,
-        data_dir=data_dir,
-        compression=c.replay_compression,
-    )
 
 
 class ReplayService:

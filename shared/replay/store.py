@@ -31,11 +31,15 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from shared.replay import log as rlog
 from shared.replay.codec import FrameCodec
+
+if TYPE_CHECKING:
+    from shared.run_config import RunConfig
 
 # Log record types. _CLOSE (an episode closed without its last step) is no longer written;
 # logs that hold it still replay.
@@ -799,3 +803,16 @@ class ReplayStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def open_store(run: RunConfig, data_dir: str | Path | None) -> ReplayStore:
+    """The store of a run, shaped by its EnvSpec and config (in `data_dir`; None: in memory)."""
+    c, spec = run.config, run.spec
+    return ReplayStore(
+        capacity=c.replay_capacity,
+        frame_shape=spec.frame_shape,
+        frame_stack=spec.frame_stack,
+        action_dim=spec.action_dim,
+        data_dir=data_dir,
+        compression=c.replay_compression,
+    )
