@@ -14,7 +14,7 @@ services count and log it and carry on.
 | replay/sample   (queryable)  | SampleRequest -> SampleReply | replay answers | learner (training batches) |
 | replay/unscored (queryable)  | UnscoredRequest -> SampleReply | replay answers | learner (rows to score) |
 | replay/intrinsic             | SetIntrinsic     | learner (BLOCK)      | replay                        |
-| replay/config   (queryable)  | RunConfigMsg     | replay answers       | learner, actors, evaluator at start |
+| replay/config   (queryable)  | RunConfigMsg     | replay answers       | services joining the run      |
 | replay/stats                 | ReplayStats      | replay (2 Hz)        | learner, actors, evaluator    |
 | learner/weights              | Weights          | learner (every K updates) | actors, evaluator        |
 | learner/weights/latest (queryable) | Weights    | learner answers      | actors, evaluator at start    |
