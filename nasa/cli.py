@@ -55,11 +55,10 @@ def parse_train(argv: list[str]) -> tuple[TrainCommand, str, int | None]:
         raise ConfigError(f"--resume {folder}: no run there ({path} does not exist)")
     saved = run_config.read_config(path)
     cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train", base=saved)
-    run_config.check_same(cmd.config, saved, str(path), may_change=run_config.RESUME_MAY_CHANGE)
-    # LOCAL_FIELDS (the device) are compared too: Trainer.resume continues on the run's device.
-    device = [f for f in run_config.LOCAL_FIELDS if f in run_config.differing_fields(cmd.config, saved)]
-    if device:
-        raise run_config.ConfigMismatch(str(path), device, cmd.config, saved)
+    # The device is compared too: Trainer.resume continues on the run's.
+    fields = run_config.differing_fields(cmd.config, saved, ignore=run_config.RESUME_MAY_CHANGE)
+    if fields:
+        raise run_config.ConfigMismatch(str(path), fields, cmd.config, saved)
     steps = cmd.config.steps if cmd.config.steps != saved.steps else None
     return cmd, preset, steps
 

@@ -69,8 +69,9 @@ def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
     return parse_with_preset(cls, sys.argv[1:] if argv is None else argv, prog)
 
 
-def parse_with_preset(cls: type[T], argv: list[str], prog: str, base: TrainConfig | None = None,
-                      ) -> tuple[T, str]:
+def parse_with_preset(
+    cls: type[T], argv: list[str], prog: str, base: TrainConfig | None = None
+) -> tuple[T, str]:
     """Parse a dataclass with fields `config` and `preset`; returns it and the preset used.
 
     --preset, --algo and --device are read first: they choose the defaults (shared.config's)
