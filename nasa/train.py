@@ -25,7 +25,7 @@ from shared.evaluation import evaluate
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
-from shared.replay.store import ReplayStore
+from shared.replay.store import open_store
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -44,8 +44,7 @@ class Trainer:
         self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)
         self.rng = np.random.default_rng(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
-        self.store = ReplayStore(c.replay_capacity, spec.frame_shape, spec.frame_stack, spec.action_dim,
-                                 data_dir=self.out / "replay", compression=c.replay_compression)
+        self.store = open_store(self.run_config, self.out / "replay")
         self.replay = LocalReplay(self.store, self.rng, replace=not c.sample_without_replacement)
         self.loop = EnvLoop(self.env, StoreAdder(self.store), c.env.time_limit)
         self.scorer = (IntrinsicScorer(self.agent, self.replay, c.warmup_steps, c.batch_size)
@@ -135,9 +134,11 @@ class Trainer:
         self.store.close()
 
     def update(self) -> None:
-        """G updates on batches from the replay (the collect-timing scores are already stored)."""
+        """G updates on batches from the replay."""
         for _ in range(self.config.updates_per_step):
             batch = self.replay.sample(self.config.batch_size, wait_s=0.0)
+            if self.scorer is not None:  # a no-op while score_new keeps up, as it does in process
+                self.scorer.score_batch(batch)
             self.means.add(self.agent.update(batch_to_device(batch, self.device)))
 
     def end_episode(self, progress: tqdm, elapsed_s: float) -> None:
