@@ -156,10 +156,11 @@ def open_folder(config: TrainConfig, data: Path, may_change: tuple[str, ...] = (
     """The run's RunConfig for the run folder `data`.
 
     A new folder: resolve `config` and write <data>/config.json. A folder that has
-    one: compare (ConfigMismatch naming the differing fields); a field in
-    `may_change` that differs (a resumed run's new step budget) is taken from
-    `config` and the file rewritten. A config.json without a spec (written by an
-    older version) gets one.
+    one: compare (ConfigMismatch naming the differing fields). The fields that may
+    differ (LOCAL_FIELDS, and `may_change`: a resumed run's new step budget) are
+    taken from `config` and the file rewritten, so the services a launcher starts
+    with --run-config get them. A config.json without a spec (written by an older
+    version) gets one.
     """
     body = read_folder(data)
     if body is None:
@@ -169,26 +170,13 @@ def open_folder(config: TrainConfig, data: Path, may_change: tuple[str, ...] = (
     saved = body.pop("spec", None)
     theirs = config_from_dict(body)
     check_same(config, theirs, f"{Path(data) / CONFIG_FILE}", may_change)
-    changed = differing_fields(config, theirs, ignore=LOCAL_FIELDS)
     if saved is None:
         run = resolve(config)
     else:
         run = RunConfig(validate(config), envs.EnvSpec.from_dict(saved))
-    if changed or saved is None:
-        write_folder(data, dataclasses.replace(run, config=_take_fields(theirs, config, changed)))
+    if saved is None or differing_fields(config, theirs):
+        write_folder(data, run)
     return run
-
-
-def _take_fields(theirs: TrainConfig, ours: TrainConfig, changed: list[str]) -> TrainConfig:
-    """The run's config with the `changed` fields taken from `ours` (what a resumed run rewrites)."""
-    out = config_from_dict(to_dict(theirs))
-    for name in changed:
-        *parents, leaf = name.split(".")
-        src, dst = ours, out
-        for p in parents:
-            src, dst = getattr(src, p), getattr(dst, p)
-        setattr(dst, leaf, getattr(src, leaf))
-    return out
 
 
 def message(run: RunConfig):  # noqa: ANN201 (a wire.RunConfigMsg)

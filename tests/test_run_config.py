@@ -111,7 +111,7 @@ def test_a_resumed_run_may_change_its_step_budget(tmp_path):
     run = run_config.open_folder(small(steps=123, device="cpu"), data, may_change=("steps",))
     assert run.config.steps == 123
     saved = run_config.read_config(data / "config.json")
-    assert saved.steps == 123 and saved.device == "auto"  # the file keeps the run's device
+    assert saved.steps == 123 and saved.device == "cpu"  # for the services started with --run-config
 
 
 def test_a_config_json_without_a_spec_gets_one_and_a_broken_one_is_refused(tmp_path):
