@@ -192,6 +192,7 @@ class UpCommand:
     preset: str = DEFAULT_PRESET
     """`paper`, `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
     actors: int = 2
+    """Actor processes, each stepping its own environment."""
     data: Path | None = None
     """Run folder (default runs/<task>-<algo>-up); an existing one is resumed."""
     port: int = 8000
@@ -201,6 +202,7 @@ class UpCommand:
     run_id: str | None = None
     """Key prefix nasa/<run_id>/ (default: from the run folder's name)."""
     evaluator: bool = True
+    """Run the evaluator service (eval.csv every --eval-every env steps)."""
     learner_threads: int = 0
     """torch threads of the learner; 0: the cores left after actors, evaluator and replay (at least 1)."""
     logs: bool = False
