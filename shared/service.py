@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import dataclasses
+import json
 import os
 import signal
 import sys
@@ -169,14 +170,35 @@ class StopFlag:
 
 
 class Log:
-    """One-line, prefixed, flushed log messages on stderr; repeated warnings are rate limited."""
+    """One line per event on stderr, flushed: time, run id, service, actor id and the message.
 
-    def __init__(self, role: str) -> None:
-        self.role = role
+    Plain text by default (`2026-01-02T03:04:05.678Z [actor 1] run=r msg`); JSON lines
+    (`{"time", "run_id", "service", "actor_id", "msg"}`) when NASA_LOG_JSON=1, for a log
+    collector. `Log("actor 3")` is the actor service with actor id 3. Repeated warnings are
+    rate limited with `every`.
+    """
+
+    def __init__(self, role: str, actor_id: int | None = None) -> None:
+        name, _, ident = role.partition(" ")
+        if actor_id is None and name == "actor" and ident.isdigit():
+            role, actor_id = name, int(ident)
+        self.role, self.actor_id = role, actor_id
+        self.run_id = os.environ.get("NASA_RUN_ID", "default")
+        self.json = os.environ.get("NASA_LOG_JSON", "") not in ("", "0")
         self._last: dict[str, float] = {}
 
+    def line(self, msg: str) -> str:
+        """The line one event is logged as."""
+        now = time.time()
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(now)) + f".{int(now % 1 * 1000):03d}Z"
+        if self.json:
+            return json.dumps({"time": stamp, "run_id": self.run_id, "service": self.role,
+                               "actor_id": self.actor_id, "msg": msg})
+        who = self.role if self.actor_id is None else f"{self.role} {self.actor_id}"
+        return f"{stamp} [{who}] run={self.run_id} {msg}"
+
     def __call__(self, msg: str) -> None:
-        print(f"[{self.role}] {msg}", file=sys.stderr, flush=True)
+        print(self.line(msg), file=sys.stderr, flush=True)
 
     def every(self, key: str, seconds: float, msg: str) -> None:
         now = time.monotonic()

@@ -20,6 +20,7 @@ from shared.agents import batch_to_device, make_agent
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
+from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT = "learner/checkpoint.pt"
@@ -37,6 +38,8 @@ class LearnerCore:
         self.scorer = (IntrinsicScorer(self.agent, client, c.warmup_steps, c.batch_size)
                        if collect_scoring(self.agent, c) else None)
         self.board = StatusBoard()
+        self.scalars = Scalars(self.out / TENSORBOARD_DIR / "learner")
+        self._decoder_sent: int | None = None  # the eval period whose weights carried the decoder
         self.counters = Counters()
         self.means = MetricMeans()
         self.policy_version = 0
@@ -63,7 +66,14 @@ class LearnerCore:
     def weights_message(self, epoch: int) -> bytes:
         """The policy's weights as published; version = the update count."""
         self.policy_version = self.agent.num_updates
-        tensors = wire.pack_tensors(self.agent.policy_state_dict())
+        state = self.agent.policy_state_dict()
+        period = self.env_steps // self.config.eval_every
+        if hasattr(self.agent, "decoder") and period != self._decoder_sent:
+            # Once per evaluation period the weights carry the decoder too, so the evaluator can
+            # show the autoencoder's view; actors load the policy's keys only and ignore it.
+            self._decoder_sent = period
+            state |= {f"decoder.{k}": v for k, v in self.agent.decoder.state_dict().items()}
+        tensors = wire.pack_tensors(state)
         return wire.encode(wire.Weights(epoch, self.policy_version, self.env_steps, tensors))
 
     def done(self) -> bool:
@@ -81,14 +91,16 @@ class LearnerCore:
             return None
         row = self.recorder.eval_row(r.step, r.returns)
         self.eval = {"step": r.step, "mean": row["mean"], "std": row["std"]}
+        self.scalars.eval(r.step, row["mean"], row["std"])
         return row
 
     def record_episode(self, episode_return: float, length: int, wall_s: float) -> None:
         """A training episode an actor finished: one train.csv row with the updates' means since the last."""
         self.counters.episodes += 1
         means = self.means.take() | (self.scorer.take_episode_means() if self.scorer else {})
-        self.recorder.train_row(self.env_steps, self.counters.episodes, episode_return, length,
-                                self.agent.num_updates, wall_s, means)
+        row = self.recorder.train_row(self.env_steps, self.counters.episodes, episode_return, length,
+                                      self.agent.num_updates, wall_s, means)
+        self.scalars.episode(row)
 
     # -- checkpoint -----------------------------------------------------------------
 

@@ -1,98 +1,127 @@
-"""The learner's HTTP face: GET /status (JSON), /healthz, /metrics (Prometheus text format)."""
+"""The learner's HTTP face: the dashboard at /, and /status, /history, /healthz, /metrics, /media/.
+
+- `/` is a static page (services/learner/dashboard/: HTML, CSS, JavaScript and
+  the vendored uPlot; no build step, nothing fetched from the internet) that
+  polls /status and /history.
+- `/history`: the learner's bounded series of /status figures, every
+  evaluation in eval.csv, and the evaluator's media manifest (the
+  autoencoder's view, evaluation videos), whose files are under /media/.
+- `/healthz`: 200 "ok", or 503 with the reasons the health callable gives.
+- `/metrics`: Prometheus' text format, from prometheus-client (metrics.py).
+
+`serve_folder` answers the same routes for a stopped run from its folder
+(`nasa status --data DIR --serve`).
+"""
 
 from __future__ import annotations
 
+import json
+import math
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
 import uvicorn
-from fastapi import FastAPI
-from fastapi.responses import PlainTextResponse
+from fastapi import FastAPI, HTTPException
+from fastapi.responses import FileResponse, PlainTextResponse, Response
+
+from services.learner import history as run_history
+from services.learner.metrics import status_metrics
+from shared.runlog import read_rows
+
+DASHBOARD = Path(__file__).resolve().parent / "dashboard"
+MEDIA_DIR = "media"
+MEDIA_MANIFEST = "media.json"
+PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
 
 
-def make_app(status: Callable[[], dict], healthy: Callable[[], bool]) -> FastAPI:
+def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
+             history: Callable[[], list[dict]] | None = None, metrics: Callable[[], bytes] | None = None,
+             data: Path | None = None) -> FastAPI:
+    """The routes; `health` returns the reasons the learner is unhealthy (empty: healthy)."""
     app = FastAPI(title="nasa-td3 learner", docs_url=None, redoc_url=None)
+
+    @app.get("/")
+    def get_dashboard() -> FileResponse:
+        return FileResponse(DASHBOARD / "index.html", media_type="text/html")
+
+    @app.get("/static/{name}")
+    def get_static(name: str) -> FileResponse:
+        return FileResponse(_inside(DASHBOARD, name))
 
     @app.get("/status")
     def get_status() -> dict:
         return status()
 
+    @app.get("/history")
+    def get_history() -> dict:
+        return {"points": history() if history else [], "evals": evaluations(data), "media": media(data)}
+
+    @app.get("/media/{name}")
+    def get_media(name: str) -> FileResponse:
+        if data is None:
+            raise HTTPException(404)
+        return FileResponse(_inside(Path(data) / MEDIA_DIR, name))
+
     @app.get("/healthz")
     def get_healthz() -> PlainTextResponse:
-        ok = healthy()
-        return PlainTextResponse("ok\n" if ok else "unhealthy\n", status_code=200 if ok else 503)
+        reasons = health()
+        if isinstance(reasons, bool):  # a health callable of the older form: True when healthy
+            reasons = [] if reasons else ["stopping"]
+        if not reasons:
+            return PlainTextResponse("ok\n")
+        return PlainTextResponse("unhealthy: " + "; ".join(reasons) + "\n", status_code=503)
 
     @app.get("/metrics")
-    def get_metrics() -> PlainTextResponse:
-        return PlainTextResponse(prometheus_text(status()), media_type="text/plain; version=0.0.4")
+    def get_metrics() -> Response:
+        body = metrics() if metrics is not None else status_metrics(status())
+        return Response(body, media_type=PROMETHEUS_TEXT)
 
     return app
 
 
-def _line(name: str, value: float | int | None, labels: dict[str, object] | None = None) -> str | None:
-    if value is None:
-        return None
-    tags = ""
-    if labels:
-        tags = "{" + ",".join(f'{k}="{v}"' for k, v in labels.items()) + "}"
-    return f"{name}{tags} {float(value):.17g}"
+def _inside(folder: Path, name: str) -> Path:
+    """A file directly in `folder` (no path tricks), or 404."""
+    path = folder / name
+    if "/" in name or name.startswith(".") or not path.is_file():
+        raise HTTPException(404)
+    return path
 
 
-def prometheus_text(s: dict) -> str:
-    """The status as Prometheus metrics (one gauge or counter per figure)."""
-    base = {"run_id": s["run_id"]}
-    intrinsic = s["intrinsic"]
-    series: list[tuple[str, str, str, list[str | None]]] = [
-        ("nasa_env_steps_total", "counter", "Environment steps stored by the replay",
-         [_line("nasa_env_steps_total", s["env_steps"], base)]),
-        ("nasa_updates_total", "counter", "Gradient updates of the learner",
-         [_line("nasa_updates_total", s["updates"], base)]),
-        ("nasa_env_steps_per_second", "gauge", "Environment steps per second (all actors)",
-         [_line("nasa_env_steps_per_second", s["env_steps_per_s"], base)]),
-        ("nasa_updates_per_second", "gauge", "Updates per second",
-         [_line("nasa_updates_per_second", s["updates_per_s"], base)]),
-        ("nasa_updates_per_env_step", "gauge", "Updates per env step after warm-up",
-         [_line("nasa_updates_per_env_step", s["updates_per_env_step"], base)]),
-        ("nasa_policy_version", "gauge", "Version of the newest published weights",
-         [_line("nasa_policy_version", s["policy_version"], base)]),
-        ("nasa_policy_lag_updates", "gauge",
-         "Updates between the policy that collected a sampled transition and the learner's (mean, max)",
-         [_line("nasa_policy_lag_updates", s["policy_lag"][k], {**base, "stat": k})
-          for k in ("mean", "max")]),
-        ("nasa_replay_size", "gauge", "Transitions in the replay",
-         [_line("nasa_replay_size", s["replay"]["size"], base)]),
-        ("nasa_replay_bytes", "gauge", "Replay memory in bytes",
-         [_line("nasa_replay_bytes", s["replay"]["bytes"], base)]),
-        ("nasa_invalid_messages_total", "counter", "Messages that failed validation",
-         [_line("nasa_invalid_messages_total", s["invalid_messages"], base)]),
-        ("nasa_eval_return_mean", "gauge", "Mean return of the newest evaluation",
-         [_line("nasa_eval_return_mean", s["eval"]["mean"], base)]),
-        ("nasa_actor_alive", "gauge", "1 if the actor's liveliness token is present",
-         [_line("nasa_actor_alive", int(a["alive"]), {**base, "actor": a["id"]}) for a in s["actors"]]),
-        ("nasa_actor_env_steps_total", "counter", "Env steps of the actor's current incarnation",
-         [_line("nasa_actor_env_steps_total", a["env_steps"], {**base, "actor": a["id"]})
-          for a in s["actors"]]),
-        ("nasa_actor_env_steps_per_second", "gauge", "Env steps per second of the actor over ~10 s",
-         [_line("nasa_actor_env_steps_per_second", a["steps_per_s"], {**base, "actor": a["id"]})
-          for a in s["actors"]]),
-        ("nasa_intrinsic_scored_total", "counter", "Transitions given an intrinsic reward",
-         [_line("nasa_intrinsic_scored_total", intrinsic["scored"], base)]),
-        ("nasa_intrinsic_scored_at_first_sample_total", "counter",
-         "Transitions scored when a training batch first brought them, not on arrival",
-         [_line("nasa_intrinsic_scored_at_first_sample_total", intrinsic["scored_at_first_sample"], base)]),
-        ("nasa_intrinsic_mean", "gauge", "Running mean of each intrinsic reward",
-         [_line("nasa_intrinsic_mean", intrinsic[f"{k}_mean"], {**base, "name": k})
-          for k in ("novelty", "surprise")]),
-        ("nasa_loss", "gauge", "Recent mean of each loss",
-         [_line("nasa_loss", v, {**base, "name": k}) for k, v in s["losses"].items()]),
-    ]
+def evaluations(data: Path | None) -> list[dict]:
+    """Every evaluation in <data>/eval.csv: step, mean, std (a row being written is skipped)."""
+    if data is None or not (Path(data) / "eval.csv").exists():
+        return []
     out = []
-    for name, kind, help_text, lines in series:
-        lines = [x for x in lines if x is not None]
-        if not lines:
+    for row in read_rows(Path(data) / "eval.csv"):
+        try:
+            e = {"step": int(row["step"]), "mean": float(row["mean"]), "std": float(row["std"])}
+        except (KeyError, TypeError, ValueError):
             continue
-        out += [f"# HELP {name} {help_text}", f"# TYPE {name} {kind}", *lines]
-    return "\n".join(out) + "\n"
+        if math.isfinite(e["mean"]):
+            out.append(e)
+    return out
+
+
+def media(data: Path | None) -> dict | None:
+    """The evaluator's media manifest (<data>/media/media.json), or None."""
+    path = Path(data) / MEDIA_DIR / MEDIA_MANIFEST if data is not None else None
+    if path is None or not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def folder_app(data: Path) -> FastAPI:
+    """The dashboard of a stopped run: its last status, history, evaluations and media."""
+    saved = Path(data) / "learner" / "status.json"
+    if not saved.exists():
+        raise FileNotFoundError(f"{saved} is missing: the learner of this run never stopped cleanly")
+    final = json.loads(saved.read_text())
+    points = run_history.load(data)
+    return make_app(lambda: final, lambda: ["the run has stopped"], lambda: points, data=data)
 
 
 class StatusServer:

@@ -1,0 +1,82 @@
+"""The learner's recent past for the dashboard: a bounded series of /status figures.
+
+A daemon thread reads /status every `every_s` seconds (never the update loop)
+and keeps one point per read. When `capacity` points are held, every second
+point is dropped and the interval doubles, so the series always spans the
+whole run in at most `capacity` points. The learner leaves the series in
+<data>/learner/history.json when it stops, for `nasa status --data DIR --serve`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+HISTORY_FILE = "learner/history.json"
+
+
+def point(s: dict) -> dict:
+    """The figures of one /status the dashboard plots."""
+    intrinsic, replay, lag = s["intrinsic"], s["replay"], s["policy_lag"]
+    return {
+        "wall_s": s["wall_s"], "env_steps": s["env_steps"], "updates": s["updates"],
+        "env_steps_per_s": s["env_steps_per_s"], "updates_per_s": s["updates_per_s"],
+        "updates_per_env_step": s["updates_per_env_step"], "target": s["updates_target_per_env_step"],
+        "lag_mean": lag["mean"], "lag_max": lag["max"],
+        "novelty_mean": intrinsic["novelty_mean"], "surprise_mean": intrinsic["surprise_mean"],
+        "replay_size": replay["size"], "replay_bytes": replay["bytes"],
+        "invalid_messages": s["invalid_messages"], "replay_invalid_messages": replay["invalid_messages"],
+        "losses": dict(s["losses"]),
+    }
+
+
+class History:
+    def __init__(self, capacity: int = 1000, every_s: float = 2.0) -> None:
+        self.capacity, self.every_s = capacity, every_s
+        self._points: list[dict] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def add(self, status: dict) -> None:
+        with self._lock:
+            self._points.append(point(status))
+            if len(self._points) >= self.capacity:
+                self._points = self._points[::2]
+                self.every_s *= 2
+
+    def points(self) -> list[dict]:
+        with self._lock:
+            return list(self._points)
+
+    def start(self, status: Callable[[], dict]) -> None:
+        """Read `status` every `every_s` seconds on a daemon thread until `stop`."""
+        def run() -> None:
+            while not self._stop.wait(self.every_s):
+                self.add(status())
+
+        self.add(status())
+        self._thread = threading.Thread(target=run, name="history", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def save(self, data: Path) -> None:
+        """Write the series to <data>/learner/history.json (atomically)."""
+        path = Path(data) / HISTORY_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps({"every_s": self.every_s, "points": self.points()}))
+        os.replace(tmp, path)
+
+
+def load(data: Path) -> list[dict]:
+    """A stopped run's series (empty if the learner left none)."""
+    path = Path(data) / HISTORY_FILE
+    return json.loads(path.read_text())["points"] if path.exists() else []

@@ -1,0 +1,143 @@
+"""/metrics: the learner's /status in Prometheus' text format, through prometheus-client.
+
+Every figure of /status is one sample: the table below names each one's
+metric (Prometheus conventions: units in the name, `_total` for counters),
+the actors' figures carry an `actor` label, losses and intrinsic means a
+`name` label, and the run's identity (run id, algorithm, task, device, config
+digest) is one `nasa_run_info` sample rather than a label on every series.
+The figures are read from /status when scraped, so nothing is computed in the
+update loop; the loop only observes two histograms (update time, batch wait).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+from prometheus_client import CollectorRegistry, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
+
+# (path in /status, metric name, kind, help)
+SCALARS: tuple[tuple[str, str, str, str], ...] = (
+    ("env_steps", "nasa_env_steps_total", "counter", "Environment steps stored by the replay (all actors)"),
+    ("steps_budget", "nasa_env_steps_budget", "gauge", "The run's step budget (--steps)"),
+    ("warmup_steps", "nasa_warmup_env_steps", "gauge", "Uniform random env steps before learning"),
+    ("updates", "nasa_updates_total", "counter", "Gradient updates of the learner"),
+    ("updates_target_per_env_step", "nasa_updates_per_env_step_target", "gauge", "G, the target ratio"),
+    ("updates_per_env_step", "nasa_updates_per_env_step", "gauge", "Updates per env step after warm-up"),
+    ("env_steps_per_s", "nasa_env_steps_per_second", "gauge", "Env steps per second over ~10 s"),
+    ("updates_per_s", "nasa_updates_per_second", "gauge", "Updates per second over ~10 s"),
+    ("policy_version", "nasa_policy_version", "gauge", "Version of the newest published weights"),
+    ("eval.step", "nasa_eval_env_step", "gauge", "Env step of the newest evaluation"),
+    ("eval.mean", "nasa_eval_return_mean", "gauge", "Mean return of the newest evaluation"),
+    ("eval.std", "nasa_eval_return_std", "gauge", "Standard deviation of the newest evaluation's returns"),
+    ("intrinsic.scored", "nasa_intrinsic_scored_transitions_total", "counter",
+     "Transitions given an intrinsic reward"),
+    ("intrinsic.scored_at_first_sample", "nasa_intrinsic_scored_at_first_sample_transitions_total", "counter",
+     "Transitions scored when a training batch first brought them, not on arrival"),
+    ("resumed", "nasa_resumed", "gauge", "1 if the learner started from a checkpoint"),
+    ("wall_s", "nasa_learner_wall_seconds", "gauge", "Seconds the learner has run (over restarts)"),
+    ("replay.size", "nasa_replay_transitions", "gauge", "Transitions in the replay"),
+    ("replay.bytes", "nasa_replay_bytes", "gauge", "The replay's memory in bytes"),
+    ("replay.done", "nasa_replay_done", "gauge", "1 once the replay has stored the step budget"),
+    ("replay.dropped", "nasa_replay_dropped_transitions_total", "counter",
+     "Transitions the replay dropped (a batch that did not continue its episode)"),
+    ("replay.invalid_messages", "nasa_replay_invalid_messages_total", "counter",
+     "Messages the replay refused"),
+    ("replay.limiter_inserts", "nasa_replay_limiter_inserts_total", "counter", "Rate limiter's inserts"),
+    ("replay.limiter_samples", "nasa_replay_limiter_samples_total", "counter", "Rate limiter's samples"),
+    ("invalid_messages", "nasa_invalid_messages_total", "counter", "Messages the learner refused"),
+)
+# Figures of each entry of actors[], labelled actor="<id>".
+ACTOR_FIGURES: tuple[tuple[str, str, str, str], ...] = (
+    ("alive", "nasa_actor_alive", "gauge", "1 if the actor's liveliness token is present"),
+    ("incarnation", "nasa_actor_incarnation", "gauge", "Start stamp of the actor's current incarnation"),
+    ("env_steps", "nasa_actor_env_steps_total", "counter", "Env steps of the actor's current incarnation"),
+    ("episodes", "nasa_actor_episodes_total", "counter", "Episodes of the actor's current incarnation"),
+    ("policy_version", "nasa_actor_policy_version", "gauge", "Policy version the actor acts with"),
+    ("steps_per_s", "nasa_actor_env_steps_per_second", "gauge", "Env steps per second of the actor"),
+    ("last_seen_s", "nasa_actor_last_seen_seconds", "gauge", "Seconds since the actor's last heartbeat"),
+)
+# Dicts of /status whose entries become one labelled series: (path, metric, label, kind, help).
+LABELLED: tuple[tuple[str, str, str, str], ...] = (
+    ("policy_lag", "nasa_policy_lag_updates", "stat",
+     "Updates between the policy that collected a sampled row and the learner's (mean, max)"),
+    ("losses", "nasa_loss", "name", "Recent mean of each loss the agent reports"),
+)
+INTRINSIC_MEANS = ("novelty_mean", "surprise_mean")
+INFO = ("run_id", "algo", "task", "device", "config_digest")
+
+
+def lookup(status: dict, path: str) -> object:
+    value: object = status
+    for key in path.split("."):
+        value = value[key]  # type: ignore[index]
+    return value
+
+
+def _family(kind: str, name: str, help_text: str, labels: list[str]) -> Metric:
+    cls = CounterMetricFamily if kind == "counter" else GaugeMetricFamily
+    return cls(name, help_text, labels=labels)
+
+
+class StatusCollector:
+    """Turns one /status into metric families at scrape time."""
+
+    def __init__(self, status: Callable[[], dict]) -> None:
+        self.status = status
+
+    def describe(self) -> list[Metric]:
+        return []  # unknown until scraped: registering must not call status()
+
+    def collect(self) -> Iterator[Metric]:
+        s = self.status()
+        info = InfoMetricFamily("nasa_run", "The run's identity")
+        info.add_metric([], {k: str(s.get(k, "")) for k in INFO})
+        yield info
+        for path, name, kind, help_text in SCALARS:
+            value = lookup(s, path)
+            if value is not None:
+                family = _family(kind, name, help_text, [])
+                family.add_metric([], float(value))
+                yield family
+        for path, name, label, help_text in LABELLED:
+            family = GaugeMetricFamily(name, help_text, labels=[label])
+            for key, value in lookup(s, path).items():  # type: ignore[attr-defined]
+                if value is not None:
+                    family.add_metric([key], float(value))
+            yield family
+        family = GaugeMetricFamily("nasa_intrinsic_mean", "Running mean of each intrinsic reward",
+                                   labels=["name"])
+        for key in INTRINSIC_MEANS:
+            if (value := s["intrinsic"][key]) is not None:
+                family.add_metric([key.removesuffix("_mean")], float(value))
+        yield family
+        for key, name, kind, help_text in ACTOR_FIGURES:
+            family = _family(kind, name, help_text, ["actor"])
+            for a in s["actors"]:
+                family.add_metric([str(a["id"])], float(a[key]))
+            yield family
+
+
+class LearnerMetrics:
+    """The learner's registry: /status's figures plus the update-time and batch-wait histograms."""
+
+    def __init__(self, status: Callable[[], dict]) -> None:
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(StatusCollector(status))  # type: ignore[arg-type]
+        buckets = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
+        self.update_seconds = Histogram(
+            "nasa_update_duration_seconds", "Time of one update (scoring owed rows, then agent.update)",
+            buckets=buckets, registry=self.registry)
+        self.batch_wait_seconds = Histogram(
+            "nasa_batch_wait_seconds", "Time the learner waited for its next training batch",
+            buckets=buckets, registry=self.registry)
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)
+
+
+def status_metrics(status: dict) -> bytes:
+    """The text a stopped run's /status gives (no histograms: nothing is being measured)."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(StatusCollector(lambda: status))  # type: ignore[arg-type]
+    return generate_latest(registry)

@@ -1,0 +1,98 @@
+"""TensorBoard event files of a run, the same tags for both runners (`tensorboard --logdir <data>`).
+
+`nasa train` writes <out>/tensorboard/train, the learner
+<data>/tensorboard/learner (and the evaluator its autoencoder images in
+<data>/tensorboard/evaluator), through torch's SummaryWriter: the tensorboard
+package's own format. Every point's step is the env step. Tags:
+
+- `eval/return_mean`, `eval/return_std`: each evaluation.
+- `train/episode_return`, `train/episode_length`, `train/steps_per_s` and
+  `train/<metric>` for each loss and intrinsic mean of a train.csv row.
+- (learner only) the fleet's figures of /status, every few seconds:
+  `rates/env_steps_per_s`, `rates/updates_per_s`, `ratio/updates_per_env_step`,
+  `ratio/target`, `policy_lag/mean`, `policy_lag/max`, `intrinsic/novelty_mean`,
+  `intrinsic/surprise_mean`, `replay/size`, `replay/bytes`,
+  `invalid_messages/learner`, `invalid_messages/replay`, `updates`.
+- `autoencoder/view`: the autoencoder's view image of an evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+TENSORBOARD_DIR = "tensorboard"
+ROW_SKIP = {"step", "episode", "return", "length", "updates", "wall_s", "steps_per_s"}
+
+
+def _number(v: object) -> float | None:
+    if isinstance(v, bool):
+        return float(v)
+    if isinstance(v, int | float) and math.isfinite(float(v)):
+        return float(v)
+    return None
+
+
+def status_scalars(s: dict) -> dict[str, float | None]:
+    """The fleet figures of one /status, by tag."""
+    lag, intrinsic, replay = s["policy_lag"], s["intrinsic"], s["replay"]
+    return {
+        "rates/env_steps_per_s": s["env_steps_per_s"], "rates/updates_per_s": s["updates_per_s"],
+        "ratio/updates_per_env_step": s["updates_per_env_step"],
+        "ratio/target": s["updates_target_per_env_step"],
+        "policy_lag/mean": lag["mean"], "policy_lag/max": lag["max"],
+        "intrinsic/novelty_mean": intrinsic["novelty_mean"], "intrinsic/surprise_mean": intrinsic["surprise_mean"],
+        "replay/size": replay["size"], "replay/bytes": replay["bytes"],
+        "invalid_messages/learner": s["invalid_messages"], "invalid_messages/replay": replay["invalid_messages"],
+        "updates": s["updates"],
+        **{f"loss/{k}": v for k, v in s["losses"].items()},
+    }
+
+
+class Scalars:
+    """A SummaryWriter opened on first use (importing tensorboard costs a second or two)."""
+
+    def __init__(self, logdir: Path, flush_secs: int = 10) -> None:
+        self.logdir, self.flush_secs = Path(logdir), flush_secs
+        self._writer = None
+
+    @property
+    def writer(self):  # noqa: ANN201 (torch.utils.tensorboard.SummaryWriter, imported lazily)
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.logdir), flush_secs=self.flush_secs)
+        return self._writer
+
+    def add(self, values: dict[str, object], step: int) -> None:
+        for tag, value in values.items():
+            if (v := _number(value)) is not None:
+                self.writer.add_scalar(tag, v, int(step))
+
+    def eval(self, step: int, mean: float, std: float) -> None:
+        self.add({"eval/return_mean": mean, "eval/return_std": std}, step)
+
+    def episode(self, row: dict) -> None:
+        """A train.csv row: its episode's return and length, and each metric mean it carries."""
+        values = {"train/episode_return": row["return"], "train/episode_length": row["length"],
+                  "train/steps_per_s": row.get("steps_per_s")}
+        values |= {f"train/{k}": v for k, v in row.items() if k not in ROW_SKIP}
+        self.add(values, row["step"])
+
+    def status(self, s: dict) -> None:
+        self.add(status_scalars(s), s["env_steps"])
+
+    def image(self, tag: str, image: np.ndarray, step: int) -> None:
+        """An (H, W, 3) uint8 image."""
+        self.writer.add_image(tag, image, int(step), dataformats="HWC")
+
+    def flush(self) -> None:
+        if self._writer is not None:
+            self._writer.flush()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
