@@ -26,6 +26,7 @@ from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
 from shared.replay.store import open_store
+from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -44,6 +45,7 @@ class Trainer:
         self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)
         self.rng = np.random.default_rng(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
+        self.scalars = Scalars(self.out / TENSORBOARD_DIR / "train")  # the learner's tags too
         self.store = open_store(self.run_config, self.out / "replay")
         self.replay = LocalReplay(self.store, self.rng, replace=not c.sample_without_replacement)
         self.loop = EnvLoop(self.env, StoreAdder(self.store), c.env.time_limit)
@@ -100,6 +102,7 @@ class Trainer:
 
     def restore(self, state: dict) -> None:
         self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=True)
+        self.scalars.purge_step = self.counters.env_steps  # the steps after the checkpoint are run again
         self.env.set_rng_state(state["env_rng"])
         self.eval_env.set_rng_state(state["eval_env_rng"])
         self.last_checkpoint_step = self.counters.env_steps
@@ -132,6 +135,7 @@ class Trainer:
                 ts, episode_started = self.loop.reset(), time.monotonic()
         progress.close()
         self.store.close()
+        self.scalars.close()
 
     def update(self) -> None:
         """G updates on batches from the replay."""
@@ -145,9 +149,10 @@ class Trainer:
         c, n, loop = self.config, self.counters, self.loop
         n.episodes += 1
         means = self.means.take() | (self.scorer.take_episode_means() if self.scorer else {})
-        self.recorder.train_row(n.env_steps, n.episodes, loop.episode_return, loop.episode_length,
-                                self.agent.num_updates, n.wall_s, means,
-                                steps_per_s=loop.episode_length / max(elapsed_s, 1e-9))
+        row = self.recorder.train_row(n.env_steps, n.episodes, loop.episode_return, loop.episode_length,
+                                      self.agent.num_updates, n.wall_s, means,
+                                      steps_per_s=loop.episode_length / max(elapsed_s, 1e-9))
+        self.scalars.episode(row)
         progress.set_postfix(ret=f"{loop.episode_return:.1f}", refresh=False)
         if n.env_steps - self.last_checkpoint_step >= c.checkpoint_every or n.env_steps >= c.steps:
             self.save_checkpoint()
@@ -155,5 +160,6 @@ class Trainer:
     def run_evaluation(self) -> None:
         returns = evaluate(self.agent, self.eval_env, self.config.eval_episodes)
         row = self.recorder.eval_row(self.counters.env_steps, returns)
+        self.scalars.eval(self.counters.env_steps, row["mean"], row["std"])
         tqdm.write(f"eval step {self.counters.env_steps}: mean return {row['mean']:.1f} +- {row['std']:.1f}")
 

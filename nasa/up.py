@@ -243,7 +243,7 @@ def service_argv(cmd: UpCommand, data: Path) -> dict[str, list[str]]:
         "learner": [*common, "--data", str(data), "--port", str(cmd.port), "--threads", str(threads)],
     }
     if cmd.evaluator:
-        out["evaluator"] = list(common)
+        out["evaluator"] = [*common, "--data", str(data)]  # the autoencoder's view and videos go there
     for i in range(cmd.actors):
         out[f"actor-{i}"] = [*common, "--actor-id", str(i)]
     return out
@@ -298,8 +298,8 @@ def up(argv: list[str]) -> None:
 
 
 def status(argv: list[str]) -> None:
-    """`nasa status [--url URL] [--data DIR]`: print the learner's /status, or the last one
-    it left in DIR when it is not running."""
+    """`nasa status [--url URL] [--data DIR] [--serve]`: print the learner's /status, or the last one
+    it left in DIR when it is not running; with --data DIR --serve, serve a stopped run's dashboard."""
     import json
 
     import httpx
@@ -312,8 +312,18 @@ def status(argv: list[str]) -> None:
 
         url: str = "http://127.0.0.1:8000/status"
         data: Path | None = None
+        serve: bool = False
+        """With --data: serve the stopped run's dashboard (http://HOST:PORT/) until interrupted."""
+        host: str = "127.0.0.1"
+        port: int = 8000
 
     cmd = tyro.cli(StatusCommand, args=argv, prog="nasa status")
+    if cmd.serve:
+        if cmd.data is None:
+            print("nasa status: --serve needs --data DIR (a stopped run's folder)", file=sys.stderr)
+            sys.exit(EXIT_BAD_INPUT)
+        serve_stopped(cmd.data, cmd.host, cmd.port)
+        return
     try:
         response = httpx.get(cmd.url, timeout=5.0)
         response.raise_for_status()
@@ -327,3 +337,18 @@ def status(argv: list[str]) -> None:
         print(saved.read_text().rstrip())
         return
     print(json.dumps(response.json(), indent=2))
+
+
+def serve_stopped(data: Path, host: str, port: int) -> None:
+    """A stopped run's dashboard, status, history and media from its folder, until Ctrl-C."""
+    import uvicorn
+
+    from services.learner.status_api import folder_app
+
+    try:
+        app = folder_app(data)
+    except FileNotFoundError as err:
+        print(f"nasa status: {err}", file=sys.stderr)
+        sys.exit(EXIT_BAD_INPUT)
+    print(f"nasa status: the dashboard of {data} on http://{host}:{port}/ (Ctrl-C ends it)", flush=True)
+    uvicorn.run(app, host=host, port=port, log_level="warning", access_log=False)

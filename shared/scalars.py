@@ -43,9 +43,11 @@ def status_scalars(s: dict) -> dict[str, float | None]:
         "ratio/updates_per_env_step": s["updates_per_env_step"],
         "ratio/target": s["updates_target_per_env_step"],
         "policy_lag/mean": lag["mean"], "policy_lag/max": lag["max"],
-        "intrinsic/novelty_mean": intrinsic["novelty_mean"], "intrinsic/surprise_mean": intrinsic["surprise_mean"],
+        "intrinsic/novelty_mean": intrinsic["novelty_mean"],
+        "intrinsic/surprise_mean": intrinsic["surprise_mean"],
         "replay/size": replay["size"], "replay/bytes": replay["bytes"],
-        "invalid_messages/learner": s["invalid_messages"], "invalid_messages/replay": replay["invalid_messages"],
+        "invalid_messages/learner": s["invalid_messages"],
+        "invalid_messages/replay": replay["invalid_messages"],
         "updates": s["updates"],
         **{f"loss/{k}": v for k, v in s["losses"].items()},
     }
@@ -56,6 +58,7 @@ class Scalars:
 
     def __init__(self, logdir: Path, flush_secs: int = 10) -> None:
         self.logdir, self.flush_secs = Path(logdir), flush_secs
+        self.purge_step: int | None = None  # a resumed run: events from this step on are dropped
         self._writer = None
 
     @property
@@ -63,7 +66,8 @@ class Scalars:
         if self._writer is None:
             from torch.utils.tensorboard import SummaryWriter
 
-            self._writer = SummaryWriter(str(self.logdir), flush_secs=self.flush_secs)
+            self._writer = SummaryWriter(str(self.logdir), flush_secs=self.flush_secs,
+                                         purge_step=self.purge_step)
         return self._writer
 
     def add(self, values: dict[str, object], step: int) -> None:

@@ -8,20 +8,32 @@ them to eval.csv. Step 0 is evaluated with the learner's initial weights
 (version 0), as the trainer does, unless eval_at_start is off (the reference
 has no step-0 evaluation). If evaluation is slower than training, it
 evaluates the newest multiple reached and skips those in between.
+
+With a run folder (--data, env NASA_DATA) it also leaves pictures there
+(services/evaluator/media.py): after each evaluation the autoencoder's view
+of the first episode's frames (<data>/media/autoencoder.png, and the
+TensorBoard image `autoencoder/view`), and every `video_every` evaluations
+an MP4 of that episode. They are made here, from the episode just played:
+the learner never renders.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
 import zenoh
 
+from services.evaluator.media import AutoencoderTap, EvalMedia
 from shared import envs, run_config, wire
 from shared.agents import make_agent
+from shared.env_loop import EnvLoop
 from shared.evaluation import evaluate
 from shared.service import Log, StopFlag
+from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs
 
@@ -34,6 +46,13 @@ class EvaluatorArgs(ServiceArgs):
 
     eval_device: str = "cpu"
     threads: int = 1
+    data: Path | None = field(default_factory=lambda: Path(os.environ["NASA_DATA"])
+                              if os.environ.get("NASA_DATA") else None)
+    """Run folder for the autoencoder's view and videos (env NASA_DATA; none: no pictures)."""
+    video_every: int = 5
+    """An MP4 of the first evaluation episode every N evaluations (0: none)."""
+    view_frames: int = 8
+    """Frames in the autoencoder's view."""
 
 
 class EvaluatorService:
@@ -48,7 +67,12 @@ class EvaluatorService:
         spec = run.spec
         device = torch.device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
-        self.weights = WeightsSubscriber(self.agent, self._invalid)
+        self.tap = AutoencoderTap(
+            self.agent, lambda: make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device))
+        self.weights = WeightsSubscriber(self.tap, self._invalid)  # type: ignore[arg-type]
+        self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
+        self.autoencoder_version = 0
+        self.evaluations = 0
         self.global_steps: int | None = None
         self.invalid = 0
         self.done = -1 if c.eval_at_start else 0  # the newest step evaluated
@@ -77,7 +101,8 @@ class EvaluatorService:
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every reached), or None."""
         c = self.config
-        self.weights.maybe_load()
+        if self.weights.maybe_load() and self.tap.fresh:
+            self.tap.fresh, self.autoencoder_version = False, self.weights.version or 0
         if self.weights.version is None or self.global_steps is None:
             return None
         steps = max(self.global_steps, self.weights.env_steps)
@@ -85,9 +110,37 @@ class EvaluatorService:
         return target if target > self.done else None
 
     def evaluate(self, target: int) -> wire.EvalResult:
-        returns = evaluate(self.agent, self.env, self.config.eval_episodes)
-        self.done = target
-        return wire.EvalResult(target, self.weights.version or 0, [float(r) for r in returns])
+        """The evaluation's episodes; the first one's frames (and camera, for a video) are kept
+        for the pictures, made after the episodes."""
+        version = self.weights.version or 0
+        video = self.media is not None and self.args.video_every > 0 \
+            and self.evaluations % self.args.video_every == 0
+        first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
+        returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1)]
+        self.done, self.evaluations = target, self.evaluations + 1
+        if self.media is not None and obs:
+            autoencoder, frames = self.tap.autoencoder, np.stack(obs)
+            if autoencoder is not None:
+                self.media.autoencoder_view(autoencoder, frames, target, version, self.autoencoder_version)
+            if video:
+                path = self.media.video(autoencoder, frames, cameras, target, first)
+                self.log(f"step {target}: video {path}")
+        return wire.EvalResult(target, version, [float(r) for r in returns])
+
+    def _first_episode(self, keep: bool, video: bool) -> tuple[float, list[np.ndarray], list]:
+        """One deterministic episode (as shared.evaluation's), keeping its observations if asked."""
+        obs: list[np.ndarray] = []
+        cameras: list = []
+        unused = np.random.default_rng(0)
+
+        def act(o: np.ndarray) -> np.ndarray:
+            if keep:
+                obs.append(o)
+            if video:
+                cameras.append(camera_frame(self.env))
+            return self.agent.act(o, explore=False, rng=unused)
+
+        return EnvLoop(self.env).run_episode(act), obs, cameras
 
     def run(self) -> None:
         s, k, c = self.session, self.keys, self.config
@@ -106,6 +159,8 @@ class EvaluatorService:
                 s.put(k.eval_result, wire.encode(msg), congestion_control=BLOCK)
                 self.log(f"step {target} (policy {msg.policy_version}): mean {np.mean(msg.returns):.1f}")
             self.log(f"stopping ({self.stop.reason})")
+        if self.media is not None:
+            self.media.close()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -31,6 +31,8 @@ import torch
 import zenoh
 
 from services.learner.core import LearnerCore
+from services.learner.history import History
+from services.learner.metrics import LearnerMetrics
 from shared import run_config, wire
 from shared.device import resolve_device
 from shared.replay.client import Prefetcher, ZenohReplayClient
@@ -76,6 +78,9 @@ class Learner:
         self._episodes: queue.Queue[tuple[float, int]] = queue.Queue()
         self._weights_msg: bytes | None = None
         self.wall_s = self.core.counters.wall_s
+        self.metrics = LearnerMetrics(self.status)
+        self.history = History()  # read by its own thread, never the update loop
+        self._scalars_at = 0.0
         if self.core.resumed:
             self.log(f"resumed from checkpoint: {self.core.agent.num_updates} updates, "
                      f"env step {self.core.env_steps}")
@@ -134,8 +139,10 @@ class Learner:
         from services.learner.status_api import StatusServer, make_app
 
         s, k = self.session, self.keys
-        server = StatusServer(make_app(self.status, self.healthy), self.args.host, self.args.port)
+        app = make_app(self.status, self.health, self.history.points, self.metrics.render, self.args.data)
+        server = StatusServer(app, self.args.host, self.args.port)
         server.start()
+        self.history.start(self.status)
         try:
             with ExitStack() as stack:
                 subscriptions = ((k.replay_stats, self._on_stats), (k.eval_result, self._on_eval),
@@ -150,6 +157,7 @@ class Learner:
                 self.log(f"run {k.run_id}: status on http://{self.args.host}:{self.args.port}/status")
                 self._loop(publisher)
         finally:
+            self.history.stop()
             server.stop()
 
     def _loop(self, publisher: zenoh.Publisher) -> None:
@@ -170,10 +178,14 @@ class Learner:
                 if core.done() or starved:
                     finished = True
                     break
+                waited = time.perf_counter()
                 batch = prefetcher.get(timeout=0.2)
                 if batch is None:
                     continue
+                began = time.perf_counter()
                 core.train_on(batch)
+                self.metrics.batch_wait_seconds.observe(began - waited)
+                self.metrics.update_seconds.observe(time.perf_counter() - began)
                 core.board.seen_env_steps(self.client.num_inserted)
                 if core.agent.num_updates % self.args.publish_every == 0:
                     self.publish_weights(publisher)
@@ -188,6 +200,10 @@ class Learner:
             self._wait_final_eval()
         core.save_checkpoint(self.wall_s)
         self.write_final_status()
+        self.history.add(self.status())
+        self.history.save(self.args.data)
+        core.scalars.status(self.status())
+        core.scalars.close()
         if finished:
             self.log(f"run done: {core.env_steps} env steps, {core.agent.num_updates} updates")
             self.session.put(self.keys.stop, wire.encode(wire.Stop("run done")), congestion_control=BLOCK)
@@ -208,6 +224,9 @@ class Learner:
     def _drain(self) -> None:
         """Hand what the callbacks queued to the core, on the loop's thread (the CSV files are its)."""
         self.core.board.sample_rates(self.core.agent.num_updates)
+        if time.monotonic() - self._scalars_at >= 10.0:  # TensorBoard's fleet figures
+            self._scalars_at = time.monotonic()
+            self.core.scalars.status(self.status())
         while not self._evals.empty():
             r = self._evals.get_nowait()
             if (row := self.core.record_eval(r)) is not None:
@@ -217,8 +236,9 @@ class Learner:
 
     # -- status ------------------------------------------------------------------------
 
-    def healthy(self) -> bool:
-        return not self.stop
+    def health(self) -> list[str]:
+        """Why the learner is unhealthy (empty: healthy): /healthz answers 503 with these."""
+        return [f"stopping ({self.stop.reason})"] if self.stop else []
 
     def status(self) -> dict:
         return self.core.status(self.keys.run_id, self.wall_s)

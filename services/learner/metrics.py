@@ -57,7 +57,7 @@ ACTOR_FIGURES: tuple[tuple[str, str, str, str], ...] = (
     ("steps_per_s", "nasa_actor_env_steps_per_second", "gauge", "Env steps per second of the actor"),
     ("last_seen_s", "nasa_actor_last_seen_seconds", "gauge", "Seconds since the actor's last heartbeat"),
 )
-# Dicts of /status whose entries become one labelled series: (path, metric, label, kind, help).
+# Dicts of /status whose entries become one labelled gauge: (path, metric, label, help).
 LABELLED: tuple[tuple[str, str, str, str], ...] = (
     ("policy_lag", "nasa_policy_lag_updates", "stat",
      "Updates between the policy that collected a sampled row and the learner's (mean, max)"),

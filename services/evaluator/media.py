@@ -1,0 +1,112 @@
+"""The evaluator's pictures of a run: the autoencoder's view and evaluation videos, in <data>/media.
+
+The learner sends the decoder with its weights once per evaluation period
+(services/learner/core.py); `AutoencoderTap` keeps the encoder and decoder of
+the newest such message in a second agent, so the view always pairs an
+encoder with its own decoder even after later weights (policy only) replace
+the acting agent's encoder. Everything here runs in the evaluator's process,
+after an evaluation's episodes: the learner's update loop renders nothing.
+
+<data>/media/media.json lists what is there, for the dashboard:
+`{"autoencoder": {step, policy_version, autoencoder_version, novelty, image},
+"videos": [{step, file, frames, return}]}`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from shared.scalars import TENSORBOARD_DIR, Scalars
+from shared.video import (
+    CAMERA_SIZE,
+    fit,
+    newest_frames,
+    reconstruct,
+    sheet,
+    video_frame,
+    write_mp4,
+)
+
+MEDIA_DIR = "media"
+AE_IMAGE = "autoencoder.png"
+
+
+class AutoencoderTap:
+    """Stands for the agent in a WeightsSubscriber: loads the policy into it, and keeps the
+    encoder and decoder of weights that carry a decoder in `autoencoder` (built on first use)."""
+
+    def __init__(self, agent, build: Callable[[], object]) -> None:  # noqa: ANN001
+        self.agent, self.build = agent, build
+        self.autoencoder = None
+        self.fresh = False
+
+    def load_policy_state_dict(self, state: dict) -> None:
+        self.agent.load_policy_state_dict(state)
+        if not any(k.startswith("decoder.") for k in state):
+            return
+        if self.autoencoder is None:
+            self.autoencoder = self.build()
+        for name in ("encoder", "decoder"):
+            head = name + "."
+            module = getattr(self.autoencoder, name)
+            module.load_state_dict({k[len(head):]: v for k, v in state.items() if k.startswith(head)})
+        self.fresh = True
+
+
+class EvalMedia:
+    def __init__(self, data: Path, frames: int = 8) -> None:
+        self.dir = Path(data) / MEDIA_DIR
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.frames = frames
+        self.scalars = Scalars(Path(data) / TENSORBOARD_DIR / "evaluator")
+        path = self.dir / "media.json"
+        self.manifest = json.loads(path.read_text()) if path.exists() else {"autoencoder": None, "videos": []}
+
+    def autoencoder_view(self, autoencoder, obs: np.ndarray, step: int, policy_version: int,  # noqa: ANN001
+                         autoencoder_version: int) -> np.ndarray:
+        """Frames spread over an evaluation episode beside Dec(Enc(s)), with each one's novelty."""
+        from PIL import Image
+
+        idx = np.unique(np.linspace(0, len(obs) - 1, min(self.frames, len(obs))).round().astype(int))
+        recs, novelty = reconstruct(autoencoder, obs[idx])
+        image = sheet(newest_frames(obs[idx]), recs, novelty)
+        tmp = self.dir / (AE_IMAGE + ".tmp")
+        Image.fromarray(image).save(tmp, format="PNG")
+        os.replace(tmp, self.dir / AE_IMAGE)
+        self.scalars.image("autoencoder/view", image, step)
+        self.scalars.add({"autoencoder/novelty_mean": float(novelty.mean())}, step)
+        self.scalars.flush()
+        self.manifest["autoencoder"] = {
+            "step": int(step), "policy_version": int(policy_version),
+            "autoencoder_version": int(autoencoder_version),
+            "novelty": [round(float(v), 4) for v in novelty], "image": AE_IMAGE,
+        }
+        self._save()
+        return image
+
+    def video(self, autoencoder, obs: np.ndarray, cameras: list[np.ndarray | None], step: int,  # noqa: ANN001
+              episode_return: float) -> Path:
+        """An MP4 of one evaluation episode: camera | observation over its reconstruction."""
+        frames = newest_frames(obs)
+        recs = reconstruct(autoencoder, obs)[0] if autoencoder is not None else np.zeros_like(frames)
+        out = [video_frame(cam if cam is not None else fit(frame, CAMERA_SIZE), frame, rec)
+               for cam, frame, rec in zip(cameras, frames, recs, strict=True)]
+        path = self.dir / f"eval_step_{step:09d}.mp4"
+        write_mp4(path, out)
+        self.manifest["videos"].append({"step": int(step), "file": path.name, "frames": len(out),
+                                        "return": round(float(episode_return), 3)})
+        self._save()
+        return path
+
+    def _save(self) -> None:
+        tmp = self.dir / "media.json.tmp"
+        tmp.write_text(json.dumps(self.manifest, indent=1))
+        os.replace(tmp, self.dir / "media.json")
+
+    def close(self) -> None:
+        self.scalars.close()
