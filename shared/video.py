@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from shared import intrinsic
-from shared.agents.base import to_obs_tensor
 
 CAMERA_SIZE = 256
 
@@ -31,7 +30,7 @@ def reconstruct(agent, obs: np.ndarray, chunk: int = 64) -> tuple[np.ndarray, np
     frames, novelty = [], []
     device = next(agent.decoder.parameters()).device
     for i in range(0, len(obs), chunk):
-        x = to_obs_tensor(obs[i:i + chunk], device)
+        x = torch.as_tensor(obs[i:i + chunk], device=device)  # uint8; the encoder casts
         rec = agent.decoder(agent.encoder(x)).float()
         if getattr(agent, "algo", "") == "sac_ae":
             rec = rec + 0.5  # SAC-AE's decoder targets the 5-bit observation centred on 0

@@ -1,0 +1,202 @@
+"""Watching a run without a browser: /metrics, /healthz, /history, TensorBoard files, videos, logs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tiny import tiny_config, tiny_run
+
+from nasa.train import Trainer
+from services.evaluator.media import AutoencoderTap, EvalMedia
+from services.learner.history import History
+from services.learner.metrics import ACTOR_FIGURES, INFO, SCALARS, LearnerMetrics
+from services.learner.status_api import folder_app, make_app
+from shared.agents import make_agent
+from shared.service import Log
+from shared.video import count_frames
+
+STATUS = {
+    "run_id": "r1", "algo": "nasa_td3", "task": "cartpole-balance", "device": "cpu", "config_digest": "abc",
+    "steps_budget": 1000, "warmup_steps": 20, "updates": 321, "updates_target_per_env_step": 1,
+    "updates_per_env_step": 0.987, "policy_version": 320,
+    "eval": {"step": 300, "mean": 123.5, "std": 4.25},
+    "intrinsic": {"novelty_mean": 0.31, "surprise_mean": 0.002, "scored": 300, "scored_at_first_sample": 2},
+    "resumed": False, "wall_s": 61.5, "env_steps": 345, "env_steps_per_s": 12.5, "updates_per_s": 11.25,
+    "replay": {"size": 345, "bytes": 123456, "done": False, "dropped": 1, "invalid_messages": 3,
+               "limiter_inserts": 345, "limiter_samples": 321},
+    "actors": [
+        {"id": 0, "incarnation": 1111, "alive": True, "env_steps": 170, "episodes": 4, "policy_version": 300,
+         "steps_per_s": 6.5, "last_seen_s": 0.25},
+        {"id": 1, "incarnation": 2222, "alive": False, "env_steps": 175, "episodes": 4, "policy_version": 280,
+         "steps_per_s": 6.0, "last_seen_s": 3.5},
+    ],
+    "policy_lag": {"mean": 14.5, "max": 41},
+    "losses": {"critic_loss": 0.5, "actor_loss": -1.25, "ae_loss": 0.03, "ensemble_loss": 0.001},
+    "invalid_messages": 2,
+}
+
+
+def samples(text: str) -> dict[tuple[str, tuple], float]:
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return out
+
+
+def expected_samples(status: dict) -> dict[tuple[str, tuple], float]:
+    """Every figure of /status as the sample it must be in /metrics."""
+    want: dict[tuple[str, tuple], float] = {}
+    for path, name, _, _ in SCALARS:
+        value = status
+        for key in path.split("."):
+            value = value[key]
+        want[(name, ())] = float(value)
+    for key, value in status["policy_lag"].items():
+        want[("nasa_policy_lag_updates", (("stat", key),))] = float(value)
+    for key, value in status["losses"].items():
+        want[("nasa_loss", (("name", key),))] = float(value)
+    for key in ("novelty", "surprise"):
+        want[("nasa_intrinsic_mean", (("name", key),))] = float(status["intrinsic"][f"{key}_mean"])
+    for a in status["actors"]:
+        for key, name, _, _ in ACTOR_FIGURES:
+            want[(name, (("actor", str(a["id"])),))] = float(a[key])
+    return want
+
+
+def leaves(d: dict, prefix: str = "") -> set[str]:
+    out = set()
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out |= leaves(v, f"{prefix}{k}.")
+        elif isinstance(v, list):
+            out |= {f"{prefix}{k}[].{field}" for item in v for field in item}
+        else:
+            out.add(prefix + k)
+    return out
+
+
+def test_metrics_parse_and_hold_every_figure_of_status():
+    metrics = LearnerMetrics(lambda: STATUS)
+    metrics.update_seconds.observe(0.02)
+    metrics.batch_wait_seconds.observe(0.001)
+    client = TestClient(make_app(lambda: STATUS, lambda: [], metrics=metrics.render))
+    got = samples(client.get("/metrics").text)
+    for key, value in expected_samples(STATUS).items():
+        assert got.get(key) == pytest.approx(value), key
+    info = {k: v for (name, labels), _ in got.items() if name == "nasa_run_info" for k, v in labels}
+    assert info == {k: STATUS[k] for k in INFO}
+    assert got[("nasa_update_duration_seconds_count", ())] == 1
+    assert got[("nasa_batch_wait_seconds_bucket", (("le", "0.001"),))] == 1
+    # Every figure of /status is covered: a new field without a metric fails here.
+    covered = {path for path, *_ in SCALARS} | {"policy_lag.mean", "policy_lag.max"} \
+        | {f"losses.{k}" for k in STATUS["losses"]} | {"intrinsic.novelty_mean", "intrinsic.surprise_mean"} \
+        | {f"actors[].{key}" for key, *_ in ACTOR_FIGURES} | {"actors[].id"} | set(INFO)
+    assert leaves(STATUS) <= covered, leaves(STATUS) - covered
+    # Counters end in _total; no series carries the run id.
+    assert all(name.endswith("_total") for _, name, kind, _ in SCALARS if kind == "counter")
+    assert not any(dict(labels).get("run_id") for (name, labels) in got if name != "nasa_run_info")
+
+
+def test_healthz_gives_the_reasons():
+    reasons: list[str] = []
+    client = TestClient(make_app(lambda: STATUS, lambda: reasons))
+    assert client.get("/healthz").status_code == 200
+    reasons += ["stopping (SIGTERM)", "replay silent for 12 s"]
+    r = client.get("/healthz")
+    assert r.status_code == 503 and "stopping (SIGTERM)" in r.text and "replay silent" in r.text
+
+
+def test_history_is_bounded_and_spans_the_run():
+    h = History(capacity=8)
+    for i in range(50):
+        h.add(STATUS | {"env_steps": i})
+    steps = [p["env_steps"] for p in h.points()]
+    assert len(steps) < 8 and steps[0] == 0 and steps == sorted(steps) and steps[-1] >= 40
+    assert h.every_s > 2.0
+
+
+def test_dashboard_page_and_a_stopped_runs_folder(tmp_path):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    History().save(tmp_path)
+    (tmp_path / "eval.csv").write_text("step,mean,std,return_0\n0,10.5,0,10.5\n300,123.5,4.25,123.5\n")
+    client = TestClient(folder_app(tmp_path))
+    page = client.get("/")
+    assert page.status_code == 200 and "/static/uplot.iife.min.js" in page.text and "http" not in \
+        page.text.replace("http-equiv", "")
+    assert client.get("/static/uplot.iife.min.js").status_code == 200
+    assert client.get("/static/LICENSE-uPlot").text.startswith("The MIT License")
+    assert client.get("/static/..%2Fstatus_api.py").status_code == 404
+    assert client.get("/status").json() == STATUS
+    history = client.get("/history").json()
+    assert history["evals"] == [{"step": 0, "mean": 10.5, "std": 0.0},
+                                {"step": 300, "mean": 123.5, "std": 4.25}]
+    assert client.get("/healthz").status_code == 503
+    assert samples(client.get("/metrics").text)[("nasa_eval_return_mean", ())] == 123.5
+
+
+def test_nasa_train_writes_tensorboard_scalars(tmp_path):
+    config = tiny_config(steps=40, warmup_steps=15, eval_every=40, eval_episodes=1, batch_size=8)
+    config.env.action_repeat = 25  # 40-step cartpole episodes
+    Trainer.create(config, tmp_path / "run").run()
+    acc = EventAccumulator(str(tmp_path / "run" / "tensorboard" / "train"))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    want = {"eval/return_mean", "eval/return_std", "train/episode_return", "train/episode_length",
+            "train/steps_per_s", "train/critic_loss", "train/actor_loss", "train/ae_loss",
+            "train/novelty_mean"}
+    assert want <= tags, want - tags
+    assert [e.step for e in acc.Scalars("eval/return_mean")] == [0, 40]
+    assert [e.step for e in acc.Scalars("train/episode_return")] == [40]
+
+
+def _agent():
+    run = tiny_run()
+    spec = run.spec
+    return make_agent("nasa_td3", spec.obs_shape, spec.action_dim, run.config.agent, torch.device("cpu"))
+
+
+def test_evaluation_video_decodes_to_its_frame_count_and_the_autoencoder_view(tmp_path):
+    source = _agent()
+    tap = AutoencoderTap(_agent(), _agent)
+    tap.load_policy_state_dict(source.policy_state_dict())
+    assert tap.autoencoder is None  # policy weights alone: no autoencoder to show
+    decoder = {f"decoder.{k}": v for k, v in source.decoder.state_dict().items()}
+    tap.load_policy_state_dict(source.policy_state_dict() | decoder)
+    for name in ("encoder", "decoder"):
+        for a, b in zip(getattr(tap.autoencoder, name).parameters(), getattr(source, name).parameters(),
+                        strict=True):
+            assert torch.equal(a, b)
+    obs = np.random.default_rng(0).integers(0, 256, (23, 9, 32, 32), dtype=np.uint8)
+    media = EvalMedia(tmp_path, frames=5)
+    image = media.autoencoder_view(tap.autoencoder, obs, step=100, policy_version=7, autoencoder_version=5)
+    assert image.ndim == 3 and image.shape[1] == 5 * 64 + 4 * 2
+    path = media.video(tap.autoencoder, obs, [None] * len(obs), step=100, episode_return=3.0)
+    media.close()
+    assert count_frames(path) == len(obs)
+    manifest = json.loads((tmp_path / "media" / "media.json").read_text())
+    assert manifest["videos"] == [{"step": 100, "file": path.name, "frames": 23, "return": 3.0}]
+    view = manifest["autoencoder"]
+    assert len(view["novelty"]) == 5 and view["autoencoder_version"] == 5 and view["step"] == 100
+    acc = EventAccumulator(str(tmp_path / "tensorboard" / "evaluator"))
+    acc.Reload()
+    assert "autoencoder/view" in acc.Tags()["images"]
+
+
+def test_structured_logs(monkeypatch, capsys):
+    monkeypatch.setenv("NASA_RUN_ID", "run7")
+    Log("actor 3")("hello")
+    plain = capsys.readouterr().err.strip()
+    assert plain.endswith("[actor 3] run=run7 hello") and plain[:4].isdigit()
+    monkeypatch.setenv("NASA_LOG_JSON", "1")
+    Log("actor 3")("hello")
+    line = json.loads(capsys.readouterr().err)
+    assert line["service"] == "actor" and line["actor_id"] == 3 and line["run_id"] == "run7"
+    assert line["msg"] == "hello" and line["time"].endswith("Z")
