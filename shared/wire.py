@@ -33,6 +33,7 @@ quarter smaller than obs and next_obs for k = 3.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import time
 import types
@@ -293,8 +294,9 @@ def encode(msg: Message) -> bytes:
     return msgpack.packb(body, use_bin_type=True)
 
 
-def decode(data: bytes | bytearray | memoryview, cls: type[M]) -> M:
-    """Parse and validate one message of type `cls`; raises WireError on anything else."""
+def decode(data: bytes | bytearray | memoryview, cls: type[M], bounds: Bounds | None = None) -> M:
+    """Parse and validate one message of type `cls`: its schema, then its values (`CHECKS`, against
+    what the receiver knows of the run, `bounds`); raises WireError on anything else."""
     try:
         body = msgpack.unpackb(data, raw=False, strict_map_key=False)
     except Exception as err:  # msgpack raises several unrelated types
@@ -320,8 +322,29 @@ def decode(data: bytes | bytearray | memoryview, cls: type[M]) -> M:
             raise WireError(f"{cls.TYPE}.{f.name}: bool where {allowed} expected")
         if not isinstance(value, allowed):
             raise WireError(f"{cls.TYPE}.{f.name}: {type(value).__name__} where {allowed} expected")
-        kwargs[f.name] = value
-    return cls(**kwargs)
+        kwargs[f.name] = _check_scalar(cls, f.name, value)
+    msg = cls(**kwargs)
+    check = CHECKS.get(cls)
+    if check is not None:
+        try:
+            check(msg, bounds or Bounds())
+        except WireError:
+            raise
+        except (ValueError, TypeError, OverflowError) as err:  # numpy on odd sizes or dtypes
+            raise WireError(f"{cls.TYPE}: {err}") from err
+    return msg
+
+
+def _check_scalar(cls: type[Message], name: str, value: Any) -> Any:
+    """Every message's ints are counts, ids or indices (>= 0, fit an int64 with room for arithmetic);
+    every float is finite; strings are short."""
+    if isinstance(value, int) and not isinstance(value, bool) and not 0 <= value < MAX_INT:
+        raise WireError(f"{cls.TYPE}.{name}: {value} outside [0, 2**62)")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise WireError(f"{cls.TYPE}.{name}: {value} is not finite")
+    if isinstance(value, str) and len(value) > MAX_TEXT:
+        raise WireError(f"{cls.TYPE}.{name}: text of {len(value)} characters")
+    return value
 
 
 # -- payload helpers ----------------------------------------------------------------
@@ -338,7 +361,7 @@ def encode_frames(frames: np.ndarray) -> bytes:
 
 
 def decode_frames(blob: bytes, n: int, shape: tuple[int, ...]) -> np.ndarray:
-    size = n * int(np.prod(shape))
+    size = n * math.prod(shape)
     try:
         raw = zstd.ZstdDecompressor().decompress(blob, max_output_size=size)
     except zstd.ZstdError as err:
@@ -351,8 +374,11 @@ def decode_frames(blob: bytes, n: int, shape: tuple[int, ...]) -> np.ndarray:
 
 def array(data: bytes, dtype: str | np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     """A read-only array view of raw bytes, checking the length matches the shape."""
-    dt = np.dtype(dtype).newbyteorder("<")
-    expected = int(np.prod(shape)) * dt.itemsize
+    try:
+        dt = np.dtype(dtype).newbyteorder("<")
+    except (TypeError, ValueError) as err:
+        raise WireError(f"dtype {dtype!r}: {err}") from err
+    expected = math.prod(shape) * dt.itemsize  # Python ints: a huge shape cannot wrap around
     if len(data) != expected:
         raise WireError(f"array of {len(data)} bytes, expected {expected} for {dtype} {shape}")
     return np.frombuffer(data, dt).reshape(shape)
@@ -383,3 +409,161 @@ def unpack_tensors(packed: dict) -> dict:
         a = array(data, dtype, tuple(shape))
         out[name] = torch.from_numpy(a.copy())
     return out
+
+
+# -- value checks: one per message type, run by decode() ---------------------------------
+
+MAX_INT = 2**62
+MAX_TEXT = 4096
+MAX_BATCH = 4096
+MAX_LIST = 10_000
+ACTION_BOUND = 1.0
+TENSOR_DTYPES = frozenset({"<f2", "<f4", "<f8", "|u1", "|i1", "<i2", "<i4", "<i8", "|b1"})
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """What a receiver knows of the run, for checking values (None: not known to it)."""
+
+    frame_shape: tuple[int, ...] | None = None
+    frame_stack: int | None = None
+    action_dim: int | None = None
+    max_abs_reward: float = 1e3
+    """Rewards beyond this are refused: a huge finite reward overflows the critic's loss."""
+    max_batch: int = MAX_BATCH
+
+    @classmethod
+    def of(cls, spec: Any, max_abs_reward: float = 1e3) -> Bounds:
+        """The bounds of a run's EnvSpec (shared.envs)."""
+        return cls(tuple(spec.frame_shape), spec.frame_stack, spec.action_dim, max_abs_reward)
+
+
+def _need(ok: bool, what: str) -> None:
+    if not ok:
+        raise WireError(what)
+
+
+def _finite(a: np.ndarray, what: str, bound: float | None = None, nan_ok: bool = False) -> None:
+    vals = a[~np.isnan(a)] if nan_ok else a
+    _need(bool(np.isfinite(vals).all()), f"{what}: non-finite values")
+    if bound is not None and vals.size:
+        _need(float(np.abs(vals).max()) <= bound, f"{what}: values beyond +-{bound:g}")
+
+
+def _shape(value: Any, what: str, dims: int | None = None) -> tuple[int, ...]:
+    ok = isinstance(value, list) and len(value) <= 8 and all(
+        isinstance(d, int) and not isinstance(d, bool) and 0 <= d <= 1 << 20 for d in value)
+    _need(ok and (dims is None or len(value) == dims), f"{what}: shape {value!r}")
+    return tuple(value)
+
+
+def _steps(n: int, action_dim: int | None, b: Bounds, actions: bytes, rewards: bytes, discounts: bytes,
+           versions: bytes) -> dict[str, np.ndarray]:
+    """Per-transition arrays shared by TransitionBatch and SampleReply, checked."""
+    a = action_dim if action_dim is not None else len(actions) // (4 * n)
+    out = {
+        "action": array(actions, "<f4", (n, a)),
+        "reward": array(rewards, "<f4", (n,)),
+        "discount": array(discounts, "<f4", (n,)),
+        "policy_version": array(versions, "<i8", (n,)),
+    }
+    _need(a >= 1, "actions: empty")
+    _finite(out["action"], "actions", ACTION_BOUND)
+    _finite(out["reward"], "rewards", b.max_abs_reward)
+    d = out["discount"]
+    _need(bool(((d >= 0) & (d <= 1)).all()), "discounts outside [0, 1]")
+    _need(bool((out["policy_version"] >= 0).all()), "negative policy versions")
+    return out
+
+
+def check_transitions(m: TransitionBatch, b: Bounds) -> None:
+    _need(1 <= m.n <= b.max_batch, f"batch of {m.n} transitions")
+    shape = _shape(m.frame_shape, "frame_shape", 3)
+    _need(b.frame_shape is None or shape == tuple(b.frame_shape),
+          f"frame shape {list(shape)}, this run has {b.frame_shape}")
+    _need((m.first_frame is not None) == (m.start == 0), "first_frame must come exactly with step 0")
+    arrays = _steps(m.n, b.action_dim, b, m.actions, m.rewards, m.discounts, m.policy_versions)
+    lasts = array(m.lasts, "u1", (m.n,))
+    _need(bool((lasts <= 1).all()), "lasts other than 0 and 1")
+    arrays["last"] = lasts
+    arrays["frames"] = decode_frames(m.frames, m.n, shape)
+    if m.first_frame is not None:
+        arrays["first_frame"] = decode_frames(m.first_frame, 1, shape)[0]
+    m.arrays = arrays  # decoded once: the receiver stores these
+
+
+def check_sample_request(m: SampleRequest, b: Bounds) -> None:
+    _need(1 <= m.batch_size <= b.max_batch, f"batch_size {m.batch_size}")
+    _need(0.0 <= m.wait_s <= 3600.0, f"wait_s {m.wait_s}")
+
+
+def check_unscored_request(m: UnscoredRequest, b: Bounds) -> None:
+    _need(1 <= m.limit <= b.max_batch, f"limit {m.limit}")
+
+
+def check_sample_reply(m: SampleReply, b: Bounds) -> None:
+    if not m.ok:
+        return
+    n = m.batch_size
+    _need(1 <= n <= b.max_batch, f"batch_size {n}")
+    shape = _shape(m.window_shape, "window_shape", 4)
+    if b.frame_shape is not None and b.frame_stack is not None:
+        c, h, w = b.frame_shape
+        expected = (n, c * (b.frame_stack + 1), h, w)
+        _need(shape == expected, f"window shape {shape}, expected {expected} for a batch of {n}")
+    array(m.window, "u1", shape)
+    _steps(n, b.action_dim, b, m.action, m.reward, m.discount, m.policy_version)
+    _finite(array(m.intrinsic, "<f4", (n,)), "intrinsic", b.max_abs_reward, nan_ok=True)
+    _need(bool((array(m.index, "<i8", (n,)) >= 0).all()), "negative indices")
+
+
+def check_set_intrinsic(m: SetIntrinsic, b: Bounds) -> None:
+    n = len(m.index) // 8
+    _need(1 <= n <= b.max_batch, f"{n} scores")
+    index = array(m.index, "<i8", (n,))
+    _need(bool(((index >= 0) & (index < MAX_INT)).all()), "indices outside [0, 2**62)")
+    _finite(array(m.value, "<f4", (n,)), "scores", b.max_abs_reward)
+
+
+def check_weights(m: Weights, b: Bounds) -> None:
+    _need(len(m.tensors) <= 1000, f"{len(m.tensors)} tensors")
+    for name, entry in m.tensors.items():
+        _need(isinstance(name, str) and len(name) <= 256, f"tensor name {name!r}")
+        _need(isinstance(entry, list) and len(entry) == 3 and isinstance(entry[2], bytes),
+              f"tensor {name!r} is not [dtype, shape, bytes]")
+        dtype, shape, data = entry
+        _need(dtype in TENSOR_DTYPES, f"tensor {name!r}: dtype {dtype!r} not in {sorted(TENSOR_DTYPES)}")
+        a = array(data, dtype, _shape(shape, f"tensor {name!r}"))
+        if a.dtype.kind == "f":
+            _finite(a, f"tensor {name!r}")
+
+
+def check_actor_status(m: ActorStatus, b: Bounds) -> None:
+    _need(m.steps_per_s >= 0, f"steps_per_s {m.steps_per_s}")
+    _need(len(m.episode_returns) <= MAX_LIST, f"{len(m.episode_returns)} episode returns")
+    for e in m.episode_returns:
+        ok = (isinstance(e, list) and len(e) == 2 and _is_number(e[0]) and abs(e[0]) <= 1e12
+              and isinstance(e[1], int) and not isinstance(e[1], bool) and 0 <= e[1] < MAX_INT)
+        _need(ok, f"episode return {e!r} is not [finite return, length]")
+
+
+def check_eval_result(m: EvalResult, b: Bounds) -> None:
+    _need(1 <= len(m.returns) <= MAX_LIST, f"{len(m.returns)} returns")
+    _need(all(_is_number(r) and abs(r) <= 1e12 for r in m.returns), "returns must be finite numbers")
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+CHECKS: dict[type[Message], Any] = {
+    TransitionBatch: check_transitions,
+    SampleRequest: check_sample_request,
+    UnscoredRequest: check_unscored_request,
+    SampleReply: check_sample_reply,
+    SetIntrinsic: check_set_intrinsic,
+    Weights: check_weights,
+    ActorStatus: check_actor_status,
+    EvalResult: check_eval_result,
+}
+"""The value checks of each message type (the others' fields are checked by type and range alone)."""

@@ -12,15 +12,20 @@ import torch
 from shared import wire
 
 
+def f4(*values: float) -> bytes:
+    return np.asarray(values, "<f4").tobytes()
+
+
 def test_every_message_round_trips():
+    frame = wire.encode_frames(np.zeros((1, 3, 8, 8), np.uint8))
     msgs = [
-        wire.TransitionBatch(1, 2, 3, 0, 1, [3, 8, 8], b"f", b"first", b"a" * 4, b"r" * 4, b"d" * 4,
-                             b"\x01", b"v" * 8),
+        wire.TransitionBatch(1, 2, 3, 0, 1, [3, 8, 8], frame, frame, f4(0.5), f4(1.0), f4(1.0),
+                             b"\x01", np.int64(7).tobytes()),
         wire.InsertAck(1, 2, 100),
         wire.SampleRequest(64, 1.5),
         wire.UnscoredRequest(100, 64),
         wire.SampleReply(False, "rate limited", 10),
-        wire.SetIntrinsic(b"i" * 8, b"v" * 4),
+        wire.SetIntrinsic(np.int64(3).tobytes(), f4(0.25)),
         wire.ReplayStats(1, 2, 3, 4, 5, 6, 7, False),
         wire.Weights(1, 5, 100, {"w": ["<f4", [1], b"\0\0\0\0"]}),
         wire.ActorStatus(0, 1, 10, 1, 5, 3.5, [[1.0, 125]]),
@@ -64,7 +69,9 @@ def test_field_types_are_checked():
     # int where float is declared is fine; None only where declared optional
     status = msgpack.unpackb(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, 5.0, [])))
     assert wire.decode(msgpack.packb({**status, "steps_per_s": 5}), wire.ActorStatus).steps_per_s == 5
-    batch = wire.TransitionBatch(1, 2, 3, 8, 1, [3, 8, 8], b"f", None, b"", b"", b"", b"", b"")
+    frame = wire.encode_frames(np.zeros((1, 3, 8, 8), np.uint8))
+    batch = wire.TransitionBatch(1, 2, 3, 8, 1, [3, 8, 8], frame, None, f4(0.0), f4(0.0), f4(1.0), b"\0",
+                                 np.int64(0).tobytes())
     assert wire.decode(wire.encode(batch), wire.TransitionBatch).first_frame is None
 
 
@@ -110,9 +117,10 @@ def test_keys_live_under_the_run_prefix():
         k.parse_alive("nasa/other/alive/actor/1/2")
 
 
-def test_nan_survives_float_fields():
-    r = wire.decode(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, math.nan, [])), wire.ActorStatus)
-    assert math.isnan(r.steps_per_s)
+def test_non_finite_float_fields_are_refused():
+    for bad in (math.nan, math.inf):
+        with pytest.raises(wire.WireError, match="steps_per_s"):
+            wire.decode(wire.encode(wire.ActorStatus(0, 1, 2, 3, 4, bad, [])), wire.ActorStatus)
 
 
 def test_weights_of_a_resumed_learner_are_newer():

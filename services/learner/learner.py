@@ -69,6 +69,7 @@ class Learner:
         self.args, self.session, self.stop = args, session, stop
         self.keys = wire.Keys(args.run_id)
         self.log = Log("learner")
+        self.bounds = wire.Bounds.of(run.spec)
         if args.threads > 0:
             torch.set_num_threads(args.threads)
         self.client = ZenohReplayClient(session, self.keys, run.spec, self.log)
@@ -89,11 +90,14 @@ class Learner:
 
     def _decoded(self, sample: zenoh.Sample, cls: type[wire.M], what: str) -> wire.M | None:
         try:
-            return wire.decode(sample.payload.to_bytes(), cls)
-        except wire.WireError as err:
-            n = self.core.board.count_invalid()
-            self.log.every("invalid", 5.0, f"invalid message ({n} so far): {what}: {err}")
+            return wire.decode(sample.payload.to_bytes(), cls, self.bounds)
+        except Exception as err:  # noqa: BLE001 -- a message never kills a callback
+            self._invalid(what, err)
             return None
+
+    def _invalid(self, what: str, err: object) -> None:
+        n = self.core.board.count_invalid()
+        self.log.every("invalid", 5.0, f"invalid message ({n} so far): {what}: {err}")
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
         if (s := self._decoded(sample, wire.ReplayStats, "replay stats")) is not None:
@@ -102,19 +106,20 @@ class Learner:
     def _on_actor_status(self, sample: zenoh.Sample) -> None:
         if (s := self._decoded(sample, wire.ActorStatus, "actor status")) is None:
             return
-        self.core.board.actor_status(s)
-        for entry in s.episode_returns:
-            if isinstance(entry, list) and len(entry) == 2:
-                self._episodes.put((float(entry[0]), int(entry[1])))
+        try:  # the values were checked on decode; this guards against what no check foresaw
+            self.core.board.actor_status(s)
+            for ret, length in s.episode_returns:
+                self._episodes.put((float(ret), int(length)))
+        except Exception as err:  # noqa: BLE001
+            self._invalid("actor status", err)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
             role, ident, inc = self.keys.parse_alive(str(sample.key_expr))
             if role == "actor" and inc is not None:
                 self.core.board.actor_alive(int(ident), inc, sample.kind == zenoh.SampleKind.PUT)
-        except (wire.WireError, ValueError) as err:
-            self.core.board.count_invalid()
-            self.log.every("invalid", 5.0, f"invalid liveliness key: {err}")
+        except Exception as err:  # noqa: BLE001
+            self._invalid("liveliness key", err)
 
     def _on_eval(self, sample: zenoh.Sample) -> None:
         if (r := self._decoded(sample, wire.EvalResult, "eval result")) is not None:

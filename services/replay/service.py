@@ -33,6 +33,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import queue
 import threading
@@ -69,6 +70,8 @@ class ReplayArgs(ServiceArgs):
     stats_every_s: float = 0.5
     snapshot_every: int = 50_000
     """Compact the store's log every this many inserts."""
+    max_abs_reward: float = 1e3
+    """Refuse transitions whose reward is beyond +-this (a huge finite reward poisons the critic)."""
 
 
 def default_error_buffer(updates_per_step: int) -> float:
@@ -85,6 +88,7 @@ class ReplayService:
         self.log = Log("replay")
         self.frame_shape = run.spec.frame_shape
         self.action_dim = run.spec.action_dim
+        self.bounds = wire.Bounds.of(run.spec, args.max_abs_reward)
         self.store = open_store(run, Path(args.data) / "replay")
         self.limiter: SampleToInsertRatio | None = None
         if not args.no_rate_limit:
@@ -101,7 +105,7 @@ class ReplayService:
         self.samples_served = 0
         # (actor, incarnation) -> [episode, store episode id, next step]
         self._episodes: dict[tuple[int, int], list[int]] = {}
-        self._inserts: queue.Queue[bytes] = queue.Queue()
+        self._inserts: queue.Queue[wire.TransitionBatch] = queue.Queue()
         self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
         self._unscored: queue.Queue[tuple[zenoh.Query, wire.UnscoredRequest]] = queue.Queue()
         self._last_snapshot = self.store.num_inserted
@@ -112,7 +116,11 @@ class ReplayService:
     # -- Zenoh callbacks: queue and return --------------------------------------------
 
     def _on_insert(self, sample: zenoh.Sample) -> None:
-        self._inserts.put(sample.payload.to_bytes())
+        # Checked here, before the batch queues behind the rate limiter: a bad one is refused at once.
+        try:
+            self._inserts.put(wire.decode(sample.payload.to_bytes(), wire.TransitionBatch, self.bounds))
+        except Exception as err:  # noqa: BLE001 -- a message never kills a callback
+            self._invalid(f"transitions: {err}")
 
     def _on_sample_query(self, query: zenoh.Query) -> None:
         self._queue_query(query, wire.SampleRequest, self._queries)
@@ -123,7 +131,7 @@ class ReplayService:
     def _queue_query(self, query: zenoh.Query, cls: type[wire.Message], into: queue.Queue) -> None:
         try:
             payload = query.payload
-            req = wire.decode(payload.to_bytes() if payload is not None else b"", cls)
+            req = wire.decode(payload.to_bytes() if payload is not None else b"", cls, self.bounds)
         except wire.WireError as err:
             self._reject(query, err)
             query.drop()
@@ -132,67 +140,62 @@ class ReplayService:
 
     def _on_intrinsic(self, sample: zenoh.Sample) -> None:
         try:
-            msg = wire.decode(sample.payload.to_bytes(), wire.SetIntrinsic)
+            msg = wire.decode(sample.payload.to_bytes(), wire.SetIntrinsic, self.bounds)
             index = np.frombuffer(msg.index, "<i8")
             value = wire.array(msg.value, "<f4", index.shape)
             self.store.set_intrinsic(index, value)
-        except (wire.WireError, ValueError) as err:
-            self._invalid(f"set_intrinsic: {err}")
         except RuntimeError:  # store closed during shutdown
             pass
+        except Exception as err:  # noqa: BLE001 -- out-of-range indices (ValueError) and the unforeseen
+            self._invalid(f"set_intrinsic: {err}")
 
     def _on_stop(self, sample: zenoh.Sample) -> None:
         try:
             self.stop.set("stop message: " + wire.decode(sample.payload.to_bytes(), wire.Stop).reason)
-        except wire.WireError as err:
+        except Exception as err:  # noqa: BLE001
             self._invalid(f"stop: {err}")
 
     def _invalid(self, what: str) -> None:
         self.invalid += 1
         self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
 
-    def _reject(self, query: zenoh.Query, err: wire.WireError) -> None:
+    def _reject(self, query: zenoh.Query, err: Exception) -> None:
         """Counts and answers a bad request (a malformed message or impossible values)."""
         self._invalid(f"request on {query.key_expr}: {err}")
-        query.reply_err(str(err).encode())
+        try:
+            query.reply_err(str(err).encode())
+        except Exception as reply_err:  # noqa: BLE001 -- the querier may be gone
+            self.log.every("reply", 5.0, f"could not answer a bad request: {reply_err}")
 
     # -- inserts ------------------------------------------------------------------------
 
     def _insert_loop(self) -> None:
         while not self.stop:
             try:
-                payload = self._inserts.get(timeout=0.2)
+                msg = self._inserts.get(timeout=0.2)
             except queue.Empty:
                 continue
             try:
-                msg = wire.decode(payload, wire.TransitionBatch)
                 self.insert_batch(msg)
-            except (wire.WireError, ValueError) as err:
-                self._invalid(f"transitions: {err}")
-                continue
             except RateLimiterClosed:
                 return
+            except Exception as err:  # noqa: BLE001 -- ValueError from the store, and the unforeseen
+                self._invalid(f"transitions: {err}")
+                continue
             ack = wire.InsertAck(msg.actor_id, msg.incarnation, self.store.num_inserted)
             self.session.put(self.keys.ack(msg.actor_id), wire.encode(ack), congestion_control=BLOCK)
 
     def insert_batch(self, msg: wire.TransitionBatch) -> int:
-        """Add a batch's transitions, unscored; returns how many were stored. ValueError if malformed."""
-        n, a = msg.n, self.action_dim
-        if not 1 <= n <= MAX_BATCH:
-            raise wire.WireError(f"batch of {n} transitions")
-        if tuple(msg.frame_shape) != self.frame_shape:
-            raise wire.WireError(f"frame shape {msg.frame_shape}, this run stores {self.frame_shape}")
-        frames = wire.decode_frames(msg.frames, n, self.frame_shape)
-        actions = wire.array(msg.actions, "<f4", (n, a))
-        rewards = wire.array(msg.rewards, "<f4", (n,))
-        discounts = wire.array(msg.discounts, "<f4", (n,))
-        lasts = wire.array(msg.lasts, "u1", (n,))
-        versions = wire.array(msg.policy_versions, "<i8", (n,))
+        """Add a batch's transitions, unscored; returns how many were stored. The batch was decoded
+        with this run's bounds (wire.check_transitions), so its arrays fit the store."""
+        n, arrays = msg.n, getattr(msg, "arrays", None)
+        if arrays is None:  # built in process rather than decoded: check it the same way
+            arrays = wire.decode(wire.encode(msg), wire.TransitionBatch, self.bounds).arrays
+        frames, actions, rewards = arrays["frames"], arrays["action"], arrays["reward"]
+        discounts, lasts, versions = arrays["discount"], arrays["last"], arrays["policy_version"]
         key = (msg.actor_id, msg.incarnation)
         if msg.start == 0:
-            if msg.first_frame is None:
-                raise wire.WireError("an episode's first batch must carry its first frame")
-            first = wire.decode_frames(msg.first_frame, 1, self.frame_shape)[0]
+            first = arrays["first_frame"]
             store_id = self.store.begin_episode(first, msg.actor_id, msg.incarnation)
             self._episodes[key] = [msg.episode, store_id, 0]
         entry = self._episodes.get(key)
@@ -235,10 +238,10 @@ class ReplayService:
                 continue
             try:
                 query.reply(query.key_expr, wire.encode(answer(req)))
-            except wire.WireError as err:
-                self._reject(query, err)
             except RateLimiterClosed:
                 query.reply_err(b"replay stopping")
+            except Exception as err:  # noqa: BLE001 -- a request never kills a serving thread
+                self._reject(query, err)
             finally:
                 query.drop()
 
@@ -251,7 +254,8 @@ class ReplayService:
         """A training batch (paced by the rate limiter), or ok=False after up to req.wait_s."""
         if not 1 <= req.batch_size <= MAX_BATCH:
             raise wire.WireError(f"batch_size {req.batch_size}")
-        wait = min(max(float(req.wait_s), 0.0), 10.0)
+        wait = float(req.wait_s)
+        wait = min(max(wait, 0.0), 10.0) if math.isfinite(wait) else 0.0  # NaN compares false: not min/max
         batch, reason = (local or self.local).draw(req.batch_size, wait)
         if batch is None:
             if reason != "rate limited":  # answered at once: keep a polling learner from spinning

@@ -166,6 +166,7 @@ class ZenohReplayClient:
         self.session = session
         self.keys = keys
         self.spec = spec
+        self.bounds = wire.Bounds.of(spec)
         self.log = log
         self.timeout_s = timeout_s
         self.invalid = 0
@@ -199,13 +200,15 @@ class ZenohReplayClient:
                 if reply.ok is None:
                     self._invalid(f"{key}: error reply {reply.err.payload.to_bytes()!r}")
                     continue
-                answer = wire.decode(reply.ok.payload.to_bytes(), wire.SampleReply)
+                answer = wire.decode(reply.ok.payload.to_bytes(), wire.SampleReply, self.bounds)
                 self._seen(answer.num_inserted)
             return answer
         except wire.WireError as err:
             self._invalid(f"{key}: {err}")
         except zenoh.ZError as err:
             self.log.every("replay-get", 5.0, f"request on {key} failed: {err}")
+        except Exception as err:  # noqa: BLE001 -- a reply never kills a prefetch thread
+            self._invalid(f"{key}: {err}")
         return None
 
     def sample(self, batch_size: int, wait_s: float) -> Batch | None:

@@ -1,0 +1,198 @@
+"""Issue 14, values: well-formed messages with bad values are refused on decode (shared.wire's value
+checks), and no receiver's callback or thread dies of one. In process, no Zenoh."""
+
+from __future__ import annotations
+
+import math
+import queue
+from types import SimpleNamespace
+
+import msgpack
+import numpy as np
+import pytest
+
+from services.learner.learner import Learner
+from services.learner.status import StatusBoard
+from shared import wire
+from shared.service import Log
+from shared.weights import WeightsSubscriber
+from tests.test_replay_service import SPEC, batch, make_service
+from tests.test_weights import _agent, _message
+
+BOUNDS = wire.Bounds.of(SPEC)
+
+
+def _with(msg: wire.Message, **fields: object) -> bytes:
+    """msg encoded with some fields replaced by raw values (any type msgpack carries)."""
+    body = msgpack.unpackb(wire.encode(msg), raw=False)
+    return msgpack.packb({**body, **fields}, use_bin_type=True)
+
+
+def _f4(*values: float) -> bytes:
+    return np.asarray(values, "<f4").tobytes()
+
+
+def _sample(payload: bytes) -> SimpleNamespace:
+    """What a Zenoh subscriber callback receives, as far as the services read it."""
+    return SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload))
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("rewards", _f4(3e38, 1, 1), "rewards"),  # finite but huge: the critic's loss overflows
+    ("rewards", _f4(math.nan, 1, 1), "rewards"),
+    ("discounts", _f4(1.5, 1, 1), "discounts"),
+    ("discounts", _f4(-0.1, 1, 1), "discounts"),
+    ("actions", np.full((3, 2), 1.5, "<f4").tobytes(), "actions"),
+    ("actions", np.full((3, 2), math.inf, "<f4").tobytes(), "actions"),
+    ("actions", _f4(0, 0, 0), "bytes"),  # the wrong action size for this run
+    ("lasts", b"\x00\x07\x00", "lasts"),
+    ("policy_versions", np.array([0, -1, 0], "<i8").tobytes(), "policy versions"),
+    ("n", 2**64 - 1, "outside"),
+    ("actor_id", -1, "outside"),
+    ("frame_shape", [3, 8, 8], "frame shape"),
+    ("frame_shape", ["3", 16, 16], "shape"),
+    ("first_frame", None, "first_frame"),
+])
+def test_transition_values_are_checked_against_the_run(field, value, match):
+    msg, _, _ = batch(n=3)
+    decoded = wire.decode(wire.encode(msg), wire.TransitionBatch, BOUNDS)
+    assert decoded.arrays["frames"].shape == (3, *SPEC.frame_shape)
+    with pytest.raises(wire.WireError, match=match):
+        wire.decode(_with(msg, **{field: value}), wire.TransitionBatch, BOUNDS)
+
+
+def test_the_reward_bound_is_configurable():
+    msg, _, _ = batch(n=3)
+    payload = _with(msg, rewards=_f4(5e3, 1, 1))
+    with pytest.raises(wire.WireError, match="rewards"):
+        wire.decode(payload, wire.TransitionBatch, BOUNDS)
+    assert wire.decode(payload, wire.TransitionBatch, wire.Bounds.of(SPEC, max_abs_reward=1e4))
+
+
+@pytest.mark.parametrize("cls, msg, fields, match", [
+    (wire.SampleRequest, wire.SampleRequest(8), {"wait_s": math.nan}, "wait_s"),
+    (wire.SampleRequest, wire.SampleRequest(8), {"wait_s": -1.0}, "wait_s"),
+    (wire.SampleRequest, wire.SampleRequest(8), {"batch_size": 2**63}, "batch_size"),
+    (wire.UnscoredRequest, wire.UnscoredRequest(0, 8), {"after": 2**64 - 1}, "after"),
+    (wire.UnscoredRequest, wire.UnscoredRequest(0, 8), {"limit": 10**9}, "limit"),
+    (wire.SetIntrinsic, wire.SetIntrinsic(np.int64(1).tobytes(), _f4(0.5)),
+     {"value": _f4(math.inf)}, "scores"),
+    (wire.SetIntrinsic, wire.SetIntrinsic(np.int64(1).tobytes(), _f4(0.5)),
+     {"index": np.int64(-5).tobytes()}, "indices"),
+    (wire.ActorStatus, wire.ActorStatus(1, 2, 3, 4, 5, 1.0, [[1.0, 10]]), {"episode_returns": [["x", 10]]},
+     "episode return"),
+    (wire.ActorStatus, wire.ActorStatus(1, 2, 3, 4, 5, 1.0, [[1.0, 10]]),
+     {"episode_returns": [[math.nan, 10]]}, "episode return"),
+    (wire.ActorStatus, wire.ActorStatus(1, 2, 3, 4, 5, 1.0, []), {"steps_per_s": math.inf}, "steps_per_s"),
+    (wire.EvalResult, wire.EvalResult(10, 1, [1.0]), {"returns": [1.0, math.inf]}, "returns"),
+    (wire.EvalResult, wire.EvalResult(10, 1, [1.0]), {"returns": ["1.0"]}, "returns"),
+    (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<q9", [1], b"\0" * 4]}}, "dtype"),
+    (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<f4", [1], _f4(math.nan)]}}, "non-finite"),
+    (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<f4", [2**62, 2**62], b""]}}, "shape"),
+])
+def test_request_and_report_values_are_checked(cls, msg, fields, match):
+    assert wire.decode(wire.encode(msg), cls, BOUNDS) == msg
+    with pytest.raises(wire.WireError, match=match):
+        wire.decode(_with(msg, **fields), cls, BOUNDS)
+
+
+def test_sample_replies_are_checked_against_the_run(tmp_path):
+    svc = make_service(tmp_path, no_rate_limit=True)
+    svc.insert_batch(batch(n=5)[0])
+    reply = svc.sample(wire.SampleRequest(4, 0.0))
+    assert wire.decode(wire.encode(reply), wire.SampleReply, BOUNDS).ok
+    for field, value in (("reward", _f4(1, 1, 1, 1e30)), ("discount", _f4(1, 1, 1, 2)),
+                         ("window_shape", [4, 9, 16, 16]), ("intrinsic", _f4(1, 1, 1, math.inf))):
+        with pytest.raises(wire.WireError):
+            wire.decode(_with(reply, **{field: value}), wire.SampleReply, BOUNDS)
+    svc.store.close()
+
+
+def test_a_nan_wait_does_not_escape_the_cap(tmp_path):
+    svc = make_service(tmp_path)  # warm-up not reached: a request waits its wait_s out
+    req = wire.SampleRequest(4, 1.0)
+    req.wait_s = math.nan  # what a decoder without value checks let through
+    assert not svc.sample(req).ok  # returns at once (NaN is no wait), never blocks for ever
+    svc.store.close()
+
+
+def test_a_bad_insert_is_refused_before_it_queues_behind_the_rate_limiter(tmp_path):
+    svc = make_service(tmp_path)  # no insert thread runs: anything queued would wait
+    msg, _, _ = batch(n=3)
+    svc._on_insert(_sample(_with(msg, rewards=_f4(3e38, 1, 1))))
+    svc._on_insert(_sample(b"\xc1 not msgpack"))
+    assert svc.invalid == 2 and svc._inserts.empty()
+    svc._on_insert(_sample(wire.encode(msg)))
+    assert svc._inserts.qsize() == 1
+    svc.store.close()
+
+
+def test_replay_callbacks_and_threads_survive_any_value(tmp_path):
+    svc = make_service(tmp_path, no_rate_limit=True)
+    svc.insert_batch(batch(n=5)[0])
+    # an index the store has not reached: the store raises ValueError; the callback counts it
+    svc._on_intrinsic(_sample(wire.encode(wire.SetIntrinsic(np.int64(99).tobytes(), _f4(0.5)))))
+    assert svc.invalid == 1
+
+    class Query:
+        key_expr = "q"
+        replied: list = []
+
+        def reply(self, key, payload):  # noqa: ANN001
+            self.replied.append(("ok", payload))
+
+        def reply_err(self, payload):  # noqa: ANN001
+            self.replied.append(("err", payload))
+
+        def drop(self):
+            pass
+
+    def boom(req):  # noqa: ANN001
+        raise OverflowError("what no check foresaw")
+
+    queries: queue.Queue = queue.Queue()
+    for _ in range(2):
+        queries.put((Query(), wire.UnscoredRequest(0, 4)))
+    answers = iter([boom, svc.unscored])
+
+    def answer(req):  # noqa: ANN001
+        f = next(answers)
+        if f == svc.unscored:
+            svc.stop.set("test done")  # the loop ends after this one
+        return f(req)
+
+    svc._serve_loop(queries, answer)
+    assert [kind for kind, _ in Query.replied] == ["err", "ok"]  # it survived the first and went on
+    assert svc.invalid == 2
+    svc.store.close()
+
+
+def test_weights_with_an_unknown_dtype_do_not_crash_an_actor():
+    actor, learner = _agent(0), _agent(1)
+    bad: list[str] = []
+    sub = WeightsSubscriber(actor, bad.append)
+    body = msgpack.unpackb(_message(learner, epoch=1, version=5), raw=False)
+    name = next(iter(body["tensors"]))
+    body["tensors"][name][0] = "<V7"
+    sub.offer(msgpack.packb(body, use_bin_type=True))
+    assert not sub.maybe_load() and len(bad) == 1 and sub.version is None
+    body["tensors"][name][0] = "bfloat16"
+    sub.offer(msgpack.packb(body, use_bin_type=True))
+    assert not sub.maybe_load() and len(bad) == 2
+    sub.offer(_message(learner, epoch=1, version=5))
+    assert sub.maybe_load() and sub.version == 5
+
+
+def test_an_actor_status_with_bad_entries_does_not_crash_the_learner():
+    learner = Learner.__new__(Learner)  # the callbacks need the board, the queue, the log and the bounds
+    learner.core = SimpleNamespace(board=StatusBoard())
+    learner._episodes = queue.Queue()
+    learner.log = Log("learner")
+    learner.bounds = BOUNDS
+    good = wire.ActorStatus(1, 2, 30, 1, 5, 1.0, [[12.5, 10]])
+    for entries in ([["x", 10]], [[math.nan, 10]], [[1.0, "10"]], [[1.0]], [None]):
+        learner._on_actor_status(_sample(_with(good, episode_returns=entries)))
+    learner._on_eval(_sample(_with(wire.EvalResult(10, 1, [1.0]), returns=[math.inf])))
+    assert learner.core.board.invalid == 6 and learner._episodes.empty()
+    learner._on_actor_status(_sample(wire.encode(good)))
+    assert learner._episodes.get_nowait() == (12.5, 10)
