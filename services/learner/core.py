@@ -9,6 +9,8 @@ only through a `ReplayClient`, so unit tests drive it with the in-process
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,13 +19,16 @@ import torch
 from services.learner.status import StatusBoard
 from shared import checkpoint, wire
 from shared.agents import batch_to_device, make_agent
+from shared.agents.base import nonfinite_skips
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
+from shared.service import Log
 
 CHECKPOINT = "learner/checkpoint.pt"
+CHECKPOINT_RETRY_S = 30.0
 
 
 class LearnerCore:
@@ -38,6 +43,9 @@ class LearnerCore:
         self.scorer = (IntrinsicScorer(self.agent, client, c.warmup_steps, c.batch_size)
                        if collect_scoring(self.agent, c) else None)
         self.board = StatusBoard()
+        self.log = Log("learner")
+        self.checkpoint_error = ""  # why the last checkpoint was not written ("" if it was)
+        self._checkpoint_retry_at = 0.0
         self.scalars = Scalars(self.out / TENSORBOARD_DIR / "learner")
         self._decoder_sent: int | None = None  # the eval period whose weights carried the decoder
         self.counters = Counters()
@@ -53,20 +61,40 @@ class LearnerCore:
     # -- training -----------------------------------------------------------------
 
     def train_on(self, batch: Batch) -> dict[str, float]:
-        """One update: score what the collect timing still owes, then update on the batch."""
+        """One update: score what the collect timing still owes, then update on the batch.
+
+        A batch with a non-finite value is dropped (no update; its rows' indices logged); an
+        update whose loss or gradient is non-finite skips that optimizer step (optimizer_step)
+        and is counted as skipped. Either way no NaN reaches the weights."""
         if self.scorer is not None:
             self.scorer.score_new()
             self.scorer.score_batch(batch)
+        bad = nonfinite_rows(batch, intrinsic=self.scorer is not None)
+        if len(bad):
+            index = batch["index"][bad].tolist()
+            n = self.board.count_nonfinite_batch(index)
+            self.log.every("nonfinite-batch", 5.0, f"dropped batch {n}: non-finite values in rows "
+                           f"{index[:16]}")
+            return {}
         self.board.record_lag(self.agent.num_updates, batch["policy_version"])
+        skipped = nonfinite_skips(self.agent)
         metrics = self.agent.update(batch_to_device(batch, self.device))
+        if nonfinite_skips(self.agent) > skipped or not all(np.isfinite(v) for v in metrics.values()):
+            n = self.board.count_skipped_update()
+            self.log.every("nonfinite-update", 5.0, f"skipped update ({n} so far): non-finite loss or "
+                           f"gradient {metrics}")
         self.board.record_update(metrics)
-        self.means.add(metrics)
+        self.means.add({k: v for k, v in metrics.items() if np.isfinite(v)})
         return metrics
 
-    def weights_message(self, epoch: int) -> bytes:
-        """The policy's weights as published; version = the update count."""
-        self.policy_version = self.agent.num_updates
+    def weights_message(self, epoch: int) -> bytes | None:
+        """The policy's weights as published; version = the update count. None (nothing to
+        publish) if a tensor is not finite."""
         state = self.agent.policy_state_dict()
+        if not all_finite(state):
+            self.log.every("nonfinite-weights", 5.0, "weights not published: a tensor is not finite")
+            return None
+        self.policy_version = self.agent.num_updates
         period = self.env_steps // self.config.eval_every
         if hasattr(self.agent, "decoder") and period != self._decoder_sent:
             # Once per evaluation period the weights carry the decoder too, so the evaluator can
@@ -105,14 +133,32 @@ class LearnerCore:
     # -- checkpoint -----------------------------------------------------------------
 
     def checkpoint_due(self) -> bool:
+        if time.monotonic() < self._checkpoint_retry_at:
+            return False
         every = self.config.checkpoint_every
         return self.env_steps // every > self.last_checkpoint_step // every
 
-    def save_checkpoint(self, wall_s: float) -> None:
-        self.counters.env_steps, self.counters.wall_s = self.env_steps, wall_s
-        self.recorder.checkpoint(self.out / CHECKPOINT, self.agent, self.rng, self.counters,
-                                 policy_version=self.policy_version)
-        self.last_checkpoint_step = self.counters.env_steps
+    def save_checkpoint(self, wall_s: float) -> bool:
+        """Checkpoint if every tensor of the agent is finite and the write succeeds; else the last
+        checkpoint stays as it was (written to a temporary file, then renamed) and the next try
+        comes CHECKPOINT_RETRY_S later (False)."""
+        self.checkpoint_error = ""
+        if not all_finite(self.agent.state_dict()):
+            self.checkpoint_error = "a tensor is not finite"
+        else:
+            counters = dataclasses.replace(self.counters, env_steps=self.env_steps, wall_s=wall_s)
+            try:
+                self.recorder.checkpoint(self.out / CHECKPOINT, self.agent, self.rng, counters,
+                                         policy_version=self.policy_version)
+            except (OSError, RuntimeError) as err:  # a full disk (torch.save raises RuntimeError): retry
+                self.checkpoint_error = f"{type(err).__name__}: {err}"
+            else:
+                self.counters = counters
+                self.last_checkpoint_step = counters.env_steps
+                return True
+        self._checkpoint_retry_at = time.monotonic() + CHECKPOINT_RETRY_S
+        self.log.every("checkpoint", 5.0, f"checkpoint not written: {self.checkpoint_error}")
+        return False
 
     def restore(self, state: dict) -> None:
         self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=False)
@@ -147,3 +193,25 @@ class LearnerCore:
             "wall_s": round(wall_s, 3),
             **fleet,
         }
+
+
+def nonfinite_rows(batch: Batch, intrinsic: bool) -> np.ndarray:
+    """Rows of a batch with a non-finite action, reward or discount (and intrinsic reward, when
+    the agent uses it: unscored NaN rows are the scorer's to fill before this check)."""
+    keys = ("action", "reward", "discount", "intrinsic") if intrinsic else ("action", "reward", "discount")
+    bad = np.zeros(len(batch["index"]), bool)
+    for key in keys:
+        values = batch[key].reshape(len(bad), -1)
+        bad |= ~np.isfinite(values).all(axis=1)
+    return np.flatnonzero(bad)
+
+
+def all_finite(state: object) -> bool:
+    """Whether every floating tensor in a (nested) state dict is finite."""
+    if isinstance(state, torch.Tensor):
+        return not state.is_floating_point() or bool(torch.isfinite(state).all())
+    if isinstance(state, dict):
+        return all(all_finite(v) for v in state.values())
+    if isinstance(state, list | tuple):
+        return all(all_finite(v) for v in state)
+    return True

@@ -137,8 +137,10 @@ class Learner:
     # -- the loop ----------------------------------------------------------------------
 
     def publish_weights(self, publisher: zenoh.Publisher) -> None:
-        self._weights_msg = self.core.weights_message(self.epoch)
-        publisher.put(self._weights_msg)
+        msg = self.core.weights_message(self.epoch)
+        if msg is not None:  # never non-finite weights: the actors keep the last good ones
+            self._weights_msg = msg
+            publisher.put(msg)
 
     def run(self) -> None:
         from services.learner.status_api import StatusServer, make_app

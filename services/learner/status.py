@@ -32,6 +32,13 @@ class StatusBoard:
         self.actors: dict[int, dict] = {}
         self.invalid = 0
         self.losses: dict[str, float] = {}
+        # Non-finite values met by the loop: skipped updates, dropped batches, and per loss how
+        # often it was non-finite and its last such value ("nan", "inf", "-inf"), so /status shows them.
+        self.skipped_updates = 0
+        self.dropped_batches = 0
+        self.dropped_rows: list[int] = []
+        self.nonfinite_losses: dict[str, dict] = {}
+        self.last_update = time.monotonic()
         self.lag = {"mean": None, "max": None}
         self._rates: deque[tuple[float, int, int]] = deque(maxlen=64)
 
@@ -74,8 +81,24 @@ class StatusBoard:
 
     # -- what the loop measures --------------------------------------------------------
 
+    def count_skipped_update(self) -> int:
+        self.skipped_updates += 1
+        return self.skipped_updates
+
+    def count_nonfinite_batch(self, index: list[int]) -> int:
+        """A batch dropped for non-finite values; `index`: its bad rows' global indices."""
+        self.dropped_batches += 1
+        self.dropped_rows = index[:64]
+        return self.dropped_batches
+
     def record_update(self, metrics: dict[str, float]) -> None:
+        self.last_update = time.monotonic()
         for key, value in metrics.items():
+            if not math.isfinite(value):
+                entry = self.nonfinite_losses.setdefault(key, {"count": 0, "last": ""})
+                entry["count"] += 1
+                entry["last"] = str(value)
+                continue  # the running mean keeps the finite values
             old = self.losses.get(key)
             self.losses[key] = value if old is None else 0.95 * old + 0.05 * value
 
@@ -123,5 +146,8 @@ class StatusBoard:
             "actors": actors,
             "policy_lag": {k: (round(v, 3) if v is not None else None) for k, v in self.lag.items()},
             "losses": {k: round(v, 6) for k, v in self.losses.items() if math.isfinite(v)},
+            "nonfinite": {"skipped_updates": self.skipped_updates, "dropped_batches": self.dropped_batches,
+                          "dropped_rows": list(self.dropped_rows),
+                          "losses": {k: dict(v) for k, v in self.nonfinite_losses.items()}},
             "invalid_messages": invalid,
         }

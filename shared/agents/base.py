@@ -85,13 +85,34 @@ def adam(params, lr: float, weight_decay: float = 0.0, betas=(0.9, 0.999)) -> to
     return torch.optim.Adam(list(params), lr=lr, weight_decay=weight_decay, betas=betas, fused=True)
 
 
-def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) -> None:
-    """Zero, backpropagate once, step each optimizer (several when one loss trains several parts)."""
+def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) -> bool:
+    """Zero, backpropagate once, step each optimizer (several when one loss trains several parts).
+
+    A non-finite loss or gradient skips the step (False; counted in each optimizer's
+    `nonfinite_skips`): a NaN never reaches the weights or Adam's moments.
+    """
     for opt in optimizers:
         opt.zero_grad(set_to_none=True)
     loss.backward()
+    grads = [p.grad for opt in optimizers for group in opt.param_groups for p in group["params"]
+             if p.grad is not None]
+    finite = torch.isfinite(loss.detach()).all()
+    if grads:  # one device-to-host sync for the loss and every gradient
+        finite = finite & torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
+    if not bool(finite):
+        for opt in optimizers:
+            opt.zero_grad(set_to_none=True)
+            opt.nonfinite_skips = getattr(opt, "nonfinite_skips", 0) + 1
+        return False
     for opt in optimizers:
         opt.step()
+    return True
+
+
+def nonfinite_skips(agent: object) -> int:
+    """Optimizer steps the agent skipped for a non-finite loss or gradient (optimizer_step)."""
+    optimizers = agent._optimizers().values() if hasattr(agent, "_optimizers") else []
+    return sum(getattr(opt, "nonfinite_skips", 0) for opt in optimizers)
 
 
 class ModuleStateMixin:

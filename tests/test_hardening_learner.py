@@ -1,0 +1,103 @@
+"""Issue 14, the learner's non-finite guard: a non-finite loss or gradient skips the step, a batch with
+a non-finite value is dropped, weights and checkpoints are only ever finite, /status says so; a failed
+checkpoint write keeps the previous one and is retried later. In process, no Zenoh."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from services.learner.core import CHECKPOINT, all_finite
+from shared import checkpoint, wire
+from shared.agents.base import nonfinite_skips, optimizer_step
+from tests.test_learner import core_on
+
+
+def _finite_params(agent) -> bool:  # noqa: ANN001
+    return all_finite(agent.state_dict())
+
+
+def test_a_non_finite_loss_skips_the_optimizer_step():
+    layer = torch.nn.Linear(3, 1)
+    opt = torch.optim.Adam(layer.parameters(), lr=0.1)
+    before = [p.detach().clone() for p in layer.parameters()]
+    loss = (layer(torch.ones(1, 3)) * torch.tensor(float("nan"))).sum()
+    assert optimizer_step([opt], loss) is False
+    assert all(torch.equal(a, b) for a, b in zip(before, layer.parameters(), strict=True))
+    assert opt.nonfinite_skips == 1 and not opt.state  # Adam's moments never saw the NaN
+    # a finite loss whose gradient overflows is skipped too
+    loss = torch.sqrt((layer.weight - layer.weight.detach()).abs()).sum()  # 0, slope infinite at 0
+    assert torch.isfinite(loss)
+    assert optimizer_step([opt], loss) is False and opt.nonfinite_skips == 2
+    assert optimizer_step([opt], layer(torch.ones(1, 3)).sum()) is True
+    assert not all(torch.equal(a, b) for a, b in zip(before, layer.parameters(), strict=True))
+
+
+@pytest.mark.parametrize("algo", ["nasa_td3", "sac_ae"])
+def test_a_huge_reward_skips_updates_and_never_reaches_the_weights(tmp_path, algo):
+    core = core_on(tmp_path, algo)
+    client = core.scorer.client if core.scorer is not None else None
+    batch = (client or _client()).sample(16)
+    batch["reward"][:] = 3e38  # finite, but the critic's loss overflows
+    core.train_on(batch)
+    assert nonfinite_skips(core.agent) >= 1 and _finite_params(core.agent)
+    msg = wire.decode(core.weights_message(epoch=1), wire.Weights)  # the value checks refuse NaN
+    assert msg.version == core.agent.num_updates
+    status = core.status("r", 1.0)
+    assert status["nonfinite"]["skipped_updates"] == 1
+    assert status["nonfinite"]["losses"]["critic_loss"]["last"] in ("inf", "nan")
+    json.dumps(status, allow_nan=False)  # /status stays valid JSON
+
+
+def _client():  # noqa: ANN202
+    from shared.replay.client import LocalReplay
+    from tests.test_scoring import filled_store
+
+    return LocalReplay(filled_store(60), np.random.default_rng(0))
+
+
+def test_a_batch_with_a_non_finite_value_is_dropped_with_its_rows(tmp_path):
+    core = core_on(tmp_path)
+    batch = core.scorer.client.sample(16)
+    batch["discount"][3] = np.nan
+    batch["action"][5, 0] = np.inf
+    assert core.train_on(batch) == {} and core.agent.num_updates == 0
+    status = core.status("r", 1.0)["nonfinite"]
+    assert status["dropped_batches"] == 1
+    assert status["dropped_rows"] == [int(batch["index"][3]), int(batch["index"][5])]
+
+
+def test_non_finite_weights_are_neither_published_nor_checkpointed(tmp_path):
+    core = core_on(tmp_path)
+    core.train_on(core.scorer.client.sample(16))
+    core.board.seen_env_steps(60)
+    assert core.save_checkpoint(wall_s=1.0)
+    saved = (tmp_path / CHECKPOINT).read_bytes()
+    with torch.no_grad():
+        next(core.agent.actor.parameters()).fill_(float("nan"))
+    assert core.weights_message(epoch=1) is None
+    assert not core.save_checkpoint(wall_s=2.0) and "not finite" in core.checkpoint_error
+    assert (tmp_path / CHECKPOINT).read_bytes() == saved
+
+
+def test_a_failed_checkpoint_write_keeps_the_previous_and_is_retried_later(tmp_path, monkeypatch):
+    core = core_on(tmp_path)
+    core.board.seen_env_steps(60)
+    assert core.save_checkpoint(wall_s=1.0)
+    saved = (tmp_path / CHECKPOINT).read_bytes()
+
+    def full_disk(obj, f):  # noqa: ANN001
+        f.write(b"x" * 100)
+        raise RuntimeError("PytorchStreamWriter failed writing file: No space left on device")
+
+    monkeypatch.setattr(checkpoint.torch, "save", full_disk)
+    core.board.seen_env_steps(10_000)
+    assert core.checkpoint_due()
+    assert not core.save_checkpoint(wall_s=2.0)  # no exception: the learner does not crash-loop
+    assert "No space" in core.checkpoint_error and not core.checkpoint_due()  # retried later
+    assert (tmp_path / CHECKPOINT).read_bytes() == saved
+    assert not list((tmp_path / "learner").glob("*.tmp"))  # the torn temporary file is gone
+    assert core.counters.env_steps == 60  # the counters describe the checkpoint on disk
