@@ -48,19 +48,19 @@ class IntrinsicScorer:
 
     def score_new(self) -> int:
         """Score up to one batch of the oldest rows not scored yet; returns how many rows it saw."""
+        zeros = 0
         warm = min(self.client.num_inserted, self.warmup_steps)
         if self._after < warm:  # warm-up rows score 0: no frames needed
             index = np.arange(self._after, warm)
             self.client.set_intrinsic(index, np.zeros(len(index), np.float32))
-            self._after = warm
-            return len(index)
+            self._after, zeros = warm, len(index)
         batch, seen = self.client.unscored(self._after, self.batch_size)
         if batch is None:
             self._after = max(self._after, seen)
-            return 0
+            return zeros
         self.score_batch(batch, on_arrival=True)
         self._after = max(self._after, int(batch["index"].max()) + 1)
-        return len(batch["index"])
+        return zeros + len(batch["index"])
 
     def catch_up(self) -> None:
         """Score every row stored so far (the end of a run: the last arrivals)."""

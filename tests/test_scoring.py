@@ -100,3 +100,14 @@ def test_episode_means_are_per_scored_transition_and_reset_when_taken():
     assert set(means) == {"novelty_mean", "surprise_mean"}
     assert means["novelty_mean"] == pytest.approx(scorer.means["novelty"])
     assert scorer.take_episode_means() == {}
+
+
+def test_a_scorer_started_late_zeroes_the_warm_up_and_scores_the_new_row_in_the_same_call():
+    """A resumed run: the first call must also score the newest row, before the next update."""
+    store, agent = filled_store(40), nasa_agent()
+    client = LocalReplay(store, np.random.default_rng(0))
+    client.set_intrinsic(np.arange(39), np.full(39, 0.5, np.float32))  # all but the row added last
+    late = IntrinsicScorer(agent, client, WARMUP, batch_size=64)
+    late.score_new()
+    assert not np.isnan(store.get(np.arange(40))["intrinsic"]).any()
+    assert late.scored == 1
