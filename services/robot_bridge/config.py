@@ -36,6 +36,8 @@ class GripperConfigError(ValueError):
 class BusConfig:
     port: str
     baud: int = 1000000
+    latency_ms: float = 16.0
+    """The USB adapter's latency timer: the SDK waits twice this (plus transfer time) for a reply."""
 
 
 @dataclass(frozen=True)
@@ -189,6 +191,8 @@ def _check(
             problems.append(f"bus.baud: {bus.baud} is not an XL-320 baud rate ({rates})")
         if not bus.port:
             problems.append("bus.port: must not be empty")
+        if not 0 < bus.latency_ms <= 1000:
+            problems.append(f"bus.latency_ms: must be in (0, 1000], got {bus.latency_ms}")
     if camera is not None:
         problems += _check_camera(camera)
     if angle is not None:
