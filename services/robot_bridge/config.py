@@ -52,6 +52,8 @@ class ServoConfig:
     torque_limit: int = 600
     max_step_change: int = 150
     """The most a goal may move from the previous goal in one env step (steps)."""
+    settle_s: float = 0.3
+    """How long the goals act before the frame of a step is taken."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,11 @@ class CameraConfig:
     image_size: int = 84
     drop_frames: int = 4
     """Buffered frames read and dropped before each observation, so it is from after the action."""
+    valve_centre: tuple[float, ...] = (0.5, 0.5)
+    """Where the valve's axis is in the image (fractions of width, height): the target is drawn
+    around it, since the policy sees only pixels."""
+    target_radius: float = 0.35
+    """The drawn target marker's distance from the valve centre, as a fraction of the image height."""
 
 
 @dataclass(frozen=True)
@@ -169,6 +176,11 @@ def _typed(name: str, value: Any, expected: str, problems: list[str]) -> Any:
             problems.append(f"{name}: must be an array of integers, got {value!r}")
             return ()
         return tuple(value)
+    if expected == "tuple[float, ...]":
+        if not isinstance(value, list) or not all(type(v) in (int, float) for v in value):
+            problems.append(f"{name}: must be an array of numbers, got {value!r}")
+            return ()
+        return tuple(float(v) for v in value)
     if expected == "int" and (not isinstance(value, int) or isinstance(value, bool)):
         problems.append(f"{name}: must be an integer, got {value!r}")
     elif expected == "float" and (not isinstance(value, int | float) or isinstance(value, bool)):
@@ -211,6 +223,10 @@ def _check_camera(cam: CameraConfig) -> list[str]:
         problems.append(f"camera.index: must be >= 0, got {cam.index}")
     if cam.drop_frames < 0:
         problems.append(f"camera.drop_frames: must be >= 0, got {cam.drop_frames}")
+    if len(cam.valve_centre) != 2 or not all(0.0 <= v <= 1.0 for v in cam.valve_centre):
+        problems.append(f"camera.valve_centre: must be [x, y] in 0..1, got {list(cam.valve_centre)}")
+    if not 0.0 < cam.target_radius <= 1.0:
+        problems.append(f"camera.target_radius: must be in (0, 1], got {cam.target_radius}")
     return problems
 
 
@@ -283,4 +299,6 @@ def _check_servos(s: ServoConfig, v: ValveServoConfig) -> list[str]:
             problems.append(f"{name}: {value} is outside 1..{top}")
     if s.max_step_change < 1:
         problems.append(f"servos.max_step_change: must be >= 1, got {s.max_step_change}")
+    if not s.settle_s >= 0:
+        problems.append(f"servos.settle_s: must be >= 0, got {s.settle_s}")
     return problems

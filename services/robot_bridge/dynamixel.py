@@ -72,9 +72,7 @@ class ServoBus:
             self.port.closePort()
             raise BusError(f"cannot set {port} to {baud} baud", self.ids)
         self._goals = GroupSyncWrite(self.port, self.packet, xl320.GOAL_POSITION, 2)
-        self._state = GroupSyncRead(self.port, self.packet, xl320.STATE_BLOCK_START, xl320.STATE_BLOCK_LENGTH)
-        for sid in self.ids:
-            self._state.addParam(sid)
+        self._reads: dict[tuple[int, ...], GroupSyncRead] = {}
 
     def close(self) -> None:
         if self.port.is_open:
@@ -91,26 +89,35 @@ class ServoBus:
         if result != COMM_SUCCESS:
             raise BusError(f"sync write failed: {self.packet.getTxRxResult(result)}", list(goals))
 
-    def read_state(self) -> ServoState:
-        result = self._state.txRxPacket()
+    def read_state(self, ids: Sequence[int] | None = None) -> ServoState:
+        """The state block of the given servos (all by default), in that order, in one sync read."""
+        ids = self.ids if ids is None else tuple(ids)
+        group = self._reads.get(ids)
+        if group is None:
+            group = self._reads[ids] = GroupSyncRead(
+                self.port, self.packet, xl320.STATE_BLOCK_START, xl320.STATE_BLOCK_LENGTH
+            )
+            for sid in ids:
+                group.addParam(sid)
+        result = group.txRxPacket()
         if result != COMM_SUCCESS:
-            silent = self.unanswering()
+            silent = self.unanswering(ids)
             message = self.packet.getTxRxResult(result)
             named = silent or "none"
-            raise BusError(f"sync read failed: {message}; servos not answering: {named}", silent or self.ids)
-        get = self._state.getData
+            raise BusError(f"sync read failed: {message}; servos not answering: {named}", silent or ids)
+        get = group.getData
         return ServoState(
-            position=np.array([get(i, xl320.PRESENT_POSITION, 2) for i in self.ids], dtype=np.int64),
-            load=np.array([xl320.signed_load(get(i, xl320.PRESENT_LOAD, 2)) for i in self.ids], np.int64),
-            moving=np.array([bool(get(i, xl320.MOVING, 1)) for i in self.ids]),
-            error=np.array([get(i, xl320.HARDWARE_ERROR_STATUS, 1) for i in self.ids], dtype=np.int64),
-            voltage=np.array([get(i, xl320.PRESENT_VOLTAGE, 1) for i in self.ids], dtype=np.int64),
-            temperature=np.array([get(i, xl320.PRESENT_TEMPERATURE, 1) for i in self.ids], dtype=np.int64),
+            position=np.array([get(i, xl320.PRESENT_POSITION, 2) for i in ids], dtype=np.int64),
+            load=np.array([xl320.signed_load(get(i, xl320.PRESENT_LOAD, 2)) for i in ids], np.int64),
+            moving=np.array([bool(get(i, xl320.MOVING, 1)) for i in ids]),
+            error=np.array([get(i, xl320.HARDWARE_ERROR_STATUS, 1) for i in ids], dtype=np.int64),
+            voltage=np.array([get(i, xl320.PRESENT_VOLTAGE, 1) for i in ids], dtype=np.int64),
+            temperature=np.array([get(i, xl320.PRESENT_TEMPERATURE, 1) for i in ids], dtype=np.int64),
         )
 
-    def unanswering(self) -> list[int]:
+    def unanswering(self, ids: Sequence[int] | None = None) -> list[int]:
         """The servos that do not answer a ping properly."""
-        return [sid for sid in self.ids if not self.ping(sid)]
+        return [sid for sid in (self.ids if ids is None else ids) if not self.ping(sid)]
 
     def set_torque(self, enable: bool, ids: Iterable[int] | None = None) -> None:
         for sid in self.ids if ids is None else ids:

@@ -108,7 +108,7 @@ class SafeFingers:
             self._refuse_if_stopped()
             for sid in self.ids:
                 self.bus.set_limits(sid, self.servos.moving_speed, self.servos.torque_limit)
-            state = self.bus.read_state()
+            state = self.bus.read_state(self.ids)
             self.last_goals = state.position.copy()
             self.bus.write_goals(dict(zip(self.ids, self.last_goals.tolist(), strict=True)))
             self.bus.set_torque(True, self.ids)
@@ -124,7 +124,7 @@ class SafeFingers:
                 self._refuse_if_stopped()
                 goals, _ = self.clamp(self.home)
                 self._send(goals)
-                state = self.bus.read_state()
+                state = self.bus.read_state(self.ids)
             if np.all(np.abs(state.position - self.home) <= self.safety.home_tolerance):
                 return True
             self._sleep(0.05)
@@ -148,7 +148,7 @@ class SafeFingers:
         with self._lock:
             self._refuse_if_stopped()
             try:
-                state = self.bus.read_state()
+                state = self.bus.read_state(self.ids)
             except BusError as e:
                 return self._faulted(goals, clamped, start, e.servo_ids, str(e))
         self.last_errors = state.faults(self.ids)
@@ -195,7 +195,7 @@ class SafeFingers:
                     if unreached:
                         raise BusError(f"watchdog could not turn torque off on {unreached}", unreached)
                 elif idle >= self.safety.watchdog_hold_s and self.watchdog is Watchdog.ACTIVE:
-                    present = self.bus.read_state().position
+                    present = self.bus.read_state(self.ids).position
                     self.bus.write_goals(dict(zip(self.ids, present.tolist(), strict=True)))
                     self.last_goals = present.copy()
                     self.watchdog = Watchdog.HOLDING
