@@ -1,0 +1,78 @@
+"""`BridgeEnv`: a remote gripper (or stand-in) behind a robot bridge, as a raw environment layer.
+
+It has the raw layer's interface (`reset`/`step` -> (frame, reward, discount, last), `action_dim`,
+`image_size`, `rng_state`), so `shared.envs.FrameStack` stacks its frames like a local task's and
+the actor above it does not change. The bridge draws targets and reset angles itself, so the
+client's random state is empty. A bridge that does not answer (gone, or refusing a reset during
+an e-stop or fault) raises `BridgeUnavailable`: the actor pauses and starts a new episode later.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import zenoh
+
+from shared import wire
+
+
+class BridgeUnavailable(RuntimeError):
+    """The bridge did not answer, or refused (e-stop, fault, waiting for an operator)."""
+
+
+class BridgeEnv:
+    def __init__(self, session: zenoh.Session, bridge_id: str | int, client: str = "actor",
+                 timeout_s: float = 30.0) -> None:
+        self.session = session
+        self.keys = wire.BridgeKeys(bridge_id)
+        self.client = client
+        self.timeout_s = timeout_s
+        spec = self._ask(self.keys.spec, wire.BridgeSpecRequest(), wire.BridgeSpec)
+        self.task = spec.task
+        self.action_dim = spec.action_dim
+        self.frame_shape = tuple(spec.frame_shape)
+        self.image_size = self.frame_shape[1]
+        self.episode = -1
+        self._step = 0
+        self.info: dict = {}
+
+    def alive(self) -> bool:
+        """Whether the bridge's liveliness token is up."""
+        return any(r.ok is not None for r in self.session.liveliness().get(self.keys.alive, timeout=5.0))
+
+    def rng_state(self) -> dict:
+        return {}
+
+    def set_rng_state(self, state: dict) -> None:
+        pass  # the bridge owns the draws of targets and reset angles
+
+    def reset(self) -> tuple[np.ndarray, float, float, bool]:
+        r = self._ask(self.keys.reset, wire.BridgeReset(self.client), wire.BridgeReply)
+        if not r.ok:
+            raise BridgeUnavailable(f"bridge {self.keys.prefix} refused a reset: {r.reason}")
+        self.episode, self._step = r.episode, 0
+        return self._frame(r), 0.0, 1.0, False
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool]:
+        payload = np.asarray(action, dtype="<f4").tobytes()
+        msg = wire.BridgeStep(self.client, self.episode, self._step, payload)
+        r = self._ask(self.keys.step, msg, wire.BridgeReply)
+        self._step += 1
+        return self._frame(r), r.reward, r.discount, r.last
+
+    def _frame(self, r: wire.BridgeReply) -> np.ndarray:
+        self.info = r.info
+        if tuple(r.frame_shape) != self.frame_shape:
+            announced = list(self.frame_shape)
+            raise wire.WireError(f"frame shape {r.frame_shape}, the bridge announced {announced}")
+        return wire.array(r.frame, "u1", self.frame_shape)
+
+    def _ask(self, key: str, msg: wire.Message, cls: type[wire.M]) -> wire.M:
+        try:
+            replies = self.session.get(key, payload=wire.encode(msg), timeout=self.timeout_s)
+            for reply in replies:
+                if reply.ok is not None:
+                    return wire.decode(reply.ok.payload.to_bytes(), cls)
+                raise BridgeUnavailable(f"bridge {self.keys.prefix}: {reply.err.payload.to_bytes().decode()}")
+        except zenoh.ZError as e:
+            raise BridgeUnavailable(f"bridge {self.keys.prefix}: {e}") from e
+        raise BridgeUnavailable(f"bridge {self.keys.prefix} did not answer within {self.timeout_s} s")

@@ -1,0 +1,93 @@
+"""The bridge over real Zenoh on loopback: the stand-in behind it, BridgeEnv in front."""
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from nasa.up import free_port
+from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
+from services.robot_bridge.server import BridgeServer
+from shared import wire
+from shared.envs import FrameStack
+from shared.gripper.sim import EPISODE_STEPS, ValveSim
+from shared.zenoh_session import open_client, open_router
+
+TASK = "gripper-valve_reset"
+
+
+def wait_until(condition: Callable[[], bool], deadline_s: float = 20.0) -> None:
+    end = time.monotonic() + deadline_s
+    while not condition():
+        assert time.monotonic() < end, "condition never held"
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def sessions():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with open_router(endpoint), open_client(endpoint) as bridge, open_client(endpoint) as actor:
+        yield bridge, actor
+
+
+def test_the_bridge_is_transparent_for_the_stand_in(sessions) -> None:
+    bridge_session, actor_session = sessions
+    sim = ValveSim(TASK, seed=7, render_quality="fast")
+    local = ValveSim(TASK, seed=7, render_quality="fast")
+    server = BridgeServer(bridge_session, "g1", sim, TASK, log=lambda _: None)
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g1", client="actor-0", timeout_s=30.0)
+            assert (env.task, env.action_dim, env.image_size) == (TASK, 4, 84) and env.alive()
+            stacked = FrameStack(env, 3)  # what the actor holds
+            ts = stacked.reset()
+            frame, _, _, _ = local.reset()
+            assert ts.obs.shape == (9, 84, 84) and np.array_equal(ts.frame, frame)
+            actions = np.random.default_rng(0).uniform(-1, 1, size=(EPISODE_STEPS, 4)).astype(np.float32)
+            for i, action in enumerate(actions):
+                ts = stacked.step(action)
+                frame, reward, _, last = local.step(action.astype(np.float64))
+                assert np.array_equal(ts.frame, frame) and ts.reward == reward and ts.last == last
+                assert ts.last == (i == EPISODE_STEPS - 1)
+            assert env.info["target_angle"] == local.target_angle and len(env.info["positions"]) == 4
+            _, reward, _, last = env.step(np.zeros(4))  # past the end: truncated, no reward
+            assert last and reward == 0.0 and "reset first" in env.info["reason"]
+        # The bridge is gone: its token went with it, and a reset fails instead of hanging.
+        wait_until(lambda: not env.alive())
+        env.timeout_s = 2.0
+        with pytest.raises(BridgeUnavailable):
+            env.reset()
+    finally:
+        sim.close()
+        local.close()
+
+
+def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions) -> None:
+    bridge_session, actor_session = sessions
+    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
+    server = BridgeServer(bridge_session, "g2", sim, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g2", timeout_s=30.0)
+            env.reset()
+            env.step(np.zeros(4))
+            keys = wire.BridgeKeys("g2")
+            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "test button")))
+            wait_until(lambda: server.estopped)
+            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "pressed twice")))  # idempotent
+            _, reward, _, last = env.step(np.zeros(4))
+            assert last and reward == 0.0 and "e-stop" in env.info["reason"]
+            assert env.info["safety"]["state"] == "estop"
+            with pytest.raises(BridgeUnavailable, match="e-stop"):
+                env.reset()
+            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(False, "operator re-arm")))
+            wait_until(lambda: not server.estopped)
+            env.reset()
+            _, _, _, last = env.step(np.zeros(4))
+            assert not last
+            # A malformed request gets an error reply, not silence, and is counted.
+            replies = list(actor_session.get(keys.step, payload=b"\x01garbage", timeout=10.0))
+            assert replies and replies[0].err is not None and server.invalid == 1
+    finally:
+        sim.close()
