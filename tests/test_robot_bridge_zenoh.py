@@ -1,5 +1,9 @@
 """The bridge over real Zenoh on loopback: the stand-in behind it, BridgeEnv in front."""
 
+import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -25,8 +29,12 @@ def wait_until(condition: Callable[[], bool], deadline_s: float = 20.0) -> None:
 
 
 @pytest.fixture
-def sessions():
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def sessions(endpoint: str):
     with open_router(endpoint), open_client(endpoint) as bridge, open_client(endpoint) as actor:
         yield bridge, actor
 
@@ -91,3 +99,43 @@ def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions) -> No
             assert replies and replies[0].err is not None and server.invalid == 1
     finally:
         sim.close()
+
+
+def alive(session, bridge_id: str) -> bool:
+    keys = wire.BridgeKeys(bridge_id)
+    return any(r.ok is not None for r in session.liveliness().get(keys.alive, timeout=2.0))
+
+
+def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str) -> None:
+    _, actor_session = sessions
+    argv = ["--bridge-id", "p1", "--task", TASK, "--connect", endpoint]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.robot_bridge", *argv],
+        stderr=subprocess.PIPE, text=True, env={**os.environ, "MUJOCO_GL": "egl"},
+    )
+    try:
+        wait_until(lambda: alive(actor_session, "p1"), deadline_s=120.0)
+        env = BridgeEnv(actor_session, "p1", timeout_s=60.0)
+        frame, _, _, _ = env.reset()
+        assert frame.shape == (3, 84, 84)
+        _, reward, _, last = env.step(np.zeros(4, np.float32))
+        assert -1.0 <= reward <= 0.0 and not last
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "e-stop: SIGTERM" in err
+        wait_until(lambda: not env.alive())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_bad_gripper_config_exits_as_bad_input(tmp_path) -> None:
+    bad = tmp_path / "gripper.toml"
+    bad.write_text('[bus]\nport = "/dev/null"\nbaud = 7\n')
+    done = subprocess.run(
+        [sys.executable, "-m", "services.robot_bridge", "--config", str(bad)], capture_output=True, text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2 and "bus.baud: 7" in done.stderr and "servos.ids: missing" in done.stderr
