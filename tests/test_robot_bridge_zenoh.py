@@ -139,3 +139,33 @@ def test_a_bad_gripper_config_exits_as_bad_input(tmp_path) -> None:
         timeout=120,
     )
     assert done.returncode == 2 and "bus.baud: 7" in done.stderr and "servos.ids: missing" in done.stderr
+
+
+class BrokenCamera(ValveSim):
+    """A stand-in whose next step fails the way a camera that stopped would."""
+
+    fail_next = False
+
+    def step(self, action):
+        if self.fail_next:
+            self.fail_next = False
+            raise RuntimeError("the camera returned no frame")
+        return super().step(action)
+
+
+def test_a_failing_step_is_an_error_reply_and_the_bridge_serves_on(sessions) -> None:
+    bridge_session, actor_session = sessions
+    sim = BrokenCamera("gripper-valve", seed=2, render_quality="fast")
+    server = BridgeServer(bridge_session, "g3", sim, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g3", timeout_s=30.0)
+            env.reset()
+            sim.fail_next = True
+            with pytest.raises(BridgeUnavailable, match="no frame"):
+                env.step(np.zeros(4))
+            env.reset()  # a new episode, as the actor starts after a bridge fault
+            _, reward, _, last = env.step(np.zeros(4))
+            assert not last and -1.0 <= reward <= 0.0
+    finally:
+        sim.close()

@@ -157,6 +157,10 @@ class BridgeServer:
         except wire.WireError as err:
             self.invalid += 1
             query.reply_err(str(err).encode())
+        except Exception as err:  # noqa: BLE001 (a camera or bus failure must not kill the bridge)
+            self.log(f"{kind} failed: {type(err).__name__}: {err}")
+            self._done = True  # the episode under way cannot go on
+            query.reply_err(f"{kind} failed: {type(err).__name__}: {err}".encode())
         finally:
             query.drop()
 
