@@ -71,3 +71,20 @@ def test_calibration_sets_zero_and_direction() -> None:
     assert calibrated(20.0, config) == pytest.approx(math.radians(10.0))
     assert calibrated(40.0, config) == pytest.approx(math.radians(350.0))
     assert servo_angle(512, AngleConfig(zero_deg=150.0)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_calibrate_reads_the_raw_marker_angle(tmp_path: Path, capsys) -> None:
+    from services.robot_bridge import operate
+
+    path = tmp_path / "marker.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (320, 320))
+    for _ in range(10):
+        writer.write(_marker_scene(40.0, marker_id=0))
+    writer.release()
+    example = Path(operate.__file__).with_name("example.toml")
+    config = tmp_path / "gripper.toml"
+    config.write_text(example.read_text().replace("drop_frames = 4", "drop_frames = 0"))
+    operate.main(["calibrate", "--config", str(config), "--samples", "5", "--source", str(path)])
+    out = capsys.readouterr().out
+    reading = float(out.split("angle.zero_deg = ")[1])
+    assert abs(reading - 40.0) < 2.0

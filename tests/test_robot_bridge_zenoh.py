@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from nasa.up import free_port
+from services.robot_bridge import operate
 from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
 from services.robot_bridge.server import BridgeServer
 from shared import wire
@@ -71,7 +72,7 @@ def test_the_bridge_is_transparent_for_the_stand_in(sessions) -> None:
         local.close()
 
 
-def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions) -> None:
+def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions, endpoint: str) -> None:
     bridge_session, actor_session = sessions
     sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
     server = BridgeServer(bridge_session, "g2", sim, "gripper-valve", log=lambda _: None)
@@ -89,7 +90,7 @@ def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions) -> No
             assert env.info["safety"]["state"] == "estop"
             with pytest.raises(BridgeUnavailable, match="e-stop"):
                 env.reset()
-            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(False, "operator re-arm")))
+            operate.send_estop("g2", False, "operator re-arm", endpoint)  # the operator's command
             wait_until(lambda: not server.estopped)
             env.reset()
             _, _, _, last = env.step(np.zeros(4))

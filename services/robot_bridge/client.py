@@ -9,10 +9,14 @@ an e-stop or fault) raises `BridgeUnavailable`: the actor pauses and starts a ne
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import zenoh
 
 from shared import wire
+
+SPEC_RETRY_S = 2.0
 
 
 class BridgeUnavailable(RuntimeError):
@@ -26,7 +30,7 @@ class BridgeEnv:
         self.keys = wire.BridgeKeys(bridge_id)
         self.client = client
         self.timeout_s = timeout_s
-        spec = self._ask(self.keys.spec, wire.BridgeSpecRequest(), wire.BridgeSpec)
+        spec = self._wait_for_spec(time.monotonic() + timeout_s)
         self.task = spec.task
         self.action_dim = spec.action_dim
         self.frame_shape = tuple(spec.frame_shape)
@@ -34,6 +38,18 @@ class BridgeEnv:
         self.episode = -1
         self._step = 0
         self.info: dict = {}
+
+    def _wait_for_spec(self, deadline: float) -> wire.BridgeSpec:
+        """Ask until the bridge answers: it may start after the actor, or be declaring its keys."""
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                request = wire.BridgeSpecRequest()
+                return self._ask(self.keys.spec, request, wire.BridgeSpec, min(SPEC_RETRY_S, left))
+            except BridgeUnavailable:
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(0.1)
 
     def alive(self) -> bool:
         """Whether the bridge's liveliness token is up."""
@@ -66,13 +82,14 @@ class BridgeEnv:
             raise wire.WireError(f"frame shape {r.frame_shape}, the bridge announced {announced}")
         return wire.array(r.frame, "u1", self.frame_shape)
 
-    def _ask(self, key: str, msg: wire.Message, cls: type[wire.M]) -> wire.M:
+    def _ask(self, key: str, msg: wire.Message, cls: type[wire.M], timeout_s: float | None = None) -> wire.M:
+        timeout_s = self.timeout_s if timeout_s is None else max(timeout_s, 0.1)
         try:
-            replies = self.session.get(key, payload=wire.encode(msg), timeout=self.timeout_s)
+            replies = self.session.get(key, payload=wire.encode(msg), timeout=timeout_s)
             for reply in replies:
                 if reply.ok is not None:
                     return wire.decode(reply.ok.payload.to_bytes(), cls)
                 raise BridgeUnavailable(f"bridge {self.keys.prefix}: {reply.err.payload.to_bytes().decode()}")
         except zenoh.ZError as e:
             raise BridgeUnavailable(f"bridge {self.keys.prefix}: {e}") from e
-        raise BridgeUnavailable(f"bridge {self.keys.prefix} did not answer within {self.timeout_s} s")
+        raise BridgeUnavailable(f"bridge {self.keys.prefix} did not answer within {timeout_s} s")

@@ -182,11 +182,13 @@ class BridgeServer:
         threads = [threading.Thread(target=self._work_loop, name="bridge", daemon=True)]
         if self._safety is not None:
             threads.append(threading.Thread(target=self._watchdog_loop, name="watchdog", daemon=True))
+        # Declared in this order on purpose: a client that got a spec answer (or sees the token)
+        # finds reset, step and e-stop already declared.
         with (
-            s.declare_queryable(k.spec, self._on_query("spec")),
             s.declare_queryable(k.reset, self._on_query("reset")),
             s.declare_queryable(k.step, self._on_query("step")),
             s.declare_subscriber(k.estop, self._on_estop),
+            s.declare_queryable(k.spec, self._on_query("spec")),
             s.liveliness().declare_token(k.alive),
         ):
             for t in threads:
