@@ -64,9 +64,20 @@ def test_the_bridge_is_transparent_for_the_stand_in(sessions) -> None:
             assert last and reward == 0.0 and "reset first" in env.info["reason"]
         # The bridge is gone: its token went with it, and a reset fails instead of hanging.
         wait_until(lambda: not env.alive())
+        assert env.wait_alive(stop=lambda: True) is False  # an actor told to stop does not wait
         env.timeout_s = 2.0
         with pytest.raises(BridgeUnavailable):
             env.reset()
+        # The bridge comes back (a restart): the paused client sees it and starts a new episode.
+        restarted = ValveSim(TASK, seed=8, render_quality="fast")
+        try:
+            with BridgeServer(bridge_session, "g1", restarted, TASK, log=lambda _: None).serve():
+                assert env.wait_alive(stop=lambda: False, poll_s=0.05)
+                env.timeout_s = 30.0
+                frame, _, _, last = env.reset()
+                assert frame.shape == (3, 84, 84) and not last and env.episode == 0
+        finally:
+            restarted.close()
     finally:
         sim.close()
         local.close()

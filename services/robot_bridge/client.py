@@ -10,6 +10,7 @@ an e-stop or fault) raises `BridgeUnavailable`: the actor pauses and starts a ne
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 import zenoh
@@ -54,6 +55,14 @@ class BridgeEnv:
     def alive(self) -> bool:
         """Whether the bridge's liveliness token is up."""
         return any(r.ok is not None for r in self.session.liveliness().get(self.keys.alive, timeout=5.0))
+
+    def wait_alive(self, stop: Callable[[], bool], poll_s: float = 0.5) -> bool:
+        """Block until the bridge is up again (True) or `stop()` (False): how an actor pauses."""
+        while not stop():
+            if self.alive():
+                return True
+            time.sleep(poll_s)
+        return False
 
     def rng_state(self) -> dict:
         return {}

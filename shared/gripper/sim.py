@@ -30,8 +30,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco picks a GL backend
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from shared.gripper import ACTION_DIM, TASK_NAMES  # noqa: E402
+
 MODEL_PATH = Path(__file__).with_name("valve.xml")
-TASKS: dict[str, Literal["stay", "random"]] = {"gripper-valve": "stay", "gripper-valve_reset": "random"}
+TASKS: dict[str, Literal["stay", "random"]] = dict(zip(TASK_NAMES, ("stay", "random"), strict=True))
 EPISODE_STEPS = 50
 CONTROL_PERIOD_S = 0.1
 
@@ -121,7 +123,7 @@ class ValveSim:
         if not 0 <= camera_id < self.model.ncam:
             raise ValueError(f"camera_id {camera_id} out of range: the model has {self.model.ncam} camera(s)")
         self.data = mujoco.MjData(self.model)
-        self.action_dim = 4
+        self.action_dim = ACTION_DIM
         self.image_size = image_size
         self.camera_id = camera_id
         self.action_repeat = action_repeat
