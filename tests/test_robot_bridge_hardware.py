@@ -20,11 +20,11 @@ IDS = (1, 2, 3, 4)
 VALVE = 5
 
 
-def config(port: str) -> GripperConfig:
+def config(port: str, settle_s: float = 0.0) -> GripperConfig:
     return parse({
         "bus": {"port": port, "latency_ms": LATENCY_MS},
         "servos": {"ids": list(IDS), "min_step": [200] * 4, "max_step": [820] * 4, "home": [512] * 4,
-                   "moving_speed": 1023, "max_step_change": 100, "settle_s": 0.0},
+                   "moving_speed": 1023, "max_step_change": 100, "settle_s": settle_s},
         "valve": {"id": VALVE, "moving_speed": 1023},
         "camera": {"drop_frames": 0},
         "angle": {"source": "servo", "zero_deg": 150.0},
@@ -89,3 +89,42 @@ def test_the_valve_servo_goal_covers_its_range_and_goes_to_the_nearest_end() -> 
     assert valve_servo_goal(0.0) == 0 and valve_servo_goal(150.0) == 512
     assert valve_servo_goal(299.9) == 1023 and valve_servo_goal(310.0) == 1023
     assert valve_servo_goal(340.0) == 0
+
+
+def test_estop_over_zenoh_wins_over_a_hardware_step_in_flight(tmp_path: Path) -> None:
+    import threading
+
+    from nasa.up import free_port
+    from services.robot_bridge.client import BridgeEnv
+    from services.robot_bridge.server import BridgeServer
+    from shared import wire
+    from shared.zenoh_session import open_client, open_router
+    from tests.test_robot_bridge_bus import wait_until
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with (
+        BusEmulator(IDS + (VALVE,)) as emu,
+        open_router(endpoint), open_client(endpoint) as bridge_session, open_client(endpoint) as actor,
+    ):
+        slow = config(emu.port, settle_s=30.0)
+        bus = ServoBus(emu.port, 1000000, IDS + (VALVE,), latency_ms=LATENCY_MS)
+        hw = GripperHardware(slow, "gripper-valve", seed=0, bus=bus,
+                             camera=Camera(slow.camera, source=video(tmp_path / "cam.avi")))
+        server = BridgeServer(bridge_session, "hw", hw, "gripper-valve", log=lambda _: None)
+        try:
+            with server.serve():
+                env = BridgeEnv(actor, "hw", timeout_s=60.0)
+                env.reset()
+                outcome: list = []
+                stepping = threading.Thread(target=lambda: outcome.append(env.step(np.full(4, 0.5))))
+                stepping.start()
+                wait_until(lambda: emu.snapshot(1, xl320.GOAL_POSITION) != 512)  # the step is in flight
+                actor.put(wire.BridgeKeys("hw").estop, wire.encode(wire.BridgeEStop(True, "test")))
+                stepping.join(timeout=20)  # long before the step's 30 s settle time
+                assert not stepping.is_alive()
+                _, reward, _, last = outcome[0]
+                assert last and "e-stop" in env.info["reason"] and env.info["safety"]["state"] == "estop"
+                assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in IDS] == [0, 0, 0, 0]
+        finally:
+            hw.close()
+
