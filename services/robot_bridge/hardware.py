@@ -156,6 +156,7 @@ class GripperHardware:
         while abs(self.bus.read(vid, xl320.PRESENT_POSITION, 2) - goal) > VALVE_TOLERANCE_STEPS:
             if time.monotonic() > end or self.fingers.estopped:
                 break
+            self.fingers.touch()  # the fingers hold home meanwhile: the watchdog must not fire
             time.sleep(0.02)
         self.bus.set_torque(False, [vid])  # free, so the fingers can turn it
 

@@ -182,6 +182,10 @@ class SafeFingers:
         self._recover(self.fault_servos)
 
     # -- watchdog ------------------------------------------------------------------------------
+    def touch(self) -> None:
+        """The bridge is busy on the gripper's behalf (a valve reset): not an idle client."""
+        self._last_command = self._clock()
+
     def poll_watchdog(self) -> Watchdog:
         """Hold, then torque off, when no command came for too long; call it periodically."""
         idle = self._clock() - self._last_command
