@@ -58,6 +58,7 @@ class GripperHardware:
         self._random = np.random.RandomState(seed)
         self.action_dim = 4
         self.image_size = config.camera.image_size
+        self.frame_shape = (3, self.image_size, self.image_size)
         self.valve_angle = 0.0
         self.target_angle = 0.0
         self.angle_seen = False

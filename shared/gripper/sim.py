@@ -30,7 +30,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco picks a GL backend
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from shared.gripper import ACTION_DIM, TASK_NAMES  # noqa: E402
+from shared.gripper import ACTION_DIM, TASK_NAMES, frame_shape  # noqa: E402
 
 MODEL_PATH = Path(__file__).with_name("valve.xml")
 TASKS: dict[str, Literal["stay", "random"]] = dict(zip(TASK_NAMES, ("stay", "random"), strict=True))
@@ -125,6 +125,7 @@ class ValveSim:
         self.data = mujoco.MjData(self.model)
         self.action_dim = ACTION_DIM
         self.image_size = image_size
+        self.frame_shape = frame_shape(image_size)
         self.camera_id = camera_id
         self.action_repeat = action_repeat
         self._random = np.random.RandomState(seed)
