@@ -96,6 +96,7 @@ class GripperHardware:
             reason = report.reason
         except Refused as e:
             reason = str(e)
+            self.fingers.wait_torque_cut()
         frame = self._observe()
         self._steps += 1
         truncated = bool(reason)
@@ -124,7 +125,8 @@ class GripperHardware:
         if self._aruco is not None:
             return self._aruco.angle(bgr)
         try:
-            position = self.bus.read(self.config.valve.id, xl320.PRESENT_POSITION, 2)
+            with self.fingers.bus_lock:
+                position = self.bus.read(self.config.valve.id, xl320.PRESENT_POSITION, 2)
             return servo_angle(position, self.config.angle)
         except BusError:
             return None
@@ -150,16 +152,22 @@ class GripperHardware:
         """The valve servo turns the valve to `angle` (nearest reachable), then torque off."""
         vid, v = self.config.valve.id, self.config.valve
         goal = valve_servo_goal(self._image_degrees(angle))
-        self.bus.set_limits(vid, v.moving_speed, v.torque_limit)
-        self.bus.set_torque(True, [vid])
-        self.bus.write(vid, xl320.GOAL_POSITION, goal, 2)
+        lock = self.fingers.bus_lock
+        with lock:
+            self.bus.set_limits(vid, v.moving_speed, v.torque_limit)
+            self.bus.set_torque(True, [vid])
+            self.bus.write(vid, xl320.GOAL_POSITION, goal, 2)
         end = time.monotonic() + VALVE_TURN_TIMEOUT_S
-        while abs(self.bus.read(vid, xl320.PRESENT_POSITION, 2) - goal) > VALVE_TOLERANCE_STEPS:
-            if time.monotonic() > end or self.fingers.estopped:
+        while True:
+            with lock:
+                present = self.bus.read(vid, xl320.PRESENT_POSITION, 2)
+            arrived = abs(present - goal) <= VALVE_TOLERANCE_STEPS
+            if arrived or time.monotonic() > end or self.fingers.estopped:
                 break
             self.fingers.touch()  # the fingers hold home meanwhile: the watchdog must not fire
             time.sleep(0.02)
-        self.bus.set_torque(False, [vid])  # free, so the fingers can turn it
+        with lock:
+            self.bus.set_torque(False, [vid])  # free, so the fingers can turn it
 
     def _report(self, report, reason: str) -> dict:
         state = report.state if report is not None else None

@@ -29,6 +29,8 @@ import numpy as np
 from services.robot_bridge.config import SafetyConfig, ServoConfig
 from services.robot_bridge.dynamixel import BusError, ServoBus, ServoState
 
+TORQUE_CUT_WAIT_S = 5.0
+
 
 class State(StrEnum):
     READY = "ready"
@@ -79,6 +81,7 @@ class SafeFingers:
         self.home = np.array(servos.home, dtype=np.int64)
         self._lock = threading.RLock()
         self._estop = threading.Event()
+        self._torque_cut = threading.Event()  # set once an e-stop's torque-off has gone out
         self.state = State.READY
         self.watchdog = Watchdog.ACTIVE
         self.fault = ""
@@ -170,6 +173,17 @@ class SafeFingers:
             if unreached:
                 # A servo that cannot hear the torque-off is a fault an operator must see.
                 self.fault, self.fault_servos = f"e-stop could not reach servos {unreached}", tuple(unreached)
+        self._torque_cut.set()
+
+    def wait_torque_cut(self, timeout_s: float = TORQUE_CUT_WAIT_S) -> bool:
+        """After a refusal: wait until the e-stop's torque-off has gone out (call without the bus lock),
+        so a client never hears of the e-stop before the servos do."""
+        return not self.estopped or self._torque_cut.wait(timeout=timeout_s)
+
+    @property
+    def bus_lock(self) -> threading.RLock:
+        """Held for every bus transfer: whoever else uses the bus (valve servo, angle) takes it too."""
+        return self._lock
 
     @property
     def estopped(self) -> bool:
@@ -178,6 +192,7 @@ class SafeFingers:
     def rearm(self) -> None:
         """The operator's explicit re-arm after an e-stop or a failed recovery: recover and home."""
         self._estop.clear()
+        self._torque_cut.clear()
         self.state = State.RECOVERING
         self._recover(self.fault_servos)
 
