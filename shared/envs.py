@@ -341,6 +341,15 @@ class DmcSource:
 DMC = register(DmcSource())
 
 
+def _register_gripper() -> EnvSource:
+    from shared.gripper.source import GripperSource  # the valve stand-in and the robot bridge
+
+    return register(GripperSource())
+
+
+GRIPPER = _register_gripper()
+
+
 def stored_discount(ts: TimeStep, time_limit: Literal["bootstrap", "terminal"]) -> float:
     """The discount a transition is stored with.
 

@@ -567,3 +567,98 @@ CHECKS: dict[type[Message], Any] = {
     EvalResult: check_eval_result,
 }
 """The value checks of each message type (the others' fields are checked by type and range alone)."""
+
+
+# -- robot bridge ---------------------------------------------------------------------
+#
+# | key (under nasa/bridge/<bridge_id>/) | message                    | who                          |
+# |--------------------------------------|----------------------------|------------------------------|
+# | spec      (queryable)                | BridgeSpecRequest -> BridgeSpec | bridge answers; actor    |
+# | reset     (queryable)                | BridgeReset -> BridgeReply | bridge answers; its actor    |
+# | step      (queryable)                | BridgeStep -> BridgeReply  | bridge answers; its actor    |
+# | estop                                | BridgeEStop                | operator, `nasa`, tests      |
+# | alive     (liveliness token)         |                            | bridge; actors watch it      |
+#
+# A bridge owns one gripper (or its stand-in), so its keys name the bridge, not a run.
+
+
+class BridgeKeys:
+    """The key expressions of one robot bridge."""
+
+    def __init__(self, bridge_id: str | int) -> None:
+        ident = check_run_id(str(bridge_id))
+        p = f"{PREFIX}/bridge/{ident}"
+        self.prefix = p
+        self.spec = f"{p}/spec"
+        self.reset = f"{p}/reset"
+        self.step = f"{p}/step"
+        self.estop = f"{p}/estop"
+        self.alive = f"{p}/alive"
+
+
+@dataclass
+class BridgeSpecRequest(Message):
+    TYPE: ClassVar[str] = "bridge_spec_request"
+
+
+@dataclass
+class BridgeSpec(Message):
+    TYPE: ClassVar[str] = "bridge_spec"
+    task: str
+    action_dim: int
+    frame_shape: list
+
+
+@dataclass
+class BridgeReset(Message):
+    TYPE: ClassVar[str] = "bridge_reset"
+    client: str
+
+
+@dataclass
+class BridgeStep(Message):
+    """`action` is float32 (action_dim,) raw bytes; `episode`/`step` let the bridge refuse a stale step."""
+
+    TYPE: ClassVar[str] = "bridge_step"
+    client: str
+    episode: int
+    step: int
+    action: bytes
+
+
+@dataclass
+class BridgeReply(Message):
+    """One raw (unstacked) frame, uint8 (C, H, W) bytes, and the step's outcome.
+
+    ok=False: the bridge could not reset (e-stop, fault, waiting for an operator); `reason` says
+    why and the client retries later. `info` holds the valve and target angles, servo positions,
+    loads and error bits, the step latency and the safety state.
+    """
+
+    TYPE: ClassVar[str] = "bridge_reply"
+    ok: bool
+    reason: str
+    episode: int
+    step: int
+    frame_shape: list
+    frame: bytes
+    reward: float
+    discount: float
+    first: bool
+    last: bool
+    info: dict
+
+
+@dataclass
+class BridgeEStop(Message):
+    """engage=True: e-stop (torque off, refuse steps); engage=False: the operator's re-arm."""
+
+    TYPE: ClassVar[str] = "bridge_estop"
+    engage: bool
+    reason: str
+
+
+MESSAGES.update({
+    cls.TYPE: cls
+    for cls in (BridgeSpecRequest, BridgeSpec, BridgeReset, BridgeStep, BridgeReply, BridgeEStop)
+})

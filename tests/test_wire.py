@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from shared import wire
+from tests.test_robot_bridge_wire import BRIDGE_MESSAGES
 
 
 def f4(*values: float) -> bytes:
@@ -32,6 +33,7 @@ def test_every_message_round_trips():
         wire.EvalResult(1000, 7, [1.0, 2.0]),
         wire.RunConfigMsg({"config": {"seed": 0}}, "0123456789abcdef"),
         wire.Stop("done"),
+        *BRIDGE_MESSAGES,
     ]
     assert {type(m) for m in msgs} == set(wire.MESSAGES.values())
     for m in msgs:

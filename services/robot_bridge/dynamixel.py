@@ -1,0 +1,166 @@
+"""The XL-320 servo bus through `dynamixel-sdk` (Protocol 2.0).
+
+`ServoBus` owns the port. Goals go out in one GroupSyncWrite; the state of every servo (present
+position, speed, load, voltage, temperature, moving flag and hardware error bits, addresses 37..50)
+comes back in one GroupSyncRead, since these are one contiguous block of the XL-320's table.
+A failed transfer raises `BusError` naming the servo(s) that did not answer properly, found by
+pinging each one, so the bridge's recovery knows which to reboot.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
+
+from services.robot_bridge import xl320
+
+
+class BusError(RuntimeError):
+    """A servo did not answer, answered late, or answered with a corrupt packet."""
+
+    def __init__(self, message: str, servo_ids: Sequence[int]) -> None:
+        super().__init__(message)
+        self.servo_ids = tuple(servo_ids)
+
+
+@dataclass(frozen=True)
+class ServoState:
+    """One sync read of every servo, in the bus's id order."""
+
+    position: np.ndarray  # steps 0..1023
+    load: np.ndarray  # signed, -1023..1023
+    moving: np.ndarray  # bool
+    error: np.ndarray  # hardware error status bits
+    voltage: np.ndarray  # 0.1 V
+    temperature: np.ndarray  # degrees C
+
+    def faults(self, ids: Sequence[int]) -> dict[int, list[str]]:
+        """The servos whose hardware error bits are set, with the errors' names."""
+        return {sid: xl320.error_names(int(bits)) for sid, bits in zip(ids, self.error, strict=True) if bits}
+
+
+class _Port(PortHandler):
+    """The SDK's port with its reply timeout built on a configurable USB latency timer.
+
+    The SDK waits `2 * 16 ms + 2 ms` plus the bytes' transfer time for a reply; adapters whose
+    latency timer is set otherwise (or a loaded test machine) need their own figure.
+    """
+
+    def __init__(self, port_name: str, latency_ms: float) -> None:
+        super().__init__(port_name)
+        self.latency_ms = latency_ms
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (the SDK's name)
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + self.latency_ms * 2.0 + 2.0
+
+
+class ServoBus:
+    """A Protocol 2.0 bus of XL-320 servos on a serial port."""
+
+    def __init__(self, port: str, baud: int, ids: Iterable[int], latency_ms: float = 16.0) -> None:
+        self.ids = tuple(ids)
+        self.port = _Port(port, latency_ms)
+        self.packet = PacketHandler(2.0)
+        if not self.port.openPort():
+            raise BusError(f"cannot open {port}", self.ids)
+        if not self.port.setBaudRate(baud):
+            self.port.closePort()
+            raise BusError(f"cannot set {port} to {baud} baud", self.ids)
+        self._goals = GroupSyncWrite(self.port, self.packet, xl320.GOAL_POSITION, 2)
+        self._reads: dict[tuple[int, ...], GroupSyncRead] = {}
+
+    def close(self) -> None:
+        if self.port.is_open:
+            self.port.closePort()
+
+    # -- whole bus -----------------------------------------------------------------------------
+    def write_goals(self, goals: dict[int, int]) -> None:
+        """Every servo's goal position in one sync write (broadcast: no reply to check)."""
+        self._goals.clearParam()
+        for sid, goal in goals.items():
+            value = int(goal)
+            self._goals.addParam(sid, [value & 0xFF, (value >> 8) & 0xFF])
+        result = self._goals.txPacket()
+        if result != COMM_SUCCESS:
+            raise BusError(f"sync write failed: {self.packet.getTxRxResult(result)}", list(goals))
+
+    def read_state(self, ids: Sequence[int] | None = None) -> ServoState:
+        """The state block of the given servos (all by default), in that order, in one sync read."""
+        ids = self.ids if ids is None else tuple(ids)
+        group = self._reads.get(ids)
+        if group is None:
+            group = self._reads[ids] = GroupSyncRead(
+                self.port, self.packet, xl320.STATE_BLOCK_START, xl320.STATE_BLOCK_LENGTH
+            )
+            for sid in ids:
+                group.addParam(sid)
+        result = group.txRxPacket()
+        if result != COMM_SUCCESS:
+            silent = self.unanswering(ids)
+            message = self.packet.getTxRxResult(result)
+            named = silent or "none"
+            raise BusError(f"sync read failed: {message}; servos not answering: {named}", silent or ids)
+        get = group.getData
+        return ServoState(
+            position=np.array([get(i, xl320.PRESENT_POSITION, 2) for i in ids], dtype=np.int64),
+            load=np.array([xl320.signed_load(get(i, xl320.PRESENT_LOAD, 2)) for i in ids], np.int64),
+            moving=np.array([bool(get(i, xl320.MOVING, 1)) for i in ids]),
+            error=np.array([get(i, xl320.HARDWARE_ERROR_STATUS, 1) for i in ids], dtype=np.int64),
+            voltage=np.array([get(i, xl320.PRESENT_VOLTAGE, 1) for i in ids], dtype=np.int64),
+            temperature=np.array([get(i, xl320.PRESENT_TEMPERATURE, 1) for i in ids], dtype=np.int64),
+        )
+
+    def unanswering(self, ids: Sequence[int] | None = None) -> list[int]:
+        """The servos that do not answer a ping properly."""
+        return [sid for sid in (self.ids if ids is None else ids) if not self.ping(sid)]
+
+    def set_torque(self, enable: bool, ids: Iterable[int] | None = None) -> None:
+        for sid in self.ids if ids is None else ids:
+            self.write(sid, xl320.TORQUE_ENABLE, int(enable), 1)
+
+    # -- one servo -----------------------------------------------------------------------------
+    def ping(self, servo_id: int) -> bool:
+        model, result, _ = self.packet.ping(self.port, servo_id)
+        return result == COMM_SUCCESS and model == xl320.MODEL_NUMBER
+
+    def write(self, servo_id: int, address: int, value: int, size: int) -> None:
+        if size == 1:
+            result, error = self.packet.write1ByteTxRx(self.port, servo_id, address, int(value))
+        else:
+            result, error = self.packet.write2ByteTxRx(self.port, servo_id, address, int(value))
+        self._check(servo_id, f"write {value} at {address}", result, error)
+
+    def read(self, servo_id: int, address: int, size: int) -> int:
+        if size == 1:
+            value, result, error = self.packet.read1ByteTxRx(self.port, servo_id, address)
+        else:
+            value, result, error = self.packet.read2ByteTxRx(self.port, servo_id, address)
+        self._check(servo_id, f"read at {address}", result, error)
+        return int(value)
+
+    def set_limits(self, servo_id: int, moving_speed: int, torque_limit: int) -> None:
+        self.write(servo_id, xl320.MOVING_SPEED, moving_speed, 2)
+        self.write(servo_id, xl320.TORQUE_LIMIT, torque_limit, 2)
+
+    def hardware_error(self, servo_id: int) -> int:
+        return self.read(servo_id, xl320.HARDWARE_ERROR_STATUS, 1)
+
+    def reboot(self, servo_id: int, wait_s: float = 0.5) -> None:
+        """Reboot one servo (clears its hardware error; torque comes back off) and wait for it."""
+        result, error = self.packet.reboot(self.port, servo_id)
+        self._check(servo_id, "reboot", result, error)
+        time.sleep(wait_s)
+
+    def _check(self, servo_id: int, what: str, result: int, error: int) -> None:
+        if result != COMM_SUCCESS:
+            raise BusError(f"servo {servo_id}: {what}: {self.packet.getTxRxResult(result)}", [servo_id])
+        # The alert bit only says a hardware error is latched (read in every state block); any
+        # other error number means the instruction was refused.
+        if error & 0x7F:
+            message = self.packet.getRxPacketError(error & 0x7F)
+            raise BusError(f"servo {servo_id}: {what}: {message}", [servo_id])

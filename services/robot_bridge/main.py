@@ -1,0 +1,76 @@
+"""`python -m services.robot_bridge`: one process per gripper, serving it (or its stand-in) over Zenoh.
+
+Without `--config` it serves the MuJoCo stand-in (`shared/gripper`); with a gripper config file it
+serves the real servos and camera. SIGINT and SIGTERM e-stop the gripper (torque off) before the
+process exits; the `estop` key e-stops it without ending the process, until a re-arm message.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from services.robot_bridge.config import GripperConfigError
+from shared.gripper.sim import UnknownGripperTask
+from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
+from shared.zenoh_session import env_connect
+
+
+@dataclass
+class BridgeArgs:
+    bridge_id: str = "0"
+    """The bridge's name: its keys are nasa/bridge/<bridge_id>/..."""
+    task: Literal["gripper-valve", "gripper-valve_reset"] = "gripper-valve"
+    """Scenario 1 (valve left where it is) or 2 (turned to a random angle at each reset)."""
+    config: Path | None = None
+    """The real gripper's TOML config (services/robot_bridge/example.toml); none: the stand-in."""
+    seed: int = 0
+    """Draws targets and reset angles."""
+    image_size: int = 84
+    render_quality: Literal["paper", "fast"] = "fast"
+    """The stand-in's render quality."""
+    connect: str = field(default_factory=env_connect)
+    """Zenoh router endpoint(s) (env NASA_ZENOH_CONNECT)."""
+
+
+def build_env(args: BridgeArgs):
+    if args.config is None:
+        from shared.gripper.sim import ValveSim
+
+        return ValveSim(args.task, args.seed, image_size=args.image_size, render_quality=args.render_quality)
+    from services.robot_bridge.config import load
+    from services.robot_bridge.hardware import GripperHardware
+
+    return GripperHardware(load(args.config), args.task, args.seed)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from services.robot_bridge.server import BridgeServer
+    from shared.zenoh_session import open_client
+
+    die_with_parent()
+    args = tyro.cli(BridgeArgs, args=sys.argv[1:] if argv is None else argv, prog="robot_bridge")
+    log = Log(f"bridge {args.bridge_id}")
+    try:
+        env = build_env(args)
+    except (GripperConfigError, UnknownGripperTask, ValueError) as err:
+        print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
+    stop = StopFlag()
+    stop.install_signal_handlers()
+    try:
+        with open_client(args.connect) as session:
+            server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
+            with server.serve():
+                kind = "hardware" if args.config else "stand-in"
+                log(f"serving {args.task} ({kind}) on {server.keys.prefix}")
+                while not stop.wait(0.2):
+                    pass
+                server.estop(f"{stop.reason}: bridge stopping")  # torque off before the process goes
+            log(f"stopped ({stop.reason})")
+    finally:
+        env.close()

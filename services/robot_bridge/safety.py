@@ -1,0 +1,289 @@
+"""Safety interlocks between any client and the finger servos, enforced whatever a client sends.
+
+`SafeFingers` wraps a `ServoBus`:
+- goals are clamped to each servo's configured range and to a maximum change per step;
+- a step whose bus work outlasts its timeout is reported as truncated;
+- hardware error bits (overload, overheating, voltage) are read at every step, in the same sync
+  read as the positions;
+- the watchdog (`poll_watchdog`, called periodically by the bridge) holds the present position
+  when no command came for `watchdog_hold_s`, and turns torque off after `watchdog_off_s`: the
+  XL-320 has no bus watchdog of its own;
+- the e-stop is idempotent and always wins: it sets its flag before it waits for the bus, every
+  bus write checks the flag under the bus lock, so a step in flight never writes after it; steps
+  are refused until `rearm()`;
+- a servo fault (no reply, error bits) runs the recovery sequence: reboot the faulty servos,
+  restore their limits, torque on, home; if homing fails, torque off and wait for an operator
+  (`rearm()`). The state is in `status()` for the bridge to publish.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from services.robot_bridge.config import SafetyConfig, ServoConfig
+from services.robot_bridge.dynamixel import BusError, ServoBus, ServoState
+
+TORQUE_CUT_WAIT_S = 5.0
+
+
+class State(StrEnum):
+    READY = "ready"
+    ESTOP = "estop"
+    RECOVERING = "recovering"
+    WAITING_FOR_OPERATOR = "waiting_for_operator"
+
+
+class Watchdog(StrEnum):
+    ACTIVE = "active"
+    HOLDING = "holding"
+    TORQUE_OFF = "torque_off"
+
+
+class Refused(RuntimeError):
+    """A command the bridge will not carry out now (e-stop, fault, watchdog); the episode ends."""
+
+
+@dataclass(frozen=True)
+class StepReport:
+    goals: np.ndarray  # the goals sent, after clamping (steps)
+    clamped: bool
+    state: ServoState | None  # None when the step ended in a fault
+    latency_s: float
+    truncated: bool
+    reason: str  # why it was truncated ("" when it was not)
+
+
+class SafeFingers:
+    """The four finger servos behind every interlock."""
+
+    def __init__(
+        self,
+        bus: ServoBus,
+        servos: ServoConfig,
+        safety: SafetyConfig,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self.bus = bus
+        self.ids = tuple(servos.ids)
+        self.servos = servos
+        self.safety = safety
+        self._clock = clock
+        self._sleep = sleep
+        self._low = np.array(servos.min_step, dtype=np.int64)
+        self._high = np.array(servos.max_step, dtype=np.int64)
+        self.home = np.array(servos.home, dtype=np.int64)
+        self._lock = threading.RLock()
+        self._estop = threading.Event()
+        self._torque_cut = threading.Event()  # set once an e-stop's torque-off has gone out
+        self.state = State.READY
+        self.watchdog = Watchdog.ACTIVE
+        self.fault = ""
+        self.fault_servos: tuple[int, ...] = ()
+        self.recoveries = 0
+        self.last_goals = self.home.copy()
+        self.last_errors: dict[int, list[str]] = {}
+        self._last_command = clock()
+
+    # -- commands ------------------------------------------------------------------------------
+    def action_to_goals(self, action: np.ndarray) -> np.ndarray:
+        """An action in [-1, 1]^4 as goal positions over each servo's configured range."""
+        a = np.clip(np.nan_to_num(np.asarray(action, dtype=np.float64), nan=0.0), -1.0, 1.0)
+        return np.rint(self._low + (a + 1.0) * 0.5 * (self._high - self._low)).astype(np.int64)
+
+    def clamp(self, goals: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Goals within each servo's range and within max_step_change of the previous goals."""
+        wanted = np.asarray(goals, dtype=np.int64)
+        step = self.servos.max_step_change
+        safe = np.clip(wanted, self._low, self._high)
+        safe = np.clip(safe, self.last_goals - step, self.last_goals + step)
+        return safe, bool(np.any(safe != wanted))
+
+    def arm(self) -> ServoState:
+        """Limits set, torque on, goals at the present positions (no jump): ready for homing."""
+        with self._lock:
+            self._refuse_if_stopped()
+            for sid in self.ids:
+                self.bus.set_limits(sid, self.servos.moving_speed, self.servos.torque_limit)
+            state = self.bus.read_state(self.ids)
+            self.last_goals = state.position.copy()
+            self.bus.write_goals(dict(zip(self.ids, self.last_goals.tolist(), strict=True)))
+            self.bus.set_torque(True, self.ids)
+            self.watchdog = Watchdog.ACTIVE
+            self._last_command = self._clock()
+            return state
+
+    def go_home(self) -> bool:
+        """Move home in steps no bigger than max_step_change; True when within tolerance."""
+        end = self._clock() + self.safety.home_timeout_s
+        while self._clock() < end:
+            with self._lock:
+                self._refuse_if_stopped()
+                goals, _ = self.clamp(self.home)
+                self._send(goals)
+                state = self.bus.read_state(self.ids)
+            if np.all(np.abs(state.position - self.home) <= self.safety.home_tolerance):
+                return True
+            self._sleep(0.05)
+        return False
+
+    def step(self, action: np.ndarray, settle_s: float = 0.0) -> StepReport:
+        """Send clamped goals, let them act for `settle_s`, read the state and its error bits."""
+        start = self._clock()
+        with self._lock:
+            self._refuse_if_stopped()
+            if self.state is not State.READY:
+                raise Refused(f"the bridge is {self.state.value}: {self.fault}")
+            if self.watchdog is Watchdog.TORQUE_OFF:
+                raise Refused("the watchdog turned torque off: reset first")
+            goals, clamped = self.clamp(self.action_to_goals(action))
+            try:
+                self._send(goals)
+            except BusError as e:
+                return self._faulted(goals, clamped, start, e.servo_ids, str(e))
+        self._wait(settle_s)
+        with self._lock:
+            self._refuse_if_stopped()
+            try:
+                state = self.bus.read_state(self.ids)
+            except BusError as e:
+                return self._faulted(goals, clamped, start, e.servo_ids, str(e))
+        self.last_errors = state.faults(self.ids)
+        if self.last_errors:
+            faulty = tuple(self.last_errors)
+            return self._faulted(goals, clamped, start, faulty, f"hardware error: {self.last_errors}")
+        latency = self._clock() - start
+        late = latency > self.safety.step_timeout_s
+        reason = f"step took {latency:.3f} s, over its {self.safety.step_timeout_s} s timeout" if late else ""
+        return StepReport(goals, clamped, state, latency, late, reason)
+
+    # -- e-stop --------------------------------------------------------------------------------
+    def estop(self) -> None:
+        """Torque off and refuse steps until `rearm()`; safe to call from any thread, any number of times."""
+        self._estop.set()  # first: a step in flight sees it before its next bus write
+        self.state = State.ESTOP
+        with self._lock:
+            unreached = self._torque_off()
+            if unreached:
+                # A servo that cannot hear the torque-off is a fault an operator must see.
+                self.fault, self.fault_servos = f"e-stop could not reach servos {unreached}", tuple(unreached)
+        self._torque_cut.set()
+
+    def wait_torque_cut(self, timeout_s: float = TORQUE_CUT_WAIT_S) -> bool:
+        """After a refusal: wait until the e-stop's torque-off has gone out (call without the bus lock),
+        so a client never hears of the e-stop before the servos do."""
+        return not self.estopped or self._torque_cut.wait(timeout=timeout_s)
+
+    @property
+    def bus_lock(self) -> threading.RLock:
+        """Held for every bus transfer: whoever else uses the bus (valve servo, angle) takes it too."""
+        return self._lock
+
+    @property
+    def estopped(self) -> bool:
+        return self._estop.is_set()
+
+    def rearm(self) -> None:
+        """The operator's explicit re-arm after an e-stop or a failed recovery: recover and home."""
+        self._estop.clear()
+        self._torque_cut.clear()
+        self.state = State.RECOVERING
+        self._recover(self.fault_servos)
+
+    # -- watchdog ------------------------------------------------------------------------------
+    def touch(self) -> None:
+        """The bridge is busy on the gripper's behalf (a valve reset): not an idle client."""
+        self._last_command = self._clock()
+
+    def poll_watchdog(self) -> Watchdog:
+        """Hold, then torque off, when no command came for too long; call it periodically."""
+        idle = self._clock() - self._last_command
+        with self._lock:
+            if self.estopped or self.state is not State.READY:
+                return self.watchdog
+            try:
+                if idle >= self.safety.watchdog_off_s and self.watchdog is not Watchdog.TORQUE_OFF:
+                    self.watchdog = Watchdog.TORQUE_OFF
+                    unreached = self._torque_off()
+                    if unreached:
+                        raise BusError(f"watchdog could not turn torque off on {unreached}", unreached)
+                elif idle >= self.safety.watchdog_hold_s and self.watchdog is Watchdog.ACTIVE:
+                    present = self.bus.read_state(self.ids).position
+                    self.bus.write_goals(dict(zip(self.ids, present.tolist(), strict=True)))
+                    self.last_goals = present.copy()
+                    self.watchdog = Watchdog.HOLDING
+            except BusError as e:
+                self.state, self.fault, self.fault_servos = State.WAITING_FOR_OPERATOR, str(e), e.servo_ids
+        return self.watchdog
+
+    # -- status --------------------------------------------------------------------------------
+    def status(self) -> dict:
+        return {
+            "state": self.state.value,
+            "watchdog": self.watchdog.value,
+            "fault": self.fault,
+            "fault_servos": list(self.fault_servos),
+            "recoveries": self.recoveries,
+            "errors": {str(k): v for k, v in self.last_errors.items()},
+        }
+
+    # -- internals -----------------------------------------------------------------------------
+    def _refuse_if_stopped(self) -> None:
+        if self.estopped:
+            raise Refused("e-stop: torque is off until the bridge is re-armed")
+
+    def _send(self, goals: np.ndarray) -> None:
+        self.bus.write_goals(dict(zip(self.ids, goals.tolist(), strict=True)))
+        self.last_goals = goals.copy()
+        self._last_command = self._clock()
+        if self.watchdog is Watchdog.HOLDING:
+            self.watchdog = Watchdog.ACTIVE
+
+    def _wait(self, seconds: float) -> None:
+        """Sleep in short slices so an e-stop during the wait ends the step at once."""
+        end = self._clock() + seconds
+        while (left := end - self._clock()) > 0:
+            if self.estopped:
+                raise Refused("e-stop during the step")
+            self._sleep(min(left, 0.01))
+
+    def _faulted(self, goals: np.ndarray, clamped: bool, start: float, servo_ids, reason: str) -> StepReport:
+        self.fault, self.fault_servos = reason, tuple(servo_ids)
+        self.state = State.RECOVERING
+        self._recover(self.fault_servos)
+        return StepReport(goals, clamped, None, self._clock() - start, True, reason)
+
+    def _recover(self, servo_ids: tuple[int, ...]) -> None:
+        """Reboot the faulty servos (if any), restore limits, torque on, home; else wait for an operator."""
+        self.recoveries += 1
+        try:
+            with self._lock:
+                for sid in servo_ids:
+                    self.bus.reboot(sid, self.safety.reboot_wait_s)
+                self.arm()
+            homed = self.go_home()
+        except (BusError, Refused) as e:
+            homed, self.fault = False, f"{self.fault}; recovery failed: {e}"
+        if homed:
+            self.state, self.fault, self.fault_servos = State.READY, "", ()
+            return
+        if not self.estopped:
+            self.state = State.WAITING_FOR_OPERATOR
+        with self._lock:
+            self._torque_off()  # a servo that cannot hear it is the fault already reported
+
+    def _torque_off(self) -> list[int]:
+        """Torque off on every servo that answers, one by one; returns those that did not."""
+        unreached = []
+        for sid in self.ids:
+            try:
+                self.bus.set_torque(False, [sid])
+            except BusError:
+                unreached.append(sid)
+        return unreached

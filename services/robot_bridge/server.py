@@ -1,0 +1,201 @@
+"""The bridge's Zenoh side: serves one gripper (or its stand-in) as reset/step queryables.
+
+Zenoh callbacks only queue work: one worker thread steps the environment, so an e-stop message
+is handled at once even while a step is in flight (the hardware's `SafeFingers.estop` then wins
+over that step). Every reply carries the raw frame, never a stack: the client stacks.
+For the real gripper, a second thread polls the watchdog.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from services.robot_bridge.safety import Refused
+from shared import wire
+
+WATCHDOG_POLL_S = 0.1
+
+
+class BridgeServer:
+    """One environment behind the bridge's keys; `serve()` declares them for as long as it runs."""
+
+    def __init__(self, session: zenoh.Session, bridge_id: str | int, env: Any, task: str,
+                 log: Callable[[str], None] = print) -> None:
+        self.session = session
+        self.keys = wire.BridgeKeys(bridge_id)
+        self.env = env
+        self.task = task
+        self.log = log
+        self.frame_shape = (3, env.image_size, env.image_size)
+        self.episode = -1
+        self.step_index = 0
+        self.estopped = False
+        self.estop_reason = ""
+        self.invalid = 0
+        self._done = True
+        self._frame = np.zeros(self.frame_shape, np.uint8)
+        self._work: queue.Queue[tuple[zenoh.Query, str, bytes]] = queue.Queue()
+        self._stop = threading.Event()
+        self._safety = getattr(env, "fingers", None)  # the real gripper's interlocks, if any
+
+    # -- e-stop ---------------------------------------------------------------------------------
+    def estop(self, reason: str) -> None:
+        """Idempotent: the flag first, then the hardware's torque-off (which wins over a step)."""
+        self.estopped, self.estop_reason = True, reason
+        if self._safety is not None:
+            self._safety.estop()
+        self.log(f"e-stop: {reason}")
+
+    def rearm(self) -> None:
+        if self._safety is not None:
+            self._safety.rearm()
+        self.estopped, self.estop_reason = False, ""
+        self.log("re-armed")
+
+    # -- requests -------------------------------------------------------------------------------
+    def handle_spec(self) -> wire.BridgeSpec:
+        return wire.BridgeSpec(self.task, int(self.env.action_dim), list(self.frame_shape))
+
+    def handle_reset(self, msg: wire.BridgeReset) -> wire.BridgeReply:
+        if self.estopped:
+            return self._refusal(f"e-stop: {self.estop_reason}")
+        start = time.perf_counter()
+        try:
+            frame, _, _, _ = self.env.reset()
+        except Refused as e:
+            return self._refusal(str(e))
+        self.episode += 1
+        self.step_index, self._done, self._frame = 0, False, frame
+        return self._reply(frame, 0.0, 1.0, True, False, time.perf_counter() - start, "")
+
+    def handle_step(self, msg: wire.BridgeStep) -> wire.BridgeReply:
+        action = wire.array(msg.action, "<f4", (int(self.env.action_dim),))
+        if msg.episode != self.episode or msg.step != self.step_index or self._done:
+            return self._ended(f"stale step (episode {msg.episode} step {msg.step}): reset first")
+        if self.estopped:
+            return self._ended(f"e-stop: {self.estop_reason}")
+        start = time.perf_counter()
+        frame, reward, discount, last = self.env.step(np.asarray(action, np.float64))
+        env_s = time.perf_counter() - start
+        if self.estopped:  # pressed during the step: whatever it did, the episode ends here
+            last = True
+        self.step_index += 1
+        self._done, self._frame = last, frame
+        return self._reply(frame, float(reward), float(discount), False, bool(last), env_s, "")
+
+    def _info(self, env_s: float, reason: str) -> dict:
+        info = self.env.info() if hasattr(self.env, "info") else {
+            "valve_angle": float(self.env.valve_angle),
+            "target_angle": float(self.env.target_angle),
+            "positions": self.env.servo_positions().tolist(),
+            "truncated": bool(reason),
+            "reason": reason,
+            "safety": {"state": "ready"},
+        }
+        if self.estopped:
+            info["safety"] = {**info.get("safety", {}), "state": "estop"}
+            info["reason"] = info.get("reason") or reason
+        info["env_s"] = env_s
+        return info
+
+    def _reply(self, frame: np.ndarray, reward: float, discount: float, first: bool, last: bool,
+               env_s: float, reason: str) -> wire.BridgeReply:
+        data = np.ascontiguousarray(frame).tobytes()
+        return wire.BridgeReply(
+            True, reason, self.episode, self.step_index, list(frame.shape), data,
+            reward, discount, first, last, self._info(env_s, reason),
+        )
+
+    def _ended(self, reason: str) -> wire.BridgeReply:
+        """The episode ends here, truncated: the last frame again, no reward."""
+        self._done = True
+        reply = self._reply(self._frame, 0.0, 1.0, False, True, 0.0, reason)
+        reply.info.update(truncated=True, reason=reason)
+        return reply
+
+    def _refusal(self, reason: str) -> wire.BridgeReply:
+        return wire.BridgeReply(False, reason, self.episode, 0, list(self.frame_shape), b"", 0.0, 1.0,
+                                False, False, {"reason": reason})
+
+    # -- Zenoh ----------------------------------------------------------------------------------
+    def _on_query(self, kind: str) -> Callable[[zenoh.Query], None]:
+        def queue_it(query: zenoh.Query) -> None:
+            payload = query.payload
+            self._work.put((query, kind, payload.to_bytes() if payload is not None else b""))
+        return queue_it
+
+    def _on_estop(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), wire.BridgeEStop)
+        except wire.WireError as err:
+            self.invalid += 1
+            self.log(f"invalid e-stop message: {err}")
+            return
+        if msg.engage:
+            self.estop(msg.reason)
+        else:
+            threading.Thread(target=self.rearm, name="rearm", daemon=True).start()  # homing takes time
+
+    def _answer(self, query: zenoh.Query, kind: str, payload: bytes) -> None:
+        try:
+            if kind == "spec":
+                wire.decode(payload, wire.BridgeSpecRequest)
+                reply: wire.Message = self.handle_spec()
+            elif kind == "reset":
+                reply = self.handle_reset(wire.decode(payload, wire.BridgeReset))
+            else:
+                reply = self.handle_step(wire.decode(payload, wire.BridgeStep))
+            query.reply(query.key_expr, wire.encode(reply))
+        except wire.WireError as err:
+            self.invalid += 1
+            query.reply_err(str(err).encode())
+        except Exception as err:  # noqa: BLE001 (a camera or bus failure must not kill the bridge)
+            self.log(f"{kind} failed: {type(err).__name__}: {err}")
+            self._done = True  # the episode under way cannot go on
+            query.reply_err(f"{kind} failed: {type(err).__name__}: {err}".encode())
+        finally:
+            query.drop()
+
+    def _work_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                query, kind, payload = self._work.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            self._answer(query, kind, payload)
+
+    def _watchdog_loop(self) -> None:
+        while not self._stop.wait(WATCHDOG_POLL_S):
+            self._safety.poll_watchdog()
+
+    @contextmanager
+    def serve(self) -> Iterator[BridgeServer]:
+        s, k = self.session, self.keys
+        threads = [threading.Thread(target=self._work_loop, name="bridge", daemon=True)]
+        if self._safety is not None:
+            threads.append(threading.Thread(target=self._watchdog_loop, name="watchdog", daemon=True))
+        # Declared in this order on purpose: a client that got a spec answer (or sees the token)
+        # finds reset, step and e-stop already declared.
+        with (
+            s.declare_queryable(k.reset, self._on_query("reset")),
+            s.declare_queryable(k.step, self._on_query("step")),
+            s.declare_subscriber(k.estop, self._on_estop),
+            s.declare_queryable(k.spec, self._on_query("spec")),
+            s.liveliness().declare_token(k.alive),
+        ):
+            for t in threads:
+                t.start()
+            try:
+                yield self
+            finally:
+                self._stop.set()
+                for t in threads:
+                    t.join(timeout=5.0)

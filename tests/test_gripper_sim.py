@@ -1,0 +1,143 @@
+"""The MuJoCo stand-in of the gripper valve task: reward, both reset scenarios, determinism, frames."""
+
+import math
+
+import numpy as np
+import pytest
+
+from shared.gripper import sim
+from shared.gripper.sim import ValveSim, angle_distance, valve_reward
+
+
+def test_reward_wraps_around() -> None:
+    assert valve_reward(math.radians(359), math.radians(1)) == pytest.approx(-2.0 / 180.0)
+    assert valve_reward(math.radians(1), math.radians(359)) == pytest.approx(-2.0 / 180.0)
+    assert valve_reward(0.0, math.pi) == pytest.approx(-1.0)
+    assert valve_reward(2.0, 2.0 + 4 * math.pi) == pytest.approx(0.0, abs=1e-12)
+    angles = np.random.default_rng(0).uniform(-10, 10, size=(200, 2))
+    distances = [angle_distance(a, b) for a, b in angles]
+    assert 0.0 <= min(distances) and max(distances) <= math.pi
+
+
+def test_actions_map_to_the_servo_step_grid() -> None:
+    low, high = np.full(4, -math.radians(150)), np.full(4, math.radians(150))
+    goal = sim.action_to_goal(np.array([-1.0, 1.0, 0.0, 5.0]), low, high)
+    assert list(sim.angle_to_position(goal)) == [0, 1023, 512, 1023]
+    steps = goal / sim.SERVO_RAD_PER_STEP
+    assert np.allclose(steps, np.rint(steps))
+
+
+class Recording(ValveSim):
+    """Records the valve angle after every physics step, to show how a reset moves it."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.trace: list[float] = []
+        super().__init__(*args, **kwargs)
+
+    def _servo_substep(self, goal: np.ndarray) -> None:
+        super()._servo_substep(goal)
+        self.trace.append(float(self.data.qpos[self._valve_qpos]))
+
+
+def test_reset_scenario_turns_the_valve_with_its_own_actuator() -> None:
+    env = Recording("gripper-valve_reset", seed=3, render_quality="fast")
+    draws = np.random.RandomState(3)
+    try:
+        for _ in range(3):
+            env.trace.clear()
+            env.reset()
+            expected_valve, expected_target = draws.uniform(0, 2 * math.pi), draws.uniform(0, 2 * math.pi)
+            assert angle_distance(env.valve_angle, expected_valve) < math.radians(2.0)
+            assert env.target_angle == pytest.approx(expected_target)
+            assert env.data.ctrl[4] == 0.0  # torque off for the episode
+            # No teleport: the valve travelled in physics steps no bigger than its speed allows.
+            jumps = np.abs(np.diff(env.trace))
+            assert len(env.trace) > 1 and jumps.max() < 100.0 * env.model.opt.timestep
+    finally:
+        env.close()
+
+
+def test_stay_scenario_leaves_the_valve_where_it_is() -> None:
+    env = ValveSim("gripper-valve", seed=5, render_quality="fast")
+    try:
+        env.reset()
+        env._turn_valve_to(math.radians(100))  # as if the fingers had turned it there
+        before = env.valve_angle
+        env.reset()
+        assert angle_distance(env.valve_angle, before) < math.radians(0.5)
+        assert env.data.ctrl[4] == 0.0
+        targets = []
+        for _ in range(4):
+            env.reset()
+            targets.append(env.target_angle)
+        assert len(set(targets)) == 4  # a new target every episode
+    finally:
+        env.close()
+
+
+def _episode(env: ValveSim, seed: int) -> tuple[list[np.ndarray], list[float]]:
+    actions = np.random.default_rng(seed).uniform(-1, 1, size=(sim.EPISODE_STEPS, 4))
+    frame, _, _, _ = env.reset()
+    frames, rewards = [frame], []
+    for i, action in enumerate(actions):
+        frame, reward, discount, last = env.step(action)
+        frames.append(frame)
+        rewards.append(reward)
+        assert discount == 1.0
+        assert last == (i == sim.EPISODE_STEPS - 1)
+    return frames, rewards
+
+
+def test_deterministic_under_a_seed_and_resumable_from_its_state() -> None:
+    a = ValveSim("gripper-valve_reset", seed=11, render_quality="fast")
+    b = ValveSim("gripper-valve_reset", seed=11, render_quality="fast")
+    try:
+        frames_a, rewards_a = _episode(a, 0)
+        frames_b, rewards_b = _episode(b, 0)
+        assert rewards_a == rewards_b
+        assert all(np.array_equal(x, y) for x, y in zip(frames_a, frames_b, strict=True))
+        assert all(-1.0 <= r <= 0.0 for r in rewards_a)
+        with pytest.raises(RuntimeError, match="reset"):
+            a.step(np.zeros(4))
+        state = a.rng_state()
+        a.reset()
+        b.set_rng_state(state)
+        b.reset()
+        assert b.target_angle == a.target_angle
+        # The checkpoint holds the valve angle, not the whole physics state: close, not bitwise.
+        assert angle_distance(b.valve_angle, a.valve_angle) < math.radians(0.5)
+    finally:
+        a.close()
+        b.close()
+
+
+def test_frames_are_uint8_chw_at_the_image_size_in_both_qualities() -> None:
+    for quality, size in (("fast", 84), ("paper", 48)):
+        env = ValveSim("gripper-valve", seed=0, image_size=size, render_quality=quality)
+        try:
+            frame, reward, discount, last = env.reset()
+            assert frame.shape == (3, size, size) and frame.dtype == np.uint8
+            assert (reward, discount, last) == (0.0, 1.0, False)
+            assert frame.std() > 10  # a scene, not a blank image
+        finally:
+            env.close()
+    with pytest.raises(ValueError, match="render_quality"):
+        ValveSim("gripper-valve", seed=0, render_quality="nice")  # type: ignore[arg-type]
+    with pytest.raises(sim.UnknownGripperTask, match="gripper-valve_reset"):
+        ValveSim("gripper-door", seed=0)
+
+
+def test_action_repeat_shortens_the_episode() -> None:
+    env = ValveSim("gripper-valve", seed=0, action_repeat=2, render_quality="fast")
+    try:
+        env.reset()
+        steps, last = 0, False
+        while not last:
+            _, reward, _, last = env.step(np.zeros(4))
+            steps += 1
+            assert -2.0 <= reward <= 0.0
+        assert steps == sim.EPISODE_STEPS // 2
+        with pytest.raises(ValueError, match="shape"):
+            env.step(np.zeros(3))
+    finally:
+        env.close()

@@ -1,0 +1,133 @@
+"""The servo driver through the real dynamixel-sdk against the Protocol 2.0 emulator on a pty."""
+
+import os
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from services.robot_bridge import protocol, xl320
+from services.robot_bridge.dynamixel import BusError, ServoBus
+from services.robot_bridge.emulator import BusEmulator
+
+IDS = (1, 2, 3, 4)
+# The emulator shares this machine with whatever else runs: a reply window (twice this) far wider
+# than a USB adapter needs, so only an injected fault makes a reply late.
+LATENCY_MS = 500.0
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[BusEmulator, ServoBus]]:
+    with BusEmulator(IDS, positions={1: 300, 2: 400, 3: 500, 4: 600}) as emu:
+        bus = ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS)
+        try:
+            yield emu, bus
+        finally:
+            bus.close()
+
+
+def wait_until(condition: Callable[[], bool], deadline_s: float = 10.0) -> None:
+    """Poll until the condition holds; the deadline only stops a hung test."""
+    end = time.monotonic() + deadline_s
+    while not condition():
+        assert time.monotonic() < end, "condition never held"
+        time.sleep(0.02)
+
+
+def test_framing_matches_a_known_packet() -> None:
+    # The Protocol 2.0 manual's examples: a ping of id 1, and a read of 4 bytes at 132 from id 1.
+    assert protocol.encode(1, protocol.PING).hex() == "fffffd0001030001194e"
+    assert protocol.encode(1, protocol.READ, bytes((0x84, 0, 4, 0))).hex() == "fffffd0001070002840004001d15"
+    stuffed = protocol.encode(1, protocol.WRITE, bytes((30, 0, 0xFF, 0xFF, 0xFD, 7)))
+    assert b"\xff\xff\xfd\xfd" in stuffed[7:]
+    packet = protocol.decode(bytearray(b"\x00noise" + stuffed))
+    assert packet == protocol.Packet(1, protocol.WRITE, bytes((30, 0, 0xFF, 0xFF, 0xFD, 7)))
+
+
+def test_sync_write_then_sync_read_round_trip(rig) -> None:
+    emu, bus = rig
+    assert all(bus.ping(sid) for sid in IDS)
+    state = bus.read_state()
+    assert list(state.position) == [300, 400, 500, 600]
+    bus.set_torque(True)
+    goals = {1: 310, 2: 390, 3: 512, 4: 1000}
+    bus.write_goals(goals)
+    assert [bus.read(sid, xl320.GOAL_POSITION, 2) for sid in IDS] == list(goals.values())
+    assert [emu.snapshot(sid, xl320.GOAL_POSITION) for sid in IDS] == list(goals.values())
+
+
+def test_positions_converge_at_the_moving_speed(rig) -> None:
+    emu, bus = rig
+    for sid in IDS:
+        bus.set_limits(sid, moving_speed=100, torque_limit=500)
+    assert emu.snapshot(1, xl320.TORQUE_LIMIT) == 500
+    bus.set_torque(True)
+    goals = {1: 700, 2: 100, 3: 500, 4: 650}
+    bus.write_goals(goals)
+    seen = []
+    wait_until(lambda: seen.append(bus.read_state()) or list(seen[-1].position) == list(goals.values()))
+    first, last = seen[0], seen[-1]
+    assert first.moving[0] and not last.moving.any()
+    assert first.load[0] > 0 > first.load[1]  # pushing toward the goal, each its own way
+    # Monotonic travel toward the goal: a servo never overshoots.
+    track = [s.position[0] for s in seen]
+    assert track == sorted(track)
+
+
+def test_error_bits_surface_and_reboot_clears_them(rig) -> None:
+    emu, bus = rig
+    bus.set_torque(True)
+    emu.overload(2)
+    state = bus.read_state()
+    assert state.error[1] & xl320.ERROR_OVERLOAD
+    assert state.faults(IDS) == {2: ["overload"]}
+    assert bus.read(2, xl320.TORQUE_ENABLE, 1) == 0  # the servo's shutdown took torque off
+    bus.reboot(2, wait_s=0.0)
+    assert bus.hardware_error(2) == 0
+    assert emu.servos[2].reboots == 1
+
+
+def test_a_dead_servo_is_named(rig) -> None:
+    emu, bus = rig
+    emu.kill(3)
+    with pytest.raises(BusError, match="not answering: \\[3\\]") as err:
+        bus.read_state()
+    assert err.value.servo_ids == (3,)
+    with pytest.raises(BusError, match="servo 3"):
+        bus.set_torque(True, ids=[3])
+    emu.kill(3, dead=False)
+    assert list(bus.read_state().position) == [300, 400, 500, 600]
+
+
+def test_a_late_reply_times_out(rig) -> None:
+    emu, bus = rig
+    emu.delay(2, 2.5)
+    with pytest.raises(BusError, match="no status packet|Incorrect status packet"):
+        bus.read(2, xl320.PRESENT_POSITION, 2)
+    emu.delay(2, 0.0)
+    time.sleep(3.0)  # let the late reply arrive before the next transfer clears the input
+    assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
+
+
+def test_a_corrupt_crc_is_rejected(rig) -> None:
+    emu, bus = rig
+    emu.corrupt(1)
+    with pytest.raises(BusError, match="Incorrect status packet"):
+        bus.read_state()
+    assert list(bus.read_state().position) == [300, 400, 500, 600]  # the next reply is clean
+
+
+def test_the_emulator_answers_a_bad_instruction_crc_with_a_crc_error() -> None:
+    with BusEmulator([7]) as emu:
+        fd = os.open(emu.port, os.O_RDWR | os.O_NOCTTY)
+        try:
+            packet = bytearray(protocol.encode(7, protocol.PING))
+            packet[-1] ^= 0xFF
+            os.write(fd, bytes(packet))
+            reply = bytearray()
+            wait_until(lambda: reply.extend(os.read(fd, 64)) or protocol.HEADER in reply and len(reply) >= 11)
+            status = protocol.decode(reply)
+            assert status is not None and status.instruction == protocol.STATUS
+            assert status.params[0] == protocol.ERR_CRC
+        finally:
+            os.close(fd)

@@ -1,0 +1,147 @@
+"""Every interlock of the bridge, against the emulated bus through the real dynamixel-sdk."""
+
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from services.robot_bridge import xl320
+from services.robot_bridge.config import SafetyConfig, ServoConfig
+from services.robot_bridge.dynamixel import ServoBus
+from services.robot_bridge.emulator import BusEmulator
+from services.robot_bridge.safety import Refused, SafeFingers, State, Watchdog
+from tests.test_robot_bridge_bus import LATENCY_MS, wait_until
+
+IDS = (1, 2, 3, 4)
+HOME = (512, 600, 512, 600)
+SERVOS = ServoConfig(ids=IDS, min_step=(200,) * 4, max_step=(820,) * 4, home=HOME, moving_speed=600,
+                     torque_limit=700, max_step_change=50)
+SAFETY = SafetyConfig(step_timeout_s=5.0, watchdog_hold_s=1.0, watchdog_off_s=3.0, home_tolerance=3,
+                      home_timeout_s=10.0, reboot_wait_s=0.0)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def emu() -> Iterator[BusEmulator]:
+    with BusEmulator(IDS, positions=dict(zip(IDS, HOME, strict=True))) as emulator:
+        yield emulator
+
+
+def fingers(emu: BusEmulator, **kwargs) -> SafeFingers:
+    bus = ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS)
+    f = SafeFingers(bus, SERVOS, kwargs.pop("safety", SAFETY), **kwargs)
+    f.arm()
+    assert f.go_home()
+    return f
+
+
+def torque(emu: BusEmulator) -> list[int]:
+    return [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in IDS]
+
+
+def test_out_of_range_and_too_fast_goals_are_clamped(emu) -> None:
+    f = fingers(emu)
+    goals, clamped = f.clamp(np.array([2000, -5, 530, 512]))
+    assert clamped and list(goals) == [562, 550, 530, 550]  # range first, then +-50 from the last goal
+    report = f.step(np.array([1.0, -1.0, 0.0, 0.2903]))
+    assert report.clamped and not report.truncated
+    assert list(report.goals) == [562, 550, 510, 600]
+    assert [emu.snapshot(sid, xl320.GOAL_POSITION) for sid in IDS] == [562, 550, 510, 600]
+    report = f.step(np.array([1.0, -1.0, 0.0, 0.2903]))
+    assert list(report.goals) == [612, 500, 510, 600]  # each step may move 50 more
+    f.bus.close()
+
+
+def test_a_slow_step_is_truncated_and_reported(emu) -> None:
+    safety = SafetyConfig(**{**SAFETY.__dict__, "step_timeout_s": 0.01})
+    f = fingers(emu, safety=safety)
+    report = f.step(np.zeros(4), settle_s=0.05)
+    assert report.truncated and "timeout" in report.reason and report.state is not None
+    f.bus.close()
+
+
+def test_the_watchdog_holds_then_turns_torque_off(emu) -> None:
+    clock = FakeClock()
+    f = fingers(emu, clock=clock)
+    f.step(np.full(4, 0.3))  # goals 50 steps away: the servos are moving
+    clock.now += 0.5
+    assert f.poll_watchdog() is Watchdog.ACTIVE
+    clock.now += 0.6
+    assert f.poll_watchdog() is Watchdog.HOLDING
+    # The hold is a sync write (no reply): wait for the emulator to have taken it off the line.
+    wait_until(lambda: [emu.snapshot(sid, xl320.GOAL_POSITION) for sid in IDS] == list(f.last_goals))
+    clock.now += 2.0
+    assert f.poll_watchdog() is Watchdog.TORQUE_OFF
+    assert torque(emu) == [0, 0, 0, 0]
+    with pytest.raises(Refused, match="watchdog"):
+        f.step(np.zeros(4))
+    f.arm()  # what a reset does first
+    assert torque(emu) == [1, 1, 1, 1] and f.watchdog is Watchdog.ACTIVE
+    f.bus.close()
+
+
+def test_estop_wins_over_a_step_in_flight_and_holds_until_rearmed(emu) -> None:
+    f = fingers(emu)
+    outcome: list[BaseException | object] = []
+
+    def step() -> None:
+        try:
+            outcome.append(f.step(np.full(4, 0.3), settle_s=60.0))
+        except Refused as e:
+            outcome.append(e)
+
+    thread = threading.Thread(target=step)
+    thread.start()
+    wait_until(lambda: emu.snapshot(1, xl320.GOAL_POSITION) != HOME[0])  # the step is in flight
+    f.estop()
+    thread.join(timeout=30)
+    assert not thread.is_alive()
+    assert isinstance(outcome[0], Refused)
+    assert torque(emu) == [0, 0, 0, 0] and f.status()["state"] == "estop"
+    f.estop()  # idempotent
+    with pytest.raises(Refused, match="e-stop"):
+        f.step(np.zeros(4))
+    assert torque(emu) == [0, 0, 0, 0]
+    f.rearm()
+    assert f.state is State.READY and torque(emu) == [1, 1, 1, 1]
+    assert not f.step(np.zeros(4)).truncated
+    f.bus.close()
+
+
+def test_a_servo_fault_is_recovered_by_reboot_and_homing(emu) -> None:
+    f = fingers(emu)
+    emu.overload(3)
+    report = f.step(np.zeros(4))
+    assert report.truncated and "overload" in report.reason
+    assert emu.servos[3].reboots == 1
+    status = f.status()
+    assert status["state"] == "ready" and status["recoveries"] == 1 and status["fault"] == ""
+    assert torque(emu) == [1, 1, 1, 1]
+    assert emu.snapshot(3, xl320.HARDWARE_ERROR_STATUS) == 0
+    assert not f.step(np.zeros(4)).truncated
+    f.bus.close()
+
+
+def test_a_failed_recovery_waits_for_the_operator(emu) -> None:
+    f = fingers(emu)
+    emu.kill(2)
+    report = f.step(np.zeros(4))
+    assert report.truncated and "[2]" in report.reason
+    status = f.status()
+    assert status["state"] == "waiting_for_operator" and status["fault_servos"] == [2]
+    assert "recovery failed" in status["fault"]
+    with pytest.raises(Refused, match="waiting_for_operator"):
+        f.step(np.zeros(4))
+    assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in (1, 3, 4)] == [0, 0, 0]
+    emu.kill(2, dead=False)  # the operator fixed the cable
+    f.rearm()
+    assert f.status()["state"] == "ready" and torque(emu) == [1, 1, 1, 1]
+    f.bus.close()

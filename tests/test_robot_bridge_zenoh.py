@@ -1,0 +1,183 @@
+"""The bridge over real Zenoh on loopback: the stand-in behind it, BridgeEnv in front."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from nasa.up import free_port
+from services.robot_bridge import operate
+from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
+from services.robot_bridge.server import BridgeServer
+from shared import wire
+from shared.envs import FrameStack
+from shared.gripper.sim import EPISODE_STEPS, ValveSim
+from shared.zenoh_session import open_client, open_router
+
+TASK = "gripper-valve_reset"
+
+
+def wait_until(condition: Callable[[], bool], deadline_s: float = 20.0) -> None:
+    end = time.monotonic() + deadline_s
+    while not condition():
+        assert time.monotonic() < end, "condition never held"
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def sessions(endpoint: str):
+    with open_router(endpoint), open_client(endpoint) as bridge, open_client(endpoint) as actor:
+        yield bridge, actor
+
+
+def test_the_bridge_is_transparent_for_the_stand_in(sessions) -> None:
+    bridge_session, actor_session = sessions
+    sim = ValveSim(TASK, seed=7, render_quality="fast")
+    local = ValveSim(TASK, seed=7, render_quality="fast")
+    server = BridgeServer(bridge_session, "g1", sim, TASK, log=lambda _: None)
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g1", client="actor-0", timeout_s=30.0)
+            assert (env.task, env.action_dim, env.image_size) == (TASK, 4, 84) and env.alive()
+            stacked = FrameStack(env, 3)  # what the actor holds
+            ts = stacked.reset()
+            frame, _, _, _ = local.reset()
+            assert ts.obs.shape == (9, 84, 84) and np.array_equal(ts.frame, frame)
+            actions = np.random.default_rng(0).uniform(-1, 1, size=(EPISODE_STEPS, 4)).astype(np.float32)
+            for i, action in enumerate(actions):
+                ts = stacked.step(action)
+                frame, reward, _, last = local.step(action.astype(np.float64))
+                assert np.array_equal(ts.frame, frame) and ts.reward == reward and ts.last == last
+                assert ts.last == (i == EPISODE_STEPS - 1)
+            assert env.info["target_angle"] == local.target_angle and len(env.info["positions"]) == 4
+            _, reward, _, last = env.step(np.zeros(4))  # past the end: truncated, no reward
+            assert last and reward == 0.0 and "reset first" in env.info["reason"]
+        # The bridge is gone: its token went with it, and a reset fails instead of hanging.
+        wait_until(lambda: not env.alive())
+        assert env.wait_alive(stop=lambda: True) is False  # an actor told to stop does not wait
+        env.timeout_s = 2.0
+        with pytest.raises(BridgeUnavailable):
+            env.reset()
+        # The bridge comes back (a restart): the paused client sees it and starts a new episode.
+        restarted = ValveSim(TASK, seed=8, render_quality="fast")
+        try:
+            with BridgeServer(bridge_session, "g1", restarted, TASK, log=lambda _: None).serve():
+                assert env.wait_alive(stop=lambda: False, poll_s=0.05)
+                env.timeout_s = 30.0
+                frame, _, _, last = env.reset()
+                assert frame.shape == (3, 84, 84) and not last and env.episode == 0
+        finally:
+            restarted.close()
+    finally:
+        sim.close()
+        local.close()
+
+
+def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions, endpoint: str) -> None:
+    bridge_session, actor_session = sessions
+    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
+    server = BridgeServer(bridge_session, "g2", sim, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g2", timeout_s=30.0)
+            env.reset()
+            env.step(np.zeros(4))
+            keys = wire.BridgeKeys("g2")
+            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "test button")))
+            wait_until(lambda: server.estopped)
+            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "pressed twice")))  # idempotent
+            _, reward, _, last = env.step(np.zeros(4))
+            assert last and reward == 0.0 and "e-stop" in env.info["reason"]
+            assert env.info["safety"]["state"] == "estop"
+            with pytest.raises(BridgeUnavailable, match="e-stop"):
+                env.reset()
+            operate.send_estop("g2", False, "operator re-arm", endpoint)  # the operator's command
+            wait_until(lambda: not server.estopped)
+            env.reset()
+            _, _, _, last = env.step(np.zeros(4))
+            assert not last
+            # A malformed request gets an error reply, not silence, and is counted.
+            replies = list(actor_session.get(keys.step, payload=b"\x01garbage", timeout=10.0))
+            assert replies and replies[0].err is not None and server.invalid == 1
+    finally:
+        sim.close()
+
+
+def alive(session, bridge_id: str) -> bool:
+    keys = wire.BridgeKeys(bridge_id)
+    return any(r.ok is not None for r in session.liveliness().get(keys.alive, timeout=2.0))
+
+
+def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str) -> None:
+    _, actor_session = sessions
+    argv = ["--bridge-id", "p1", "--task", TASK, "--connect", endpoint]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.robot_bridge", *argv],
+        stderr=subprocess.PIPE, text=True, env={**os.environ, "MUJOCO_GL": "egl"},
+    )
+    try:
+        wait_until(lambda: alive(actor_session, "p1"), deadline_s=120.0)
+        env = BridgeEnv(actor_session, "p1", timeout_s=60.0)
+        frame, _, _, _ = env.reset()
+        assert frame.shape == (3, 84, 84)
+        _, reward, _, last = env.step(np.zeros(4, np.float32))
+        assert -1.0 <= reward <= 0.0 and not last
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "e-stop: SIGTERM" in err
+        wait_until(lambda: not env.alive())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_bad_gripper_config_exits_as_bad_input(tmp_path) -> None:
+    bad = tmp_path / "gripper.toml"
+    bad.write_text('[bus]\nport = "/dev/null"\nbaud = 7\n')
+    done = subprocess.run(
+        [sys.executable, "-m", "services.robot_bridge", "--config", str(bad)], capture_output=True, text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2 and "bus.baud: 7" in done.stderr and "servos.ids: missing" in done.stderr
+
+
+class BrokenCamera(ValveSim):
+    """A stand-in whose next step fails the way a camera that stopped would."""
+
+    fail_next = False
+
+    def step(self, action):
+        if self.fail_next:
+            self.fail_next = False
+            raise RuntimeError("the camera returned no frame")
+        return super().step(action)
+
+
+def test_a_failing_step_is_an_error_reply_and_the_bridge_serves_on(sessions) -> None:
+    bridge_session, actor_session = sessions
+    sim = BrokenCamera("gripper-valve", seed=2, render_quality="fast")
+    server = BridgeServer(bridge_session, "g3", sim, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g3", timeout_s=30.0)
+            env.reset()
+            sim.fail_next = True
+            with pytest.raises(BridgeUnavailable, match="no frame"):
+                env.step(np.zeros(4))
+            env.reset()  # a new episode, as the actor starts after a bridge fault
+            _, reward, _, last = env.step(np.zeros(4))
+            assert not last and -1.0 <= reward <= 0.0
+    finally:
+        sim.close()
