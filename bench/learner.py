@@ -280,6 +280,7 @@ def summarize(rounds: list[dict], device: str, batch: int) -> dict:
         "part_seconds_per_update": {k: round(v, 4) for k, v in parts_s.items()},
         "part_gflop_per_update": {k: round(v / 1e9, 2) for k, v in parts_f.items()},
         "part_fraction_of_peak": {k: _round(fraction(parts_f[k], parts_s[k], peak)) for k in parts_s},
+        "score_gflop_per_transition": {k: round(v / 1e9, 3) for k, v in score_flops.items()},
         "score_fraction_of_peak": {
             k: _round(fraction(score_flops[k], score_ms[k] / 1000, peak)) for k in score_ms
         },

@@ -124,6 +124,7 @@ def test_summary_takes_medians_and_ratios_to_the_reference():
     assert s["update_fraction_of_peak"] == 0.4
     assert s["part_fraction_of_peak"] == {"critic": 0.5, "actor": 0.05}
     assert s["score_fraction_of_peak"] == {"stored_order": 0.5, "batch_1": 0.15}
+    assert s["score_gflop_per_transition"] == {"stored_order": 0.2, "batch_1": 0.3}
     assert s["reference_update_fraction_of_peak"] == 0.3
     assert s["goals_met"] == {
         "update_ratio": False,
