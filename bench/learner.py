@@ -52,6 +52,15 @@ PARTS = {
     "actor": ("update_actor",),
     "ensemble": ("update_ensemble",),
 }
+# Other agents and settings, timed on request (`--variants`): name -> (algo, config overrides).
+VARIANTS = {
+    "td3_ae": ("td3_ae", {}),
+    "pixel_td3": ("pixel_td3", {}),
+    "sac_ae": ("sac_ae", {}),
+    "nasa_td3+shared_encoder_pass": ("nasa_td3", {"shared_encoder_pass": True}),
+    "td3_ae+shared_encoder_pass": ("td3_ae", {"shared_encoder_pass": True}),
+    "nasa_td3+fresh": ("nasa_td3", {"intrinsic_timing": "fresh"}),
+}
 GOALS = {"update_ratio": 2.5, "update_fraction_of_peak": 0.7, "score_ratio_stored_order": 20.0}
 WORKER_TIMEOUT_S = 600
 
@@ -119,17 +128,39 @@ def even(n: int) -> int:
 # -- workers (each in its own process) ------------------------------------------
 
 
-def project_worker(
-    data: dict, device: torch.device, updates: int, score_repeats: int, algo: str, count: bool
-) -> dict:
+def make_project_agent(algo: str, obs_shape: tuple, device: torch.device, **overrides):
     from shared.agents import make_agent
     from shared.config import agent_defaults
 
+    config = agent_defaults(algo)
+    for key, value in overrides.items():
+        setattr(config, key, value)
     torch.manual_seed(0)
-    agent = make_agent(algo, tuple(data["obs"].shape[1:]), ACTION_DIM, agent_defaults(algo), device)
+    return make_agent(algo, obs_shape, ACTION_DIM, config, device)
+
+
+def device_batch(data: dict, device: torch.device) -> dict[str, torch.Tensor]:
     keys = ("obs", "next_obs", "action", "reward", "intrinsic")
     batch = {key: torch.from_numpy(data[key]).to(device) for key in keys}
     batch["discount"] = torch.ones(len(data["reward"]), device=device)
+    return batch
+
+
+def variant_rates(data: dict, device: torch.device, updates: int, names: list[str]) -> dict[str, float]:
+    """Updates/s of other agents and settings on the same batch (two warm-up updates each)."""
+    batch, rates = device_batch(data, device), {}
+    for name in names:
+        algo, overrides = VARIANTS[name]
+        agent = make_project_agent(algo, tuple(data["obs"].shape[1:]), device, **overrides)
+        rates[name] = 1.0 / seconds_per_call(lambda a=agent: a.update(batch), even(updates), device, warmup=2)
+    return rates
+
+
+def project_worker(
+    data: dict, device: torch.device, updates: int, score_repeats: int, algo: str, count: bool
+) -> dict:
+    agent = make_project_agent(algo, tuple(data["obs"].shape[1:]), device)
+    batch = device_batch(data, device)
     meter = hardware.PartMeter(agent, PARTS, device)
     # Warm-up updates: two counted (the second is the first with an actor step), else one.
     with meter.attached(count=count):
@@ -155,17 +186,22 @@ def project_scoring(agent, data: dict, device: torch.device, repeats: int, count
     action = torch.from_numpy(data["action"]).to(device)
     size = len(action)
     stored = (stacks[:size], action, stacks[1 : size + 1])
-    singles = [(stacks[i : i + 1], action[i : i + 1], stacks[i + 1 : i + 2]) for i in range(SINGLES)]
+    # Every other transition: no next stack is another row's, as in an i.i.d. batch (fresh timing).
+    unchained = (stacks[0 : 2 * size : 2], action, stacks[1 : 2 * size + 1 : 2])
+    n_singles = min(SINGLES, size)
+    singles = [(stacks[i : i + 1], action[i : i + 1], stacks[i + 1 : i + 2]) for i in range(n_singles)]
     ms = {
         "stored_order": seconds_per_call(lambda: agent.score(*stored), repeats, device) * 1000 / size,
+        "unchained": seconds_per_call(lambda: agent.score(*unchained), repeats, device) * 1000 / size,
         "batch_1": seconds_per_call(lambda: [agent.score(*one) for one in singles], repeats, device)
         * 1000
-        / SINGLES,
+        / n_singles,
     }
     if not count:
         return {"score_ms_per_transition": ms}
     flops = {
         "stored_order": hardware.count_flops(lambda: agent.score(*stored)) / size,
+        "unchained": hardware.count_flops(lambda: agent.score(*unchained)) / size,
         "batch_1": hardware.count_flops(lambda: agent.score(*singles[0])),
     }
     return {"score_ms_per_transition": ms, "score_flops_per_transition": flops}
@@ -182,13 +218,15 @@ def reference_worker(data: dict, device: torch.device, updates: int, directory: 
     rate = 1.0 / seconds_per_call(lambda: reference.update(agent, data), updates, device, warmup=0)
     stacks, action = data["stacks"], data["action"]
 
+    n_singles = min(SINGLES, len(action))
+
     def score_singles() -> None:
-        for i in range(SINGLES):
+        for i in range(n_singles):
             reference.score_one(agent, stacks[i], action[i], stacks[i + 1])
 
     result = {
         "updates_per_s": rate,
-        "score_ms_per_transition": {"batch_1": seconds_per_call(score_singles, 1, device) * 1000 / SINGLES},
+        "score_ms_per_transition": {"batch_1": seconds_per_call(score_singles, 1, device) * 1000 / n_singles},
     }
     if count:
         result["update_flops"] = update_flops
@@ -225,6 +263,8 @@ def run_worker(args: argparse.Namespace) -> None:
             result = project_worker(
                 data, device, args.updates, args.score_repeats, args.algo, args.count_flops
             )
+            if args.variants:
+                result["variant_updates_per_s"] = variant_rates(data, device, args.updates, args.variants)
         else:
             result = reference_worker(data, device, args.updates, args.reference, args.count_flops)
     result["torch_threads"] = torch.get_num_threads()
@@ -291,6 +331,8 @@ def summarize(rounds: list[dict], device: str, batch: int) -> dict:
             out[f"update_fraction_of_{name}_peak"] = _round(
                 fraction(project["update_flops"], 1.0 / project["updates_per_s"], peaks[name])
             )
+    if "variant_updates_per_s" in project:
+        out["variant_updates_per_s"] = {k: round(v, 4) for k, v in project["variant_updates_per_s"].items()}
     if all("reference" in r for r in rounds):
         out |= reference_figures([r["reference"] for r in rounds], project, peak)
     out["goals_met"] = {
@@ -319,6 +361,15 @@ def reference_figures(references: list[dict], project: dict, peak: float) -> dic
             fraction(ref["update_flops"], 1.0 / ref["updates_per_s"], peak)
         ),
         "update_ratio": round(project["updates_per_s"] / ref["updates_per_s"], 3),
+        **(
+            {
+                "variant_update_ratio": {
+                    k: round(v / ref["updates_per_s"], 3) for k, v in project["variant_updates_per_s"].items()
+                }
+            }
+            if "variant_updates_per_s" in project
+            else {}
+        ),  # fmt: skip
         "score_ratio_stored_order": round(ref_score_ms / score_ms["stored_order"], 2),
         "score_ratio_batch_1": round(ref_score_ms / score_ms["batch_1"], 2),
     }
@@ -355,6 +406,8 @@ def worker_command(args: argparse.Namespace, side: str, data: Path, count: bool)
     ]
     if args.reference is not None:
         cmd += ["--reference", str(args.reference)]
+    if args.variants and side == "project":
+        cmd += ["--variants", ",".join(args.variants)]
     return cmd + (["--count-flops"] if count else [])
 
 
@@ -392,6 +445,16 @@ def _brief(side: str, result: dict) -> str:
     return f"{result['updates_per_s']:.3f} updates/s; scoring per transition: {score}"
 
 
+def variant_list(text: str) -> list[str]:
+    names = list(VARIANTS) if text == "all" else [n for n in text.split(",") if n]
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown variant(s) {unknown}; choose from {', '.join(VARIANTS)} or all"
+        )
+    return names
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--reference", type=Path, default=None, help="a checkout of UoA-CARES/NaSA_TD3")
@@ -405,6 +468,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--threads", type=int, default=0, help="torch threads (0: torch's default, as the learner)"
     )
     p.add_argument("--algo", default=ALGO, help="the project's agent (the reference is NaSA-TD3)")
+    p.add_argument(
+        "--variants",
+        type=variant_list,
+        default=[],
+        help=f"other agents/settings to time too, comma-separated, or all: {', '.join(VARIANTS)}",
+    )
     p.add_argument("--worker", choices=("project", "reference", "peak"), help=argparse.SUPPRESS)
     p.add_argument("--data", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--count-flops", action="store_true", help=argparse.SUPPRESS)

@@ -91,6 +91,7 @@ def project_result(rate: float, count: bool) -> dict:
         "updates_per_s": rate,
         "part_seconds_per_update": {"critic": 0.5, "actor": 0.1},
         "score_ms_per_transition": {"stored_order": 2.0, "batch_1": 10.0},
+        "variant_updates_per_s": {"pixel_td3": 3 * rate},
         "load_avg_1m": 1.0,
     }
     if count:
@@ -132,6 +133,9 @@ def test_summary_takes_medians_and_ratios_to_the_reference():
         "score_ratio_stored_order": False,
     }
     assert s["per_round"]["reference_updates_per_s"] == [0.4, 0.2, 0.5]
+    assert s["variant_updates_per_s"] == {"pixel_td3": 2.4} and s["variant_update_ratio"] == {
+        "pixel_td3": 6.0
+    }
 
 
 def test_summary_without_the_reference_has_no_ratio():
@@ -147,6 +151,13 @@ def test_worker_commands_alternate_and_count_once():
     assert cmd[cmd.index("--worker") + 1] == "reference" and "--count-flops" in cmd
     assert cmd[cmd.index("--reference") + 1] == "/ref"
     assert "--count-flops" not in learner.worker_command(args, "project", Path("/tmp/b.npz"), count=False)
+    args = learner.parse_args(["--variants", "all"])
+    assert args.variants == list(learner.VARIANTS)
+    project = learner.worker_command(args, "project", Path("/tmp/b.npz"), count=False)
+    assert project[project.index("--variants") + 1] == ",".join(learner.VARIANTS)
+    assert "--variants" not in learner.worker_command(args, "peak", Path("/tmp/b.npz"), count=False)
+    with pytest.raises(SystemExit):
+        learner.parse_args(["--variants", "td3_ae,no_such_agent"])
 
 
 def test_reference_loader_rejects_a_directory_that_is_not_a_checkout(tmp_path):
