@@ -335,6 +335,12 @@ def summarize(rounds: list[dict], device: str, batch: int) -> dict:
         out["variant_updates_per_s"] = {k: round(v, 4) for k, v in project["variant_updates_per_s"].items()}
     if all("reference" in r for r in rounds):
         out |= reference_figures([r["reference"] for r in rounds], project, peak)
+    loads = [r["project"].get("load_avg_1m", 0.0) for r in rounds]
+    if max(loads) > (os.cpu_count() or 1):
+        out["warning"] = (
+            f"busy machine: 1-minute load average up to {max(loads):.1f} on {os.cpu_count()} cores; "
+            "the rates and ratios move with the share of the cores each process got"
+        )
     out["goals_met"] = {
         name: (out[name] >= goal if out.get(name) is not None else None) for name, goal in GOALS.items()
     }

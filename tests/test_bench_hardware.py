@@ -92,7 +92,7 @@ def project_result(rate: float, count: bool) -> dict:
         "part_seconds_per_update": {"critic": 0.5, "actor": 0.1},
         "score_ms_per_transition": {"stored_order": 2.0, "batch_1": 10.0},
         "variant_updates_per_s": {"pixel_td3": 3 * rate},
-        "load_avg_1m": 1.0,
+        "load_avg_1m": 0.0,
     }
     if count:
         result |= {
@@ -136,6 +136,13 @@ def test_summary_takes_medians_and_ratios_to_the_reference():
     assert s["variant_updates_per_s"] == {"pixel_td3": 2.4} and s["variant_update_ratio"] == {
         "pixel_td3": 6.0
     }
+
+
+def test_summary_warns_when_the_machine_was_busy():
+    busy = rounds(with_reference=True)
+    busy[1]["project"]["load_avg_1m"] = 4.0 * (os.cpu_count() or 1)
+    assert "busy machine" in learner.summarize(busy, "cpu", 128)["warning"]
+    assert "warning" not in learner.summarize(rounds(with_reference=True), "cpu", 128)
 
 
 def test_summary_without_the_reference_has_no_ratio():
