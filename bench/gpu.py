@@ -1,0 +1,299 @@
+"""The GPU check: what needs a CUDA device, in one bounded run that ends with one JSON line.
+
+    scripts/gpu-check.sh            (sets up, then runs this; on a machine without a GPU it
+                                     says so in one line and runs nothing)
+    python -m bench.gpu [--budget-s 510] [--up-seconds 180]
+    python -m bench.gpu missing     (the project's requirements this Python cannot import;
+                                     standard library only, for the setup step)
+
+Steps, each in a child process with a timeout cut to the time left:
+1. `pytest -m cuda tests/test_cuda.py`: CPU/GPU agreement, checkpoints across devices;
+2. `bench.learner --device cuda` at the paper's settings (batch 128, the reference's
+   widths): updates/s, scoring, FLOP/s against the GPU's measured fp32/TF32/BF16 peaks;
+3. `nasa up --preset paper --device cuda --actors 8 --task cheetah-run` for
+   `--up-seconds`, its /status polled (updates/s, env steps/s, updates per env step)
+   and the GPU's memory and load read from nvidia-smi; then stopped.
+The last line printed is one JSON object; a step that failed or ran out of time
+says so in it, and `ok` is false.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import re
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import tomllib
+import urllib.request
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+# Distribution name -> the module it provides, where they differ.
+MODULE_OF = {
+    "dm-control": "dm_control",
+    "eclipse-zenoh": "zenoh",
+    "scikit-image": "skimage",
+    "pytest-timeout": "pytest_timeout",
+}
+UP_ARGS = ["--preset", "paper", "--device", "cuda", "--actors", "8", "--task", "cheetah-run"]
+STATUS_KEYS = ("updates_per_s", "env_steps_per_s", "updates_per_env_step")
+LEARNER_KEYS = (
+    "updates_per_s", "score_ms_per_transition", "sgemm_peak_gflops", "matmul_peak_gflops", "update_gflop",
+    "update_fraction_of_peak", "update_fraction_of_tf32_peak", "update_fraction_of_bf16_peak",
+    "part_fraction_of_peak", "score_fraction_of_peak", "machine",
+)  # fmt: skip
+
+
+# -- setup --------------------------------------------------------------------------
+
+
+def requirement_name(requirement: str) -> str:
+    return re.split(r"[<>=!~\[; ]", requirement, maxsplit=1)[0].strip()
+
+
+def missing_requirements(
+    pyproject: Path = ROOT / "pyproject.toml", extras: tuple[str, ...] = ("dev",)
+) -> list[str]:
+    """The project's pinned requirements (runtime and `extras`) whose module does not import here."""
+    project = tomllib.loads(pyproject.read_text())["project"]
+    wanted = list(project["dependencies"])
+    for extra in extras:
+        wanted += project.get("optional-dependencies", {}).get(extra, [])
+    missing = []
+    for req in wanted:
+        name = requirement_name(req)
+        module = MODULE_OF.get(name, name.replace("-", "_"))
+        if importlib.util.find_spec(module) is None:
+            missing.append(req)
+    return missing
+
+
+# -- steps ----------------------------------------------------------------------------
+
+
+class Budget:
+    """The time left of the whole check; each step gets at most what remains less a reserve."""
+
+    def __init__(self, seconds: float, clock=time.monotonic) -> None:
+        self.clock = clock
+        self.deadline = clock() + seconds
+
+    def left(self) -> float:
+        return self.deadline - self.clock()
+
+    def step_timeout(self, wanted: float, reserve: float) -> float:
+        """min(wanted, time left - reserve); 0 when nothing is left for this step."""
+        return max(0.0, min(wanted, self.left() - reserve))
+
+
+def run_child(cmd: list[str], timeout: float, env: dict | None = None) -> dict:
+    """Run a command in its own process group; on timeout the whole group is killed."""
+    if timeout <= 0:
+        return {"rc": None, "error": "skipped: out of time", "seconds": 0.0, "output": ""}
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)  # fmt: skip
+    try:
+        output, _ = proc.communicate(timeout=timeout)
+        result = {"rc": proc.returncode}
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        output, _ = proc.communicate()
+        result = {"rc": None, "error": f"timed out after {timeout:.0f} s"}
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    result["output"] = output or ""
+    return result
+
+
+def pytest_counts(output: str) -> dict[str, int]:
+    """passed / failed / skipped / error counts from pytest's summary line."""
+    counts = {}
+    for number, word in re.findall(r"(\d+) (passed|failed|skipped|errors?|deselected)", output):
+        counts["error" if word.startswith("error") else word] = int(number)
+    return counts
+
+
+def last_json(output: str) -> dict | None:
+    for line in reversed(output.strip().splitlines()):
+        if line.startswith("{"):
+            try:
+                return json.loads(line)
+            except json.JSONDecodeError:
+                return None
+    return None
+
+
+def step_tests(budget: Budget) -> dict:
+    cmd = [sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", "tests/test_cuda.py"]
+    result = run_child(cmd, budget.step_timeout(150, reserve=330))
+    out = {"rc": result["rc"], "seconds": result["seconds"], **pytest_counts(result["output"])}
+    if result["rc"] != 0:
+        out["error"] = result.get("error") or "tests failed"
+        out["tail"] = result["output"][-1500:]
+    return out
+
+
+def step_learner(budget: Budget, rounds: int, updates: int) -> dict:
+    cmd = [sys.executable, "-m", "bench.learner", "--device", "cuda", "--rounds", str(rounds),
+           "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5"]  # fmt: skip
+    result = run_child(cmd, budget.step_timeout(150, reserve=220))
+    summary = last_json(result["output"]) if result["rc"] == 0 else None
+    if summary is None:
+        return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
+                "tail": result["output"][-1500:]}  # fmt: skip
+    return {"seconds": result["seconds"], **{k: summary[k] for k in LEARNER_KEYS if k in summary}}
+
+
+# -- nasa up ------------------------------------------------------------------------------
+
+
+def gpu_sample() -> dict | None:
+    """Used memory (MiB) and load (%) of GPU 0 from nvidia-smi; None without it."""
+    if shutil.which("nvidia-smi") is None:
+        return None
+    try:
+        query = ["--query-gpu=memory.used,utilization.gpu", "--format=csv,noheader,nounits", "-i", "0"]
+        line = subprocess.run(
+            ["nvidia-smi", *query], capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+        used, load = (float(x) for x in line.split(","))
+    except (subprocess.SubprocessError, ValueError, OSError):
+        return None
+    return {"memory_used_mib": used, "utilization_pct": load}
+
+
+def get_status(port: int) -> dict | None:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=5) as response:
+            return json.load(response)
+    except (OSError, ValueError):
+        return None
+
+
+def summarize_up(samples: list[dict], gpu: list[dict]) -> dict:
+    """The run's figures from /status samples (in time order) and nvidia-smi samples: the last
+    status's rates and counts, the best rates seen once updates began, peak GPU memory."""
+    out: dict = {"status_samples": len(samples)}
+    if samples:
+        last = samples[-1]
+        out |= {k: last.get(k) for k in ("env_steps", "updates", *STATUS_KEYS)}
+        learning = [s for s in samples if s.get("updates", 0) > 0]
+        for key in ("updates_per_s", "env_steps_per_s"):
+            values = [s[key] for s in learning if s.get(key) is not None]
+            out[f"max_{key}"] = max(values) if values else None
+            out[f"median_{key}"] = statistics.median(values) if values else None
+        out["replay_size"] = last.get("replay", {}).get("size")
+    if gpu:
+        out["gpu_memory_max_mib"] = max(g["memory_used_mib"] for g in gpu)
+        out["gpu_utilization_mean_pct"] = round(statistics.fmean(g["utilization_pct"] for g in gpu), 1)
+    return out
+
+
+def stop_group(proc: subprocess.Popen, grace_s: float = 30.0) -> int | None:
+    """SIGINT to nasa up (it stops its services), then SIGKILL to the group if it lingers."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc.returncode
+
+
+def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> dict:
+    run_for = min(seconds, budget.left() - 60)
+    if run_for < 30:
+        return {"error": "skipped: out of time"}
+    data = Path(tempfile.mkdtemp(prefix="gpu-check-up-"))
+    cmd = [sys.executable, "-m", "nasa.cli", "up", *UP_ARGS, "--data", str(data / "run"),
+           "--port", str(port), "--router-port", "0", "--logs"]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)  # fmt: skip
+    samples, gpu, start = [], [], time.monotonic()
+    while time.monotonic() - start < run_for and proc.poll() is None:
+        time.sleep(poll_s)
+        status = get_status(port)
+        if status is not None:
+            samples.append(status)
+        if (g := gpu_sample()) is not None:
+            gpu.append(g)
+    exited_early = proc.poll() is not None
+    rc = stop_group(proc)
+    output = proc.stdout.read() if proc.stdout else ""
+    out = {"seconds": round(time.monotonic() - start, 1), "args": UP_ARGS, **summarize_up(samples, gpu)}
+    if exited_early or not samples:
+        out["error"] = f"nasa up exited early (rc {rc})" if exited_early else "no /status answered"
+        out["tail"] = output[-1500:] + logs_tail(data / "run" / "logs")
+    shutil.rmtree(data, ignore_errors=True)
+    return out
+
+
+def logs_tail(folder: Path, chars: int = 600) -> str:
+    if not folder.is_dir():
+        return ""
+    return "".join(
+        f"\n[{p.name}] {p.read_text(errors='replace')[-chars:]}" for p in sorted(folder.glob("*.log"))
+    )
+
+
+# -- the check ------------------------------------------------------------------------------
+
+
+def assemble(gpu_name: str | None, steps: dict[str, dict], seconds: float) -> dict:
+    """The one JSON line: each step's figures, and `ok` when every step ran without error."""
+    ok = all("error" not in step for step in steps.values())
+    return {"check": "gpu", "ok": ok, "gpu": gpu_name, "seconds": round(seconds, 1), **steps}
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("command", nargs="?", choices=("check", "missing"), default="check")
+    p.add_argument("--budget-s", type=float, default=510.0, help="the whole check, setup excluded")
+    p.add_argument("--up-seconds", type=float, default=180.0)
+    p.add_argument("--port", type=int, default=8765, help="the learner's status port during nasa up")
+    p.add_argument("--rounds", type=int, default=2, help="bench.learner rounds")
+    p.add_argument("--updates", type=int, default=20, help="bench.learner timed updates per round")
+    p.add_argument("--skip", default="", help="comma-separated steps to skip: tests,learner,up")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    if args.command == "missing":
+        print(" ".join(missing_requirements()))
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        print(json.dumps(assemble(None, {"cuda": {"error": "torch sees no CUDA device"}}, 0.0)))
+        sys.exit(1)
+    budget, start = Budget(args.budget_s), time.monotonic()
+    skip = set(filter(None, args.skip.split(",")))
+    steps: dict[str, dict] = {}
+    for name, step in (
+        ("tests", lambda: step_tests(budget)),
+        ("learner", lambda: step_learner(budget, args.rounds, args.updates)),
+        ("up", lambda: step_up(budget, args.up_seconds, args.port)),
+    ):
+        if name in skip:
+            continue
+        print(f"gpu-check: {name} ({budget.left():.0f} s left)", flush=True)
+        steps[name] = step()
+        print(f"gpu-check: {name}: {json.dumps({k: v for k, v in steps[name].items() if k != 'tail'})}",
+              flush=True)  # fmt: skip
+    summary = assemble(torch.cuda.get_device_name(0), steps, time.monotonic() - start)
+    print(json.dumps(summary))
+    sys.exit(0 if summary["ok"] else 1)
+
+
+if __name__ == "__main__":
+    main()

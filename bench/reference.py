@@ -1,0 +1,69 @@
+"""The reference implementation (UoA-CARES/NaSA_TD3), loaded at run time from a checkout the user made.
+
+The project holds none of its code: `load(directory)` imports the checkout's
+`nasa_td3.AE_TD3` (and its `networks` package) from `directory`. It needs only
+torch, numpy and scikit-image, which the project's dev extras install; its
+training loop (`train_loop.py`, which imports `cares_reinforcement_learning`)
+is never imported.
+
+One reference update is what its training loop does per sampled minibatch with
+intrinsic rewards on: `train_policy` then `train_predictive_model`, on numpy
+arrays. Its intrinsic scoring is `get_intrinsic_values`, one transition at a time.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ENTRY = "nasa_td3.py"
+LATENT_SIZE = 200  # the reference training loop's default --latent_size
+
+
+class ReferenceError(RuntimeError):
+    """The directory is not a checkout of the reference, or it does not load."""
+
+
+def load_class(directory: Path) -> type:
+    """The reference's agent class, imported from `directory`."""
+    directory = Path(directory).resolve()
+    if not (directory / ENTRY).is_file() or not (directory / "networks").is_dir():
+        raise ReferenceError(
+            f"{directory} is not a checkout of UoA-CARES/NaSA_TD3 (no {ENTRY} and networks/ there); "
+            "get one with: git clone https://github.com/UoA-CARES/NaSA_TD3"
+        )
+    for name in [n for n in sys.modules if n in ("nasa_td3", "networks") or n.startswith("networks.")]:
+        del sys.modules[name]  # another checkout's modules, loaded before in this process
+    sys.path.insert(0, str(directory))
+    try:
+        module = importlib.import_module("nasa_td3")
+    except ImportError as err:
+        raise ReferenceError(f"the reference in {directory} does not import: {err}") from err
+    finally:
+        sys.path.remove(str(directory))
+    if not hasattr(module, "AE_TD3"):
+        raise ReferenceError(f"{directory / ENTRY} defines no AE_TD3")
+    return module.AE_TD3
+
+
+def make(directory: Path, action_dim: int, frame_stack: int, device: torch.device):
+    """The reference agent at its training loop's settings."""
+    cls = load_class(directory)
+    return cls(latent_size=LATENT_SIZE, action_num=action_dim, device=device, k=frame_stack)
+
+
+def update(agent, batch: dict[str, np.ndarray]) -> None:
+    """One reference update on a numpy batch (uint8 stacks), as its loop calls it."""
+    dones = np.zeros(len(batch["reward"]), dtype=np.int64)
+    agent.train_policy((batch["obs"], batch["action"], batch["reward"], batch["next_obs"], dones))
+    agent.train_predictive_model((batch["obs"], batch["action"], batch["next_obs"]))
+
+
+def score_one(agent, obs: np.ndarray, action: np.ndarray, next_obs: np.ndarray) -> float:
+    """The reference's intrinsic reward of one transition: surprise + novelty (weights 1, 1)."""
+    surprise, novelty = agent.get_intrinsic_values(obs, action, next_obs)
+    return float(surprise) + float(novelty)

@@ -1,0 +1,164 @@
+"""The GPU check's CPU-testable parts: the no-GPU exit, the setup's requirement check, the
+pytest and status summaries, the time budget, bounded children, the JSON line."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from bench import gpu
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "gpu-check.sh"
+
+
+def run_script(path_dirs: list[Path]) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": os.pathsep.join([*map(str, path_dirs), "/usr/bin", "/bin"])}
+    return subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
+
+
+def assert_says_it_needs_a_gpu(result: subprocess.CompletedProcess) -> None:
+    assert result.returncode == 0
+    lines = result.stdout.splitlines()
+    assert len(lines) == 1 and "needs a machine with an NVIDIA GPU" in lines[0]
+    assert "nothing was run" in lines[0] and result.stderr == ""
+    assert not (ROOT / ".venv-gpu").exists()
+
+
+@pytest.mark.skipif(
+    any((Path(d) / "nvidia-smi").exists() for d in ("/usr/bin", "/bin")), reason="this machine has nvidia-smi"
+)
+def test_without_nvidia_smi_the_script_says_one_line_and_runs_nothing(tmp_path):
+    assert_says_it_needs_a_gpu(run_script([tmp_path]))
+
+
+def test_with_an_nvidia_smi_that_finds_no_gpu_the_script_runs_nothing(tmp_path):
+    fake = tmp_path / "nvidia-smi"
+    fake.write_text("#!/bin/sh\necho 'NVIDIA-SMI has failed' >&2\nexit 9\n")
+    fake.chmod(0o755)
+    assert_says_it_needs_a_gpu(run_script([tmp_path]))
+
+
+def test_missing_requirements_names_the_pins_whose_module_does_not_import(tmp_path):
+    pyproject = tmp_path / "pyproject.toml"
+    pyproject.write_text(
+        '[project]\nname = "x"\ndependencies = ["numpy>=1.26,<3", "surely-absent-pkg-x==1.0"]\n'
+        '[project.optional-dependencies]\ndev = ["scikit-image==0.26.0", "absent-dev-tool==2.0"]\n'
+    )
+    assert gpu.missing_requirements(pyproject) == ["surely-absent-pkg-x==1.0", "absent-dev-tool==2.0"]
+    assert gpu.missing_requirements(pyproject, extras=()) == ["surely-absent-pkg-x==1.0"]
+
+
+def test_the_missing_command_prints_nothing_when_every_requirement_imports():
+    result = subprocess.run(
+        [sys.executable, "-m", "bench.gpu", "missing"], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0 and result.stdout.strip() == ""
+
+
+def test_requirement_names():
+    assert gpu.requirement_name("eclipse-zenoh==1.10.2") == "eclipse-zenoh"
+    assert gpu.requirement_name("numpy>=1.26,<3") == "numpy"
+    assert gpu.requirement_name("uvicorn[standard]~=0.5") == "uvicorn"
+
+
+def test_pytest_counts_from_the_summary_line():
+    assert gpu.pytest_counts("....\n7 passed, 2 skipped, 1 deselected in 3.2s") == {
+        "passed": 7, "skipped": 2, "deselected": 1,
+    }  # fmt: skip
+    assert gpu.pytest_counts("1 failed, 3 passed, 2 errors in 1s") == {"failed": 1, "passed": 3, "error": 2}
+
+
+def test_the_budget_cuts_each_step_to_the_time_left():
+    now = [100.0]
+    budget = gpu.Budget(500, clock=lambda: now[0])
+    assert budget.step_timeout(150, reserve=300) == 150
+    now[0] += 300  # 200 s left
+    assert budget.step_timeout(150, reserve=100) == 100
+    now[0] += 250
+    assert budget.step_timeout(150, reserve=0) == 0
+
+
+def running(pid: int) -> bool:
+    """The process exists and is not a zombie (killed, waiting for its parent to reap it)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+def test_a_child_past_its_timeout_is_killed_with_its_whole_group(tmp_path):
+    marker = tmp_path / "grandchild.pid"
+    result = gpu.run_child(["sh", "-c", f"sleep 60 & echo $! > {marker}; wait"], timeout=1.0)
+    assert result["rc"] is None and "timed out" in result["error"]
+    pid = int(marker.read_text())
+    for _ in range(100):  # SIGKILL is asynchronous: allow it a moment to land
+        if not running(pid):
+            break
+        time.sleep(0.05)
+    assert not running(pid)
+    assert gpu.run_child(["true"], timeout=0)["error"] == "skipped: out of time"
+    assert gpu.run_child(["sh", "-c", "echo hi"], timeout=30) | {"seconds": 0} == {
+        "rc": 0, "seconds": 0, "output": "hi\n",
+    }  # fmt: skip
+
+
+def test_a_child_that_ignores_sigint_is_killed_after_the_grace():
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+         "print('up', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    assert proc.stdout.readline().strip() == "up"
+    assert gpu.stop_group(proc, grace_s=0.5) == -signal.SIGKILL
+
+
+def test_last_json_finds_the_final_object():
+    assert gpu.last_json('log line\n{"a": 1}\n{"b": 2}\n') == {"b": 2}
+    assert gpu.last_json("no json here") is None
+
+
+def test_up_summary_from_status_and_gpu_samples():
+    samples = [
+        {"env_steps": 500, "updates": 0, "updates_per_s": 0.0, "env_steps_per_s": 90.0,
+         "updates_per_env_step": 0},
+        {"env_steps": 2000, "updates": 100, "updates_per_s": 40.0, "env_steps_per_s": 80.0,
+         "updates_per_env_step": 0.1, "replay": {"size": 2000}},
+        {"env_steps": 3000, "updates": 900, "updates_per_s": 60.0, "env_steps_per_s": 70.0,
+         "updates_per_env_step": 0.45, "replay": {"size": 3000}},
+    ]  # fmt: skip
+    gpu_samples = [{"memory_used_mib": 900.0, "utilization_pct": 20.0},
+                   {"memory_used_mib": 2500.0, "utilization_pct": 60.0}]  # fmt: skip
+    s = gpu.summarize_up(samples, gpu_samples)
+    assert s["updates_per_s"] == 60.0 and s["env_steps_per_s"] == 70.0 and s["updates_per_env_step"] == 0.45
+    assert s["max_updates_per_s"] == 60.0 and s["median_updates_per_s"] == 50.0
+    assert s["max_env_steps_per_s"] == 80.0  # samples before the first update are left out
+    assert s["gpu_memory_max_mib"] == 2500.0 and s["gpu_utilization_mean_pct"] == 40.0
+    assert s["replay_size"] == 3000 and s["status_samples"] == 3
+    assert gpu.summarize_up([], []) == {"status_samples": 0}
+
+
+def test_the_json_line_is_ok_only_when_no_step_failed():
+    good = gpu.assemble("NVIDIA H200", {"tests": {"passed": 9}, "up": {"updates_per_s": 50.0}}, 412.34)
+    assert good["ok"] and good["gpu"] == "NVIDIA H200" and good["seconds"] == 412.3
+    assert json.loads(json.dumps(good)) == good
+    bad = gpu.assemble("NVIDIA H200", {"tests": {"passed": 9}, "up": {"error": "no /status answered"}}, 1.0)
+    assert not bad["ok"]
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")
+def test_the_check_without_cuda_fails_with_one_json_line():
+    result = subprocess.run(
+        [sys.executable, "-m", "bench.gpu"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 1
+    line = json.loads(result.stdout.strip().splitlines()[-1])
+    assert line["ok"] is False and line["cuda"]["error"] == "torch sees no CUDA device"
