@@ -20,7 +20,7 @@ says so in it, and `ok` is false.
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib.metadata
 import json
 import os
 import re
@@ -37,12 +37,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 # Distribution name -> the module it provides, where they differ.
-MODULE_OF = {
-    "dm-control": "dm_control",
-    "eclipse-zenoh": "zenoh",
-    "scikit-image": "skimage",
-    "pytest-timeout": "pytest_timeout",
-}
 UP_ARGS = ["--preset", "paper", "--device", "cuda", "--actors", "8", "--task", "cheetah-run"]
 STATUS_KEYS = ("updates_per_s", "env_steps_per_s", "updates_per_env_step")
 LEARNER_KEYS = (
@@ -62,16 +56,16 @@ def requirement_name(requirement: str) -> str:
 def missing_requirements(
     pyproject: Path = ROOT / "pyproject.toml", extras: tuple[str, ...] = ("dev",)
 ) -> list[str]:
-    """The project's pinned requirements (runtime and `extras`) whose module does not import here."""
+    """The project's pinned requirements (runtime and `extras`) not installed here."""
     project = tomllib.loads(pyproject.read_text())["project"]
     wanted = list(project["dependencies"])
     for extra in extras:
         wanted += project.get("optional-dependencies", {}).get(extra, [])
     missing = []
     for req in wanted:
-        name = requirement_name(req)
-        module = MODULE_OF.get(name, name.replace("-", "_"))
-        if importlib.util.find_spec(module) is None:
+        try:
+            importlib.metadata.version(requirement_name(req))
+        except importlib.metadata.PackageNotFoundError:
             missing.append(req)
     return missing
 
