@@ -30,9 +30,9 @@ def test_system_end_to_end(tmp_path):
 
         metrics = httpx.get(system.url + "/metrics", timeout=5).text
         assert "# TYPE nasa_env_steps_total counter" in metrics
-        assert 'nasa_actor_alive{run_id="' in metrics
-        assert "# TYPE nasa_intrinsic_scored_total counter" in metrics
-        assert 'nasa_intrinsic_mean{run_id="' in metrics and 'name="novelty"} ' in metrics
+        assert 'nasa_actor_alive{actor="0"} 1.0' in metrics  # the run id is in nasa_run_info only
+        assert "# TYPE nasa_intrinsic_scored_transitions_total counter" in metrics
+        assert 'nasa_intrinsic_mean{name="novelty"} ' in metrics
         assert httpx.get(system.url + "/healthz", timeout=5).status_code == 200
 
         # The replay holds samples (= updates) to inserts (= env steps) at G = 1 within its error buffer.

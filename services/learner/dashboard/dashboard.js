@@ -34,7 +34,7 @@ function makeChart(id, series, opts = {}) {
     value: (u, v) => s.format ? s.format(v) : fmt(v),
   })));
   const axes = [{ label: "env steps", size: 40 }, { scale: "y", size: 56, values: opts.yValues }];
-  if (opts.y2) axes.push({ scale: "y2", side: 1, size: 56, grid: { show: false }, values: opts.y2Values });
+  if (opts.y2) axes.push({ scale: "y2", side: 1, size: opts.y2Size || 56, grid: { show: false }, values: opts.y2Values });
   const chart = new uPlot({
     width: chartWidth(el), height: opts.height || 200, series: uSeries, axes,
     scales: { x: { time: false } }, legend: { live: true }, cursor: { drag: { x: true, y: false } },
@@ -60,7 +60,7 @@ function setupCharts() {
   makeChart("chart-replay", [
     { label: "size (transitions)" },
     { label: "memory", scale: "y2", format: bytes },
-  ], { y2: true, y2Values: (u, vals) => vals.map(bytes) });
+  ], { y2: true, y2Size: 76, y2Values: (u, vals) => vals.map(bytes) });
   makeChart("chart-invalid", [{ label: "learner" }, { label: "replay" }]);
 }
 

@@ -1,0 +1,160 @@
+"""The dashboard in a real browser: the system on loopback, / opened in headless Chromium.
+
+Chromium is Debian's package (scripts/setup.sh installs it), driven by
+Playwright for Python with the system browser (executable_path): nothing is
+downloaded. While the run goes on, the page's return curve and actors table
+must show the learner's values; once it has stopped, the same page served from
+the run folder (`nasa status --data DIR --serve`) must show the last /status
+exactly. Screenshots are left in the test's tmp dir.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+
+import httpx
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+from system_harness import System
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from nasa.up import free_port
+from services.learner.status_api import StatusServer, folder_app
+from shared.video import count_frames
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium (scripts/setup.sh installs it)")
+STEPS, EVAL_EVERY = 300, 100
+READY = """() => {
+  const d = window.nasaDashboard;
+  return d && d.state.polls > 0 && d.charts.eval.data[0].length >= 2
+    && document.querySelectorAll('#actors tbody tr').length === 2;
+}"""
+SHOWN = """() => ({
+  eval: window.nasaDashboard.charts.eval.data,
+  latest: {...document.getElementById('eval-latest').dataset},
+  actors: [...document.querySelectorAll('#actors tbody tr')].map(tr =>
+    Object.fromEntries([...tr.cells].map(td => [td.dataset.key, td.dataset.value]))),
+  polls: window.nasaDashboard.state.polls,
+})"""
+
+
+def shown_matches(shown: dict, status: dict, evals: list[dict], exact: bool) -> list[str]:
+    """What differs between the page and the learner's /status (and /history's evaluations)."""
+    diffs = []
+    steps, means, reference = shown["eval"]
+    if steps != [e["step"] for e in evals] or means != [e["mean"] for e in evals]:
+        diffs.append(f"return curve {steps} {means} vs eval.csv {evals}")
+    if reference != [evals[0]["mean"]] * len(evals) or evals[0]["step"] != 0:
+        diffs.append(f"reference line {reference} vs the step-0 evaluation {evals[0]}")
+    e = status["eval"]
+    # The curve comes from eval.csv, which keeps fewer digits than /status.
+    if steps[-1] != e["step"] or not math.isclose(means[-1], e["mean"], rel_tol=1e-5, abs_tol=1e-5) \
+            or shown["latest"] != {"step": str(e["step"]), "mean": str(e["mean"])}:
+        diffs.append(f"latest evaluation {steps[-1]}, {means[-1]}, {shown['latest']} vs /status {e}")
+    keys = ["id", "incarnation", "alive"] + (["env_steps", "episodes", "steps_per_s", "policy_version",
+                                               "last_seen_s"] if exact else [])
+    table = [{k: row[k] for k in keys} for row in shown["actors"]]
+    want = [{k: str(a[k]).lower() if isinstance(a[k], bool) else str(a[k]) for k in keys}
+            for a in status["actors"]]
+    if table != want:
+        diffs.append(f"actors table {table} vs /status {want}")
+    return diffs
+
+
+def check_page(page, url: str, exact: bool, timeout_s: float = 60.0) -> dict:  # noqa: ANN001
+    """Wait until the page shows what /status says (the run moves on between two reads: retry)."""
+    page.wait_for_function(READY, timeout=timeout_s * 1000)
+    deadline, diffs = time.monotonic() + timeout_s, ["not compared"]
+    while time.monotonic() < deadline:
+        status = httpx.get(url + "/status", timeout=5).json()
+        evals = httpx.get(url + "/history", timeout=5).json()["evals"]
+        shown = page.evaluate(SHOWN)
+        if not (diffs := shown_matches(shown, status, evals, exact)):
+            return status
+        time.sleep(0.5)
+    raise AssertionError("the dashboard does not show /status: " + "; ".join(diffs))
+
+
+def wait_listening(url: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            httpx.get(url + "/healthz", timeout=2)
+            return
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    raise AssertionError(f"nothing answers on {url}")
+
+
+def metric_values(url: str) -> dict[tuple[str, tuple], float]:
+    text = httpx.get(url + "/metrics", timeout=5).text
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for family in text_string_to_metric_families(text) for s in family.samples}
+
+
+@pytest.mark.timeout(600)
+def test_dashboard_shows_the_run_in_chromium(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    data = tmp_path / "run"
+    system = System(data, actors=2, steps=STEPS,
+                    extra=["--eval-every", str(EVAL_EVERY), "--eval-episodes", "1"])
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+        page = browser.new_page(viewport={"width": 1280, "height": 1600})
+        try:
+            system.wait_for("an evaluation after step 0 and both actors stepping",
+                            lambda s: (s["eval"]["step"] or 0) >= EVAL_EVERY and len(s["actors"]) == 2
+                            and all(a["env_steps"] > 0 for a in s["actors"]), timeout=300)
+            page.goto(system.url + "/")
+            status = check_page(page, system.url, exact=False)
+            page.screenshot(path=str(tmp_path / "dashboard-live.png"), full_page=True)
+            metrics = metric_values(system.url)
+            assert metrics[("nasa_actor_alive", (("actor", "0"),))] == 1.0
+            assert metrics[("nasa_updates_total", ())] >= status["updates"]
+            assert metrics[("nasa_update_duration_seconds_count", ())] > 0
+            system.wait_exit(timeout=240)
+            assert all(c.exited == 0 for c in system.sup.children.values()), system.logs()
+        finally:
+            system.close()
+
+        # The stopped run, from its folder: the same page shows the learner's last status exactly,
+        # at a phone's width too.
+        port = free_port()
+        server = StatusServer(folder_app(data), "127.0.0.1", port)
+        server.start()
+        try:
+            url = f"http://127.0.0.1:{port}"
+            wait_listening(url)
+            page.goto(url + "/")
+            final = check_page(page, url, exact=True)
+            assert final == json.loads((data / "learner" / "status.json").read_text())
+            assert final["eval"]["step"] == STEPS
+            page.wait_for_function("() => document.getElementById('ae-image').naturalWidth > 0")
+            assert page.locator("#videos a").count() >= 1
+            page.screenshot(path=str(tmp_path / "dashboard-stopped.png"), full_page=True)
+            page.set_viewport_size({"width": 390, "height": 844})
+            page.wait_for_timeout(500)
+            width = page.evaluate("document.documentElement.scrollWidth")
+            assert width <= 390, f"the page is {width} px wide at a phone's 390 px"
+            page.screenshot(path=str(tmp_path / "dashboard-phone.png"), full_page=True)
+        finally:
+            server.stop()
+            browser.close()
+
+    # What else the run left: the learner's TensorBoard scalars, the evaluator's view and video.
+    acc = EventAccumulator(str(data / "tensorboard" / "learner"))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"eval/return_mean", "train/episode_return", "rates/updates_per_s", "policy_lag/mean",
+            "ratio/updates_per_env_step", "replay/bytes", "intrinsic/novelty_mean"} <= tags, tags
+    assert [e.step for e in acc.Scalars("eval/return_mean")] == list(range(0, STEPS + 1, EVAL_EVERY))
+    media = json.loads((data / "media" / "media.json").read_text())
+    assert media["autoencoder"]["step"] == STEPS and len(media["autoencoder"]["novelty"]) > 0
+    first = media["videos"][0]
+    assert first["step"] == 0 and count_frames(data / "media" / first["file"]) == first["frames"] > 0
+    assert (tmp_path / "dashboard-stopped.png").stat().st_size > 10_000
