@@ -67,10 +67,12 @@ def train(argv: list[str]) -> None:
     cmd, preset, steps = parse_train(argv)
     device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL
+    from shared.faults import lock_run
 
     if cmd.resume is not None:
-        print(f"nasa train: resuming {cmd.resume}", flush=True)
-        Trainer.resume(cmd.resume, steps=steps).run()
+        with lock_run(cmd.resume, "nasa train --resume"):
+            print(f"nasa train: resuming {cmd.resume}", flush=True)
+            Trainer.resume(cmd.resume, steps=steps).run()
         return
     c = cmd.config
     out = cmd.out or Path("runs") / f"{c.env.task}-{c.algo}-s{c.seed}"
@@ -80,7 +82,8 @@ def train(argv: list[str]) -> None:
         f"preset {how}, device {device}, out {out}",
         flush=True,
     )
-    Trainer.create(c, out).run()
+    with lock_run(out, "nasa train"):
+        Trainer.create(c, out).run()
 
 
 def up(argv: list[str]) -> None:

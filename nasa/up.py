@@ -256,6 +256,12 @@ def up(argv: list[str]) -> None:
     c = cmd.config
     data = run_folder(cmd)
     device = resolve_device(c.device)
+    from shared.faults import check_port_free, lock_run
+
+    lock = lock_run(data, f"nasa up (status port {cmd.port})")  # held until this process ends
+    check_port_free("127.0.0.1", cmd.port, "the status")
+    if cmd.router_port:
+        check_port_free("127.0.0.1", cmd.router_port, "the router")
     prepare(cmd, data)
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
         else f"device {device}"
@@ -293,6 +299,7 @@ def up(argv: list[str]) -> None:
             print(f"nasa up: stopping ({stop['reason'] or 'error'})", flush=True)
             sup.stop_all()
     print("nasa up: stopped", flush=True)
+    lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
 

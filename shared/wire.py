@@ -212,6 +212,8 @@ class ReplayStats(Message):
     invalid: int
     dropped: int
     done: bool
+    write_error: str = ""
+    """Why the replay cannot write its log now ("" when it can): it accepts no inserts until it can."""
 
 
 @dataclass

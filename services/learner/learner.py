@@ -33,7 +33,7 @@ import zenoh
 from services.learner.core import LearnerCore
 from services.learner.history import History
 from services.learner.metrics import LearnerMetrics
-from shared import run_config, wire
+from shared import faults, run_config, wire
 from shared.device import resolve_device
 from shared.replay.client import Prefetcher, ZenohReplayClient
 from shared.service import Log, StopFlag
@@ -61,6 +61,13 @@ class LearnerArgs(ServiceArgs):
     """At the end, how long to wait for the evaluation of the last eval step."""
     threads: int = 0
     """torch threads (0: torch's default)."""
+    stall_s: float = 120.0
+    """/healthz: unhealthy when no update came for this long while the replay holds learning steps."""
+    max_skipped_updates: int = 100
+    """/healthz: unhealthy beyond this many updates skipped for non-finite losses or gradients."""
+    actor_restarts: int = 3
+    """/healthz: unhealthy when an actor restarted more than this often within crash_window_s."""
+    crash_window_s: float = 300.0
 
 
 class Learner:
@@ -187,6 +194,8 @@ class Learner:
                     break
                 waited = time.perf_counter()
                 batch = prefetcher.get(timeout=0.2)
+                if dead := prefetcher.dead():  # a live learner that cannot train is never restarted
+                    raise faults.WorkerDied(f"learner thread(s) {', '.join(dead)} died")
                 if batch is None:
                     continue
                 began = time.perf_counter()
@@ -245,7 +254,22 @@ class Learner:
 
     def health(self) -> list[str]:
         """Why the learner is unhealthy (empty: healthy): /healthz answers 503 with these."""
-        return [f"stopping ({self.stop.reason})"] if self.stop else []
+        core, board, a = self.core, self.core.board, self.args
+        reasons = [f"stopping ({self.stop.reason})"] if self.stop else []
+        idle = time.monotonic() - board.last_update
+        if board.env_steps > core.config.warmup_steps and not core.done() and idle > a.stall_s:
+            reasons.append(f"training stalled: no update for {idle:.0f} s with {board.env_steps} env steps "
+                           f"stored")
+        if board.skipped_updates > a.max_skipped_updates:
+            reasons.append(f"{board.skipped_updates} updates skipped for non-finite losses or gradients")
+        if board.replay["write_error"]:
+            reasons.append(f"the replay cannot write: {board.replay['write_error']}")
+        if core.checkpoint_error:
+            reasons.append(f"checkpoint not written: {core.checkpoint_error}")
+        if looping := board.crash_looping(a.actor_restarts, a.crash_window_s):
+            reasons.append(f"actor(s) {looping} restarted more than {a.actor_restarts} times in "
+                           f"{a.crash_window_s:.0f} s")
+        return reasons
 
     def status(self) -> dict:
         return self.core.status(self.keys.run_id, self.wall_s)
@@ -263,7 +287,9 @@ def main(argv: list[str] | None = None) -> None:
     from shared.service import run_service
 
     def run(args: LearnerArgs, session: zenoh.Session, stop: StopFlag) -> None:
-        run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
-        Learner(args, session, stop, run).run()
+        with faults.lock_service(Path(args.data), "learner"):
+            faults.check_port_free(args.host, args.port, "the status API's")
+            run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
+            Learner(args, session, stop, run).run()
 
     run_service(LearnerArgs, argv, "python -m services.learner", run)

@@ -28,8 +28,9 @@ class StatusBoard:
         self._lock = threading.Lock()
         self.env_steps = 0
         self.replay = {"size": 0, "bytes": 0, "done": False, "invalid": 0, "dropped": 0, "inserts": 0,
-                       "samples": 0}
+                       "samples": 0, "write_error": ""}
         self.actors: dict[int, dict] = {}
+        self.restarts: dict[int, deque[float]] = {}  # actor id -> when its recent new incarnations came
         self.invalid = 0
         self.losses: dict[str, float] = {}
         # Non-finite values met by the loop: skipped updates, dropped batches, and per loss how
@@ -48,7 +49,8 @@ class StatusBoard:
         with self._lock:
             self.env_steps = max(self.env_steps, s.num_inserted)
             self.replay = {"size": s.size, "bytes": s.bytes, "done": s.done, "invalid": s.invalid,
-                           "dropped": s.dropped, "inserts": s.inserts, "samples": s.samples}
+                           "dropped": s.dropped, "inserts": s.inserts, "samples": s.samples,
+                           "write_error": s.write_error}
 
     def seen_env_steps(self, n: int) -> None:
         with self._lock:
@@ -59,7 +61,7 @@ class StatusBoard:
         with self._lock:
             a = self.actors.get(s.actor_id)
             if a is None or s.incarnation > a["incarnation"]:
-                a = self.actors[s.actor_id] = _new_actor(s.actor_id, s.incarnation)
+                a = self._new_incarnation(a, s.actor_id, s.incarnation)
             if s.incarnation == a["incarnation"]:
                 a.update(env_steps=s.env_steps, policy_version=s.policy_version,
                          steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, last_seen=time.monotonic())
@@ -69,10 +71,24 @@ class StatusBoard:
         with self._lock:
             a = self.actors.get(actor_id)
             if alive and (a is None or incarnation > a["incarnation"]):
-                self.actors[actor_id] = _new_actor(actor_id, incarnation)
+                self._new_incarnation(a, actor_id, incarnation)
             elif a is not None and incarnation == a["incarnation"]:
                 a["alive"] = alive
                 a["last_seen"] = time.monotonic()
+
+    def _new_incarnation(self, old: dict | None, actor_id: int, incarnation: int) -> dict:
+        """An actor id's entry for a new incarnation (a restart when it replaces one); under the lock."""
+        if old is not None:
+            self.restarts.setdefault(actor_id, deque(maxlen=16)).append(time.monotonic())
+        a = self.actors[actor_id] = _new_actor(actor_id, incarnation)
+        return a
+
+    def crash_looping(self, restarts: int, within_s: float) -> list[int]:
+        """Actor ids restarted (a new incarnation) more than `restarts` times in the last `within_s`."""
+        now = time.monotonic()
+        with self._lock:
+            recent = {i: sum(now - s <= within_s for s in t) for i, t in self.restarts.items()}
+        return sorted(i for i, n in recent.items() if n > restarts)
 
     def count_invalid(self) -> int:
         with self._lock:
@@ -142,7 +158,7 @@ class StatusBoard:
             "updates_per_s": round(upd_rate, 3),
             "replay": {"size": r["size"], "bytes": r["bytes"], "done": r["done"], "dropped": r["dropped"],
                        "invalid_messages": r["invalid"], "limiter_inserts": r["inserts"],
-                       "limiter_samples": r["samples"]},
+                       "limiter_samples": r["samples"], "write_error": r["write_error"]},
             "actors": actors,
             "policy_lag": {k: (round(v, 3) if v is not None else None) for k, v in self.lag.items()},
             "losses": {k: round(v, 6) for k, v in self.losses.items() if math.isfinite(v)},

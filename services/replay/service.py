@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from shared import run_config, wire
+from shared import faults, run_config, wire
 from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import open_store
@@ -54,6 +54,7 @@ from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 MAX_BATCH = 4096
+WRITE_RETRY_S = 1.0
 
 
 @dataclass
@@ -102,6 +103,7 @@ class ReplayService:
         self.local = LocalReplay(self.store, np.random.default_rng(0), self.limiter, self.replace)
         self.invalid = 0
         self.dropped = 0
+        self.write_error = ""  # why the log cannot be written now ("" when it can)
         self.samples_served = 0
         # (actor, incarnation) -> [episode, store episode id, next step]
         self._episodes: dict[tuple[int, int], list[int]] = {}
@@ -146,6 +148,8 @@ class ReplayService:
             self.store.set_intrinsic(index, value)
         except RuntimeError:  # store closed during shutdown
             pass
+        except OSError as err:  # a full disk: the score is lost, the learner scores the row when sampled
+            self.write_error = f"{type(err).__name__}: {err}"
         except Exception as err:  # noqa: BLE001 -- out-of-range indices (ValueError) and the unforeseen
             self._invalid(f"set_intrinsic: {err}")
 
@@ -196,7 +200,7 @@ class ReplayService:
         key = (msg.actor_id, msg.incarnation)
         if msg.start == 0:
             first = arrays["first_frame"]
-            store_id = self.store.begin_episode(first, msg.actor_id, msg.incarnation)
+            store_id = self._durably(lambda: self.store.begin_episode(first, msg.actor_id, msg.incarnation))
             self._episodes[key] = [msg.episode, store_id, 0]
         entry = self._episodes.get(key)
         if entry is None or entry[0] != msg.episode or entry[2] != msg.start:
@@ -214,10 +218,10 @@ class ReplayService:
                     if self.stop:
                         raise RateLimiterClosed("stopping")
             last = bool(lasts[i])
-            self.store.add(
+            self._durably(lambda i=i, last=last: self.store.add(
                 entry[1], actions[i], float(rewards[i]), float(discounts[i]), frames[i], last,
                 policy_version=int(versions[i]),
-            )
+            ))
             if self.limiter is not None:
                 self.limiter.insert()
             entry[2] += 1
@@ -226,6 +230,25 @@ class ReplayService:
                 del self._episodes[key]
                 break
         return accepted
+
+    def _durably(self, write):  # noqa: ANN001, ANN202
+        """write() once the log takes it: a failed write (a full disk) is never acknowledged; the
+        insert thread stops taking batches (the actors wait on their acknowledgements), the stats
+        say why, and it resumes by itself when the write succeeds (the log cut the torn record)."""
+        while True:
+            try:
+                result = write()
+            except OSError as err:
+                if not self.write_error:
+                    self.log(f"cannot write the log, inserts paused: {err}")
+                self.write_error = f"{type(err).__name__}: {err}"
+                if self.stop.wait(WRITE_RETRY_S):
+                    raise RateLimiterClosed("stopping") from err
+                continue
+            if self.write_error:
+                self.log("the log takes writes again: inserts resume")
+                self.write_error = ""
+            return result
 
     # -- sampling -----------------------------------------------------------------------
 
@@ -291,6 +314,7 @@ class ReplayService:
             invalid=self.invalid,
             dropped=self.dropped,
             done=s["num_inserted"] >= self.config.steps,
+            write_error=self.write_error,
         )
 
     def run(self) -> None:
@@ -320,6 +344,9 @@ class ReplayService:
             n, budget = self.store.num_inserted, self.config.steps
             self.log(f"serving run {k.run_id}: {n} transitions, budget {budget}")
             while not self.stop.wait(self.args.stats_every_s):
+                if dead := [t.name for t in self._threads if not t.is_alive()]:
+                    # A live process that does nothing is never restarted: exit, non-zero.
+                    raise faults.WorkerDied(f"replay worker thread(s) {', '.join(dead)} died")
                 s.put(k.replay_stats, wire.encode(self.stats()))
                 if self.store.num_inserted - self._last_snapshot >= self.args.snapshot_every:
                     self._last_snapshot = self.store.num_inserted
@@ -340,7 +367,9 @@ def main(argv: list[str] | None = None) -> None:
     def run(args: ReplayArgs, session: zenoh.Session, stop: StopFlag) -> None:
         # The run folder's config (written now if new; else compared: ConfigMismatch, exit 2).
         # A replay restarted with a new step budget continues its run.
-        run = run_config.open_folder(args.config, Path(args.data), may_change=run_config.RESUME_MAY_CHANGE)
-        ReplayService(args, session, stop, run).run()
+        with faults.lock_service(Path(args.data), "replay"):  # before the folder is touched
+            may_change = run_config.RESUME_MAY_CHANGE
+            run = run_config.open_folder(args.config, Path(args.data), may_change=may_change)
+            ReplayService(args, session, stop, run).run()
 
     run_service(ReplayArgs, argv, "python -m services.replay", run)

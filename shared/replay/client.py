@@ -285,6 +285,12 @@ class Prefetcher:
     def _running(self) -> bool:
         return not self.stop and not self._closed.is_set()
 
+    def dead(self) -> list[str]:
+        """Names of prefetch threads that ended while the prefetcher runs (none should)."""
+        if not self._running():
+            return []
+        return [t.name for t in self._threads if t.ident is not None and not t.is_alive()]
+
     def _loop(self) -> None:
         while self._running():
             batch = self.client.sample(self.batch_size, self.wait_s)

@@ -20,6 +20,7 @@ DONE is never read.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -121,9 +122,15 @@ class LogWriter:
     def append(self, rtype: int, payload: bytes) -> None:
         crc = zlib.crc32(payload, zlib.crc32(bytes([rtype])))
         data = _HEADER.pack(len(payload), crc, rtype) + payload
-        n = os.write(self._fd, data)
-        if n != len(data):  # a short write on a regular file means the disk is full
-            raise OSError(f"short write to {self.path}: {n} of {len(data)} bytes")
+        try:
+            n = os.write(self._fd, data)
+            if n != len(data):  # a short write on a regular file means the disk is full
+                raise OSError(errno.ENOSPC, f"short write to {self.path}: {n} of {len(data)} bytes")
+        except OSError:
+            # Cut what part of the record was written: the log never holds a torn record in its
+            # middle, and the caller may append again once there is space.
+            os.ftruncate(self._fd, self.bytes_written)
+            raise
         self.bytes_written += n
         self.dirty = True
 

@@ -1,0 +1,135 @@
+"""What a process does when it cannot go on: a run folder another run holds, a read-only folder, a busy
+port, a worker thread that died.
+
+A run folder belongs to one run at a time (PostgreSQL's pid file, with `fcntl.flock`):
+
+- `<data>/.lock` is the run's lock. A launcher (`nasa up`, `nasa train`) holds it exclusively and
+  writes its pid, host and command into it. The services a launcher starts find their launcher's pid
+  there (NASA_PARENT_PID) and take no part of it; a service started without a launcher (the compose
+  file) holds it shared, so the services of one deployment may share a folder while a launcher may not
+  join them.
+- `<data>/.lock.<role>` is held exclusively by each service that writes there (replay, learner,
+  evaluator), so two replays never write one log, whoever started them.
+
+The kernel drops a lock when its process dies (kill -9 included): a stale lock file never blocks a
+restart. A held lock, a read-only folder or a busy port is a `RunFolderError` (a ConfigError: one
+line, exit 2, never restarted).
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import socket
+from pathlib import Path
+
+from shared.config import ConfigError
+
+LOCK = ".lock"
+
+
+class RunFolderError(ConfigError):
+    """The run folder or a port cannot be had: another run holds it, or it cannot be written."""
+
+
+class WorkerDied(RuntimeError):
+    """A worker thread of a service ended while the service runs: the process exits non-zero so its
+    supervisor restarts it, rather than living on doing nothing."""
+
+
+class RunLock:
+    """The locks one process holds on a run folder; released when it closes or dies."""
+
+    def __init__(self) -> None:
+        self._fds: list[int] = []
+
+    def close(self) -> None:
+        for fd in self._fds:
+            os.close(fd)
+        self._fds = []
+
+    def __enter__(self) -> RunLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _take(self, path: Path, exclusive: bool, what: str) -> bool:
+        """flock `path`; False if another process holds it (in a way that excludes this one)."""
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise RunFolderError(f"{path.parent} cannot be written ({err.strerror}): {what}") from err
+        try:
+            fcntl.flock(fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            return False
+        self._fds.append(fd)
+        if exclusive:
+            _write_owner(fd, what)
+        return True
+
+
+def _write_owner(fd: int, what: str) -> None:
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}: {what}\n".encode(), 0)
+
+
+def owner(data: Path, role: str | None = None) -> str:
+    """Who holds the run's lock (or a service's), as its lock file says."""
+    path = Path(data) / (LOCK if role is None else f"{LOCK}.{role}")
+    try:
+        return path.read_text().strip() or "another process"
+    except OSError:
+        return "another process"
+
+
+def lock_run(data: Path, what: str) -> RunLock:
+    """A launcher's exclusive lock on the run folder `data` (created if missing)."""
+    data = Path(data)
+    _writable(data, what)
+    lock = RunLock()
+    if not lock._take(data / LOCK, True, what):
+        raise RunFolderError(f"{data} belongs to another run ({owner(data)}); stop it or use another --data")
+    return lock
+
+
+def lock_service(data: Path, role: str) -> RunLock:
+    """A writing service's locks: the run's (shared, unless its launcher holds it) and its role's."""
+    data = Path(data)
+    what = f"the {role} of a run"
+    _writable(data, what)
+    lock = RunLock()
+    parent = os.environ.get("NASA_PARENT_PID")
+    mine = parent is not None and owner(data).startswith(f"pid {parent} ")
+    if not mine and not lock._take(data / LOCK, False, what):
+        lock.close()
+        raise RunFolderError(f"{data} belongs to another run ({owner(data)})")
+    if not lock._take(data / f"{LOCK}.{role}", True, what):
+        lock.close()
+        raise RunFolderError(f"{data} has a {role} already ({owner(data, role)})")
+    return lock
+
+
+def _writable(data: Path, what: str) -> None:
+    try:
+        data.mkdir(parents=True, exist_ok=True)
+        probe = data / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise RunFolderError(f"{data} cannot be written ({err.strerror or err}): {what}") from err
+
+
+def check_port_free(host: str, port: int, what: str) -> None:
+    """RunFolderError if `port` on `host` cannot be listened on (another process has it)."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn and Zenoh bind
+        try:
+            s.bind((host, port))
+        except OSError as err:
+            busy = err.errno == errno.EADDRINUSE
+            why = "is in use by another process" if busy else f"cannot be used ({err.strerror})"
+            raise RunFolderError(f"{what} port {port} on {host} {why}; choose another") from err

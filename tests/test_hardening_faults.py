@@ -1,0 +1,206 @@
+"""Issue 14, faults: one run per folder (lock), a read-only folder or a busy port is one line and exit 2,
+a full disk pauses the replay's inserts without a torn record or an acknowledgement and resumes by
+itself, health tells the truth, a dead worker thread is noticed."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from services.learner.learner import Learner, LearnerArgs
+from shared import faults, wire
+from shared.replay import log as rlog
+from shared.replay.client import Prefetcher
+from shared.replay.store import open_store
+from shared.service import StopFlag
+from tests.test_learner import core_on
+from tests.test_replay_service import batch, make_service
+
+HOLD = "import sys, time; from shared.faults import lock_run; l = lock_run(sys.argv[1], 'a test run'); " \
+       "print('locked', flush=True); time.sleep(120)"
+
+
+@contextlib.contextmanager
+def holder(data: Path):  # noqa: ANN201
+    """Another process holding the run's lock, as a running `nasa up` does."""
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(data)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "locked"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+@contextlib.contextmanager
+def tmpfs(path: Path, options: str):  # noqa: ANN201
+    path.mkdir(parents=True, exist_ok=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(path)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "-l", str(path)], check=False)
+
+
+def _nasa(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "nasa.cli", *args], capture_output=True, text=True,
+                          timeout=120, env=env)
+
+
+# -- one run per folder ----------------------------------------------------------------------
+
+
+def test_a_second_launcher_on_a_run_folder_gets_one_line_naming_the_owner(tmp_path):
+    with holder(tmp_path) as first:
+        with pytest.raises(faults.RunFolderError, match=f"pid {first.pid} .*a test run"):
+            faults.lock_run(tmp_path, "second")
+        done = _nasa("train", "--preset", "cpu-small", "--steps", "10", "--out", str(tmp_path))
+        assert done.returncode == 2, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and f"pid {first.pid}" in lines[0] and "another run" in lines[0]
+        assert first.poll() is None  # the first run is unaffected
+        assert not (tmp_path / "config.json").exists()
+    faults.lock_run(tmp_path, "after the first ended").close()  # kill -9 released it
+
+
+def test_services_share_their_launchers_lock_and_never_a_role(tmp_path, monkeypatch):
+    monkeypatch.delenv("NASA_PARENT_PID", raising=False)
+    with holder(tmp_path) as launcher:
+        with pytest.raises(faults.RunFolderError, match="another run"):
+            faults.lock_service(tmp_path, "replay")  # not its launcher's run
+        monkeypatch.setenv("NASA_PARENT_PID", str(launcher.pid))
+        with faults.lock_service(tmp_path, "replay"), faults.lock_service(tmp_path, "learner"):
+            with pytest.raises(faults.RunFolderError, match="has a replay already"):
+                faults.lock_service(tmp_path, "replay")
+    monkeypatch.delenv("NASA_PARENT_PID")
+    other = tmp_path / "compose"  # services without a launcher share the folder; a launcher may not join
+    with faults.lock_service(other, "replay"), faults.lock_service(other, "learner"):
+        with pytest.raises(faults.RunFolderError, match="another run"):
+            faults.lock_run(other, "nasa up")
+
+
+def test_a_read_only_folder_is_one_clear_error(tmp_path):
+    with tmpfs(tmp_path / "ro", "ro,size=1m") as ro:
+        with pytest.raises(faults.RunFolderError, match="cannot be written"):
+            faults.lock_run(ro / "run", "nasa up")
+        done = _nasa("train", "--preset", "cpu-small", "--steps", "10", "--out", str(ro / "run"))
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+        assert "cannot be written" in done.stderr
+
+
+def test_a_busy_port_is_one_line_and_exit_2(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(faults.RunFolderError, match=f"port {port} .* in use"):
+            faults.check_port_free("127.0.0.1", port, "the status")
+        for flag in ("--port", "--router-port"):
+            done = _nasa("up", "--preset", "cpu-small", "--data", str(tmp_path / flag), flag, str(port))
+            assert done.returncode == 2, done.stderr
+            assert f"port {port}" in done.stderr and "Traceback" not in done.stderr
+            assert not (tmp_path / flag / "config.json").exists()  # nothing started
+
+
+# -- disk full -------------------------------------------------------------------------------
+
+
+def _fill(disk: Path) -> Path:
+    """A file taking every free byte of `disk`."""
+    filler = disk / "filler"
+    with contextlib.suppress(OSError), open(filler, "wb", buffering=0) as f:
+        while True:
+            f.write(b"\0" * 4096)
+    return filler
+
+
+def test_a_failed_log_write_leaves_no_torn_record(tmp_path):
+    with tmpfs(tmp_path / "disk", "size=256k") as disk:
+        writer = rlog.LogWriter(disk / "seg")
+        writer.append(1, b"kept")
+        _fill(disk)
+        with pytest.raises(OSError):
+            writer.append(1, b"x" * 200_000)
+        assert (disk / "seg").stat().st_size == writer.bytes_written  # the partial record was cut
+        (disk / "filler").unlink()
+        writer.append(1, b"after")
+        writer.close()
+        assert [bytes(p) for _, p in rlog.read_segment(disk / "seg", is_last=True)] == [b"kept", b"after"]
+
+
+def test_a_full_disk_pauses_inserts_unacknowledged_and_they_resume(tmp_path):
+    with tmpfs(tmp_path / "disk", "size=4m") as disk:
+        svc = make_service(disk, no_rate_limit=True, steps=10_000)
+        stored = svc.insert_batch(batch(n=8)[0])
+        filler = _fill(disk)
+        result: list[int] = []
+        more = batch(start=8, n=8, seed=1)[0]
+        worker = threading.Thread(target=lambda: result.append(svc.insert_batch(more)))
+        worker.start()
+        deadline = time.monotonic() + 30
+        while not svc.stats().write_error and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "No space" in svc.stats().write_error or "short write" in svc.stats().write_error
+        assert worker.is_alive() and not result  # not stored, so never acknowledged: the thread waits
+        filler.unlink()  # space returns
+        worker.join(timeout=30)
+        assert result == [8] and svc.stats().write_error == ""
+        svc.store.close()
+        again = open_store(svc.run_config, disk / "replay")
+        assert again.num_inserted == stored + 8  # nothing torn, nothing lost
+        again.close()
+
+
+# -- health and dead threads -----------------------------------------------------------------
+
+
+def _learner(tmp_path) -> Learner:  # noqa: ANN001
+    learner = Learner.__new__(Learner)
+    learner.core = core_on(tmp_path)
+    learner.args = LearnerArgs()
+    learner.stop = StopFlag()
+    return learner
+
+
+def test_health_says_why_the_learner_is_not_healthy(tmp_path):
+    learner = _learner(tmp_path)
+    board = learner.core.board
+    assert learner.health() == []
+    board.seen_env_steps(100)
+    board.last_update -= learner.args.stall_s + 1
+    assert any("stalled" in r for r in learner.health())
+    board.last_update = time.monotonic()
+    board.skipped_updates = learner.args.max_skipped_updates + 1
+    board.replay_stats(wire.ReplayStats(1, 1, 100, 100, 0, 0, 0, False, "OSError: No space left on device"))
+    learner.core.checkpoint_error = "OSError: read-only file system"
+    for inc in range(1, 3 + learner.args.actor_restarts):
+        board.actor_alive(7, inc, True)
+    board.actor_alive(8, 1, True)
+    reasons = learner.health()
+    assert any("skipped" in r for r in reasons) and any("replay cannot write" in r for r in reasons)
+    assert any("checkpoint" in r for r in reasons) and any("actor(s) [7]" in r for r in reasons)
+    assert len(reasons) == 4
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_dead_prefetch_thread_is_noticed():
+    class Broken:
+        num_inserted = 0
+
+        def sample(self, batch_size, wait_s):  # noqa: ANN001
+            raise MemoryError("what nothing catches")
+
+    with Prefetcher(Broken(), 4, 2, StopFlag()) as prefetcher:
+        deadline = time.monotonic() + 10
+        while len(prefetcher.dead()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert prefetcher.dead() == ["prefetch0", "prefetch1"]
