@@ -258,6 +258,7 @@ def up(argv: list[str]) -> None:
     device = resolve_device(c.device)
     from shared.faults import check_port_free, lock_run
 
+    envs.check_task(c.env.task)  # an unknown task leaves no folder behind
     lock = lock_run(data, f"nasa up (status port {cmd.port})")  # held until this process ends
     check_port_free("127.0.0.1", cmd.port, "the status")
     if cmd.router_port:

@@ -164,5 +164,5 @@ def test_nasa_up_refuses_to_resume_a_run_with_other_settings_before_starting_any
     assert "nasa up: error: settings differ from the run's" in result.stderr
     assert "env.image_size (48 here, 32 in the run)" in result.stderr
     assert "Traceback" not in result.stderr and result.stdout == ""  # nothing started
-    assert sorted(p.name for p in data.iterdir()) == ["config.json"]
+    assert sorted(p.name for p in data.iterdir() if p.name != ".lock") == ["config.json"]  # .lock: its lock
     assert (data / "config.json").read_bytes() == before
