@@ -162,6 +162,9 @@ class SampleRequest(Message):
     TYPE: ClassVar[str] = "sample_request"
     batch_size: int
     wait_s: float = 2.0
+    sync_samples: int | None = None
+    """Not a sample: the learner's update count at its start, so the rate limiter counts the samples
+    the learner used and a restarted learner makes up the updates its checkpoint lost."""
 
 
 @dataclass

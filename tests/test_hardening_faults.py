@@ -204,3 +204,18 @@ def test_a_dead_prefetch_thread_is_noticed():
         while len(prefetcher.dead()) < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert prefetcher.dead() == ["prefetch0", "prefetch1"]
+
+
+# -- the ratio across a learner restart ------------------------------------------------------
+
+
+def test_a_starting_learner_sets_the_limiters_sample_count_to_its_updates(tmp_path):
+    svc = make_service(tmp_path, warmup=4, steps=100)
+    assert svc.insert_batch(batch(n=8)[0]) == 8  # within the limiter's window: none waits
+    svc.limiter.sample(6)  # drawn by a learner that died before checkpointing them
+    reply = svc.sample(wire.SampleRequest(1, 0.0, sync_samples=2))  # the restarted learner made 2
+    assert reply.reason == "synced" and svc.limiter.stats()["samples"] == 2
+    svc.sample(wire.SampleRequest(1, 0.0, sync_samples=50))  # never more than counted
+    assert svc.limiter.stats()["samples"] == 2
+    assert svc.sample(wire.SampleRequest(4, 0.0)).ok  # the lost samples are drawn again
+    svc.store.close()

@@ -177,8 +177,12 @@ class Learner:
     def _loop(self, publisher: zenoh.Publisher) -> None:
         core, c = self.core, self.core.config
         self.publish_weights(publisher)
+        # The limiter then counts the samples this learner used: the updates its checkpoint lost
+        # (a kill -9 after it) are made up, so the run still ends with G * (steps - warm-up).
+        while not self.stop and not self.client.sync_samples(core.agent.num_updates):
+            self.stop.wait(0.5)
         wall_start, wall0 = time.monotonic(), self.wall_s
-        finished, done_at = False, None
+        finished, done_at, resynced = False, None, False
         with Prefetcher(self.client, c.batch_size, self.args.prefetch, self.stop) as prefetcher:
             while not self.stop:
                 self.wall_s = wall0 + time.monotonic() - wall_start
@@ -189,6 +193,12 @@ class Learner:
                     done_at = time.monotonic()
                 # Done: every update made, or the limiter refused a sample after the budget was reached.
                 starved = done_at is not None and (prefetcher.last_miss or 0.0) > done_at
+                if starved and not core.done() and not resynced:
+                    # Short of the target: samples were counted that no update used (a replay restart
+                    # counts G per stored step; a dead learner's requests served after it died).
+                    resynced = self.client.sync_samples(core.agent.num_updates + prefetcher.queued())
+                    done_at = time.monotonic()
+                    continue
                 if core.done() or starved:
                     finished = True
                     break

@@ -277,6 +277,12 @@ class ReplayService:
         """A training batch (paced by the rate limiter), or ok=False after up to req.wait_s."""
         if not 1 <= req.batch_size <= MAX_BATCH:
             raise wire.WireError(f"batch_size {req.batch_size}")
+        if req.sync_samples is not None:  # a learner's start: count the samples it has used
+            if self.limiter is not None:
+                self.limiter.lower_samples(req.sync_samples)
+                self.log(f"a learner with {req.sync_samples} updates started: limiter at "
+                         f"{self.limiter.stats()['samples']:.0f} samples")
+            return wire.SampleReply(False, "synced", self.store.num_inserted)
         wait = float(req.wait_s)
         wait = min(max(wait, 0.0), 10.0) if math.isfinite(wait) else 0.0  # NaN compares false: not min/max
         batch, reason = (local or self.local).draw(req.batch_size, wait)

@@ -218,6 +218,13 @@ class ZenohReplayClient:
             return None
         return self._decode(reply)
 
+    def sync_samples(self, updates: int) -> bool:
+        """Tell the replay's rate limiter how many samples this learner has used (its update count at
+        start): the samples a dead learner drew after its checkpoint are drawn again. True once done."""
+        request = wire.SampleRequest(1, 0.0, sync_samples=updates)
+        reply = self._ask(self.keys.sample, request, min(self.timeout_s, 10.0))
+        return reply is not None and reply.reason == "synced"
+
     def unscored(self, after: int, limit: int) -> tuple[Batch | None, int]:
         reply = self._ask(self.keys.unscored, wire.UnscoredRequest(after, limit), min(self.timeout_s, 10.0))
         if reply is None:
@@ -284,6 +291,10 @@ class Prefetcher:
 
     def _running(self) -> bool:
         return not self.stop and not self._closed.is_set()
+
+    def queued(self) -> int:
+        """Batches drawn and waiting for the learner."""
+        return self._queue.qsize()
 
     def dead(self) -> list[str]:
         """Names of prefetch threads that ended while the prefetcher runs (none should)."""

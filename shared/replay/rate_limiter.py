@@ -100,6 +100,13 @@ class SampleToInsertRatio:
             self.inserts, self.samples = int(inserts), int(samples)
             self._cv.notify_all()
 
+    def lower_samples(self, samples: int) -> None:
+        """Count `samples` samples if that is fewer than counted (a restarted learner lost the
+        updates of the samples it drew after its checkpoint); wakes waiters."""
+        with self._cv:
+            self.samples = max(0, min(self.samples, int(samples)))
+            self._cv.notify_all()
+
     def close(self) -> None:
         with self._cv:
             self.closed = True
