@@ -282,7 +282,9 @@ class Learner:
         return reasons
 
     def status(self) -> dict:
-        return self.core.status(self.keys.run_id, self.wall_s)
+        status = self.core.status(self.keys.run_id, self.wall_s)
+        status["invalid_messages"] += self.client.invalid  # the replay's replies it refused, too
+        return status
 
     def write_final_status(self) -> None:
         """The last /status, in the run folder (atomically: a reader never sees half of it)."""
