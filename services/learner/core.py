@@ -207,11 +207,16 @@ def nonfinite_rows(batch: Batch, intrinsic: bool) -> np.ndarray:
 
 
 def all_finite(state: object) -> bool:
-    """Whether every floating tensor in a (nested) state dict is finite."""
+    """Whether every floating tensor in a (nested) state dict is finite (one device sync)."""
+    flags = [torch.isfinite(t).all() for t in _float_tensors(state)]
+    return not flags or bool(torch.stack([f.to(flags[0].device) for f in flags]).all())
+
+
+def _float_tensors(state: object) -> list[torch.Tensor]:
     if isinstance(state, torch.Tensor):
-        return not state.is_floating_point() or bool(torch.isfinite(state).all())
+        return [state] if state.is_floating_point() else []
     if isinstance(state, dict):
-        return all(all_finite(v) for v in state.values())
+        state = list(state.values())
     if isinstance(state, list | tuple):
-        return all(all_finite(v) for v in state)
-    return True
+        return [t for v in state for t in _float_tensors(v)]
+    return []
