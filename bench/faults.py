@@ -1,8 +1,8 @@
 """`python -m bench.faults`: the system's speed under a steady stream of bad messages (issue 14).
 
 A system of real processes on loopback (tests/system_harness.py: tiny settings, G = 1, no evaluator)
-runs a warm-up and three phases of `--seconds` each: clean, under fuzz, clean. Under fuzz a thread sends `--rate`
-messages per second, spread over every key of shared/wire.py, each one a message the receiver's
+runs a warm-up and three phases of `--seconds` each: clean, under fuzz, clean. Under fuzz a thread
+sends `--rate` messages per second, spread over every key of shared/wire.py, each one a message the receiver's
 value checks refuse (tests/test_fuzz.py's variants, without the giant payloads). It reports env
 steps/s and updates/s of each phase (from /status), the fuzzed phase's fraction of the clean
 phases' mean, and the services' restarts. The last line is one JSON object.
