@@ -219,3 +219,16 @@ def test_a_starting_learner_sets_the_limiters_sample_count_to_its_updates(tmp_pa
     assert svc.limiter.stats()["samples"] == 2
     assert svc.sample(wire.SampleRequest(4, 0.0)).ok  # the lost samples are drawn again
     svc.store.close()
+
+
+def test_an_actor_is_alive_only_with_its_token_and_restarts_count_once_each(tmp_path):
+    board = _learner(tmp_path).core.board
+    board.actor_status(wire.ActorStatus(5, 1, 10, 0, 0, 1.0, []))  # a heartbeat, no process seen
+    assert board.snapshot()["actors"][0]["alive"] is False
+    board.actor_alive(5, 1, True)
+    assert board.snapshot()["actors"][0]["alive"] is True
+    for inc in (2, 3):  # each restart's heartbeat may come before or after its token
+        board.actor_status(wire.ActorStatus(5, inc, 10, 0, 0, 1.0, []))
+        board.actor_alive(5, inc, True)
+        board.actor_alive(5, inc, True)
+    assert board.crash_looping(1, 60.0) == [5] and board.crash_looping(2, 60.0) == []

@@ -31,6 +31,7 @@ class StatusBoard:
                        "samples": 0, "write_error": ""}
         self.actors: dict[int, dict] = {}
         self.restarts: dict[int, deque[float]] = {}  # actor id -> when its recent new incarnations came
+        self._tokens: dict[int, deque[int]] = {}  # actor id -> incarnations whose token was seen
         self.invalid = 0
         self.losses: dict[str, float] = {}
         # Non-finite values met by the loop: skipped updates, dropped batches, and per loss how
@@ -61,7 +62,8 @@ class StatusBoard:
         with self._lock:
             a = self.actors.get(s.actor_id)
             if a is None or s.incarnation > a["incarnation"]:
-                a = self._new_incarnation(a, s.actor_id, s.incarnation)
+                # Alive only once its liveliness token is seen: a heartbeat alone is no process.
+                a = self._new_incarnation(a, s.actor_id, s.incarnation, token=False)
             if s.incarnation == a["incarnation"]:
                 a.update(env_steps=s.env_steps, policy_version=s.policy_version,
                          steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, last_seen=time.monotonic())
@@ -69,18 +71,29 @@ class StatusBoard:
     def actor_alive(self, actor_id: int, incarnation: int, alive: bool) -> None:
         """An actor's liveliness token appeared (alive) or went away."""
         with self._lock:
+            if alive:
+                self._token_seen(actor_id, incarnation)
             a = self.actors.get(actor_id)
             if alive and (a is None or incarnation > a["incarnation"]):
-                self._new_incarnation(a, actor_id, incarnation)
+                self._new_incarnation(a, actor_id, incarnation, token=True)
             elif a is not None and incarnation == a["incarnation"]:
                 a["alive"] = alive
                 a["last_seen"] = time.monotonic()
 
-    def _new_incarnation(self, old: dict | None, actor_id: int, incarnation: int) -> dict:
-        """An actor id's entry for a new incarnation (a restart when it replaces one); under the lock."""
-        if old is not None:
+    def _token_seen(self, actor_id: int, incarnation: int) -> None:
+        """A liveliness token of an incarnation: after the actor id's first, each new one is a restart."""
+        seen = self._tokens.setdefault(actor_id, deque(maxlen=16))
+        if incarnation in seen:
+            return
+        if seen:
             self.restarts.setdefault(actor_id, deque(maxlen=16)).append(time.monotonic())
+        seen.append(incarnation)
+
+    def _new_incarnation(self, old: dict | None, actor_id: int, incarnation: int, token: bool) -> dict:
+        """An actor id's entry for a new incarnation, alive if its liveliness token came (`token`);
+        under the lock."""
         a = self.actors[actor_id] = _new_actor(actor_id, incarnation)
+        a["alive"] = token
         return a
 
     def crash_looping(self, restarts: int, within_s: float) -> list[int]:
