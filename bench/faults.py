@@ -1,11 +1,12 @@
 """`python -m bench.faults`: the system's speed under a steady stream of bad messages (issue 14).
 
 A system of real processes on loopback (tests/system_harness.py: tiny settings, G = 1, no evaluator)
-runs a warm-up and three phases of `--seconds` each: clean, under fuzz, clean. Under fuzz a thread
-sends `--rate` messages per second, spread over every key of shared/wire.py, each one a message the receiver's
+runs a warm-up, then `--rounds` pairs of phases of `--seconds` each, clean then under fuzz
+(alternating, so a change in the machine's load falls on both alike). Under fuzz a thread sends
+`--rate` messages per second, spread over every key of shared/wire.py, each one a message the receiver's
 value checks refuse (tests/test_fuzz.py's variants, without the giant payloads). It reports env
-steps/s and updates/s of each phase (from /status), the fuzzed phase's fraction of the clean
-phases' mean, and the services' restarts. The last line is one JSON object.
+steps/s and updates/s of the clean and the fuzzed phases (from /status), the fuzzed fraction of
+the clean figures, and the services' restarts. The last line is one JSON object.
 """
 
 from __future__ import annotations
@@ -58,24 +59,29 @@ def fuzz_stream(session, messages: list, rate: float, stop: threading.Event, sen
             session.put(key, payload, congestion_control=block)
         else:
             session.get(key, payload=payload, timeout=1.0)  # the replies are not read
-        sent[0] = i + 1
+        sent[0] += 1
         delay = start + (i + 1) / rate - time.monotonic()
         if delay > 0:
             time.sleep(delay)
 
 
-def phase(system, seconds: float) -> dict:  # noqa: ANN001
+def phase(system, seconds: float) -> tuple[float, int, int]:  # noqa: ANN001
+    """(seconds, env steps, updates) of one phase."""
     a = system.status()
     time.sleep(seconds)
     b = system.status()
-    dt = b["wall_s"] - a["wall_s"]
-    return {"env_steps_per_s": round((b["env_steps"] - a["env_steps"]) / dt, 2),
-            "updates_per_s": round((b["updates"] - a["updates"]) / dt, 2), "seconds": round(dt, 1)}
+    return b["wall_s"] - a["wall_s"], b["env_steps"] - a["env_steps"], b["updates"] - a["updates"]
+
+
+def rates(phases: list[tuple[float, int, int]]) -> dict:
+    t, e, u = (sum(p[i] for p in phases) for i in range(3))
+    return {"env_steps_per_s": round(e / t, 2), "updates_per_s": round(u / t, 2), "seconds": round(t, 1)}
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds", type=float, default=30.0, help="length of each phase")
+    p.add_argument("--seconds", type=float, default=15.0, help="length of each phase")
+    p.add_argument("--rounds", type=int, default=4, help="clean and fuzzed phase pairs")
     p.add_argument("--rate", type=float, default=200.0, help="bad messages per second under fuzz")
     p.add_argument("--actors", type=int, default=1)
     args = p.parse_args(argv)
@@ -98,23 +104,25 @@ def main(argv: list[str] | None = None) -> None:
             session = zenoh.open(_client_config(system.endpoint))
             messages = bad_messages(wire.Keys(s["run_id"]), spec)
             phase(system, args.seconds)  # warm-up: the first updates and batches are slower
-            clean1 = phase(system, args.seconds)
-            stop, sent = threading.Event(), [0]
-            sender = threading.Thread(target=fuzz_stream, args=(session, messages, args.rate, stop, sent))
-            sender.start()
-            fuzzed = phase(system, args.seconds)
-            stop.set()
-            sender.join()
-            clean2 = phase(system, args.seconds)
+            clean, fuzzed, sent = [], [], [0]
+            for _ in range(args.rounds):
+                clean.append(phase(system, args.seconds))
+                stop = threading.Event()
+                sender = threading.Thread(target=fuzz_stream, args=(session, messages, args.rate, stop, sent))
+                sender.start()
+                fuzzed.append(phase(system, args.seconds))
+                stop.set()
+                sender.join()
             last = system.status()
             restarts = sum(c.restarts for c in system.sup.children.values())
             session.close()
         finally:
             system.close()
-    clean = {k: (clean1[k] + clean2[k]) / 2 for k in ("env_steps_per_s", "updates_per_s")}
+    clean, fuzzed = rates(clean), rates(fuzzed)
+    keys = ("env_steps_per_s", "updates_per_s")
     result = {
-        "clean_before": clean1, "fuzzed": fuzzed, "clean_after": clean2,
-        "fuzzed_vs_clean": {k: round(fuzzed[k] / clean[k], 3) if clean[k] else None for k in clean},
+        "clean": clean, "fuzzed": fuzzed,
+        "fuzzed_vs_clean": {k: round(fuzzed[k] / clean[k], 3) if clean[k] else None for k in keys},
         "bad_messages_sent": sent[0], "distinct_bad_messages": len(messages), "rate": args.rate,
         "invalid_learner": last["invalid_messages"], "invalid_replay": last["replay"]["invalid_messages"],
         "restarts": restarts, "goal": GOAL, "load_avg_1m": round(os.getloadavg()[0], 2),
