@@ -29,7 +29,10 @@ STATUS = {
     "intrinsic": {"novelty_mean": 0.31, "surprise_mean": 0.002, "scored": 300, "scored_at_first_sample": 2},
     "resumed": False, "wall_s": 61.5, "env_steps": 345, "env_steps_per_s": 12.5, "updates_per_s": 11.25,
     "replay": {"size": 345, "bytes": 123456, "done": False, "dropped": 1, "invalid_messages": 3,
-               "limiter_inserts": 345, "limiter_samples": 321},
+               "limiter_inserts": 345, "limiter_samples": 321, "write_error": "OSError: disk full"},
+    "nonfinite": {"skipped_updates": 2, "dropped_batches": 1, "dropped_rows": [5, 9],
+                  "losses": {"critic_loss": {"count": 2, "last": "nan"}}},
+    "a_field_added_later": {"count": 7},
     "actors": [
         {"id": 0, "incarnation": 1111, "alive": True, "env_steps": 170, "episodes": 4, "policy_version": 300,
          "steps_per_s": 6.5, "last_seen_s": 0.25},
@@ -67,6 +70,10 @@ def expected_samples(status: dict) -> dict[tuple[str, tuple], float]:
     for a in status["actors"]:
         for key, name, _, _ in ACTOR_FIGURES:
             want[(name, (("actor", str(a["id"])),))] = float(a[key])
+    for key, entry in status["nonfinite"]["losses"].items():
+        want[("nasa_nonfinite_losses_total", (("name", key),))] = float(entry["count"])
+    want[("nasa_replay_write_failing", ())] = 1.0
+    want[("nasa_status_a_field_added_later_count", ())] = 7.0  # a field no table names yet
     return want
 
 
@@ -76,7 +83,8 @@ def leaves(d: dict, prefix: str = "") -> set[str]:
         if isinstance(v, dict):
             out |= leaves(v, f"{prefix}{k}.")
         elif isinstance(v, list):
-            out |= {f"{prefix}{k}[].{field}" for item in v for field in item}
+            out |= {f"{prefix}{k}[].{field}" if isinstance(item, dict) else f"{prefix}{k}[]"
+                    for item in v for field in (item if isinstance(item, dict) else [None])}
         else:
             out.add(prefix + k)
     return out
@@ -97,7 +105,9 @@ def test_metrics_parse_and_hold_every_figure_of_status():
     # Every figure of /status is covered: a new field without a metric fails here.
     covered = {path for path, *_ in SCALARS} | {"policy_lag.mean", "policy_lag.max"} \
         | {f"losses.{k}" for k in STATUS["losses"]} | {"intrinsic.novelty_mean", "intrinsic.surprise_mean"} \
-        | {f"actors[].{key}" for key, *_ in ACTOR_FIGURES} | {"actors[].id"} | set(INFO)
+        | {f"actors[].{key}" for key, *_ in ACTOR_FIGURES} | {"actors[].id"} | set(INFO) \
+        | {"nonfinite.losses.critic_loss.count", "nonfinite.losses.critic_loss.last", "replay.write_error",
+           "a_field_added_later.count"} | {"nonfinite.dropped_rows[]"}
     assert leaves(STATUS) <= covered, leaves(STATUS) - covered
     # Counters end in _total; no series carries the run id.
     assert all(name.endswith("_total") for _, name, kind, _ in SCALARS if kind == "counter")

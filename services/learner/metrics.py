@@ -46,6 +46,10 @@ SCALARS: tuple[tuple[str, str, str, str], ...] = (
     ("replay.limiter_inserts", "nasa_replay_limiter_inserts_total", "counter", "Rate limiter's inserts"),
     ("replay.limiter_samples", "nasa_replay_limiter_samples_total", "counter", "Rate limiter's samples"),
     ("invalid_messages", "nasa_invalid_messages_total", "counter", "Messages the learner refused"),
+    ("nonfinite.skipped_updates", "nasa_nonfinite_skipped_updates_total", "counter",
+     "Updates skipped for a non-finite loss or gradient"),
+    ("nonfinite.dropped_batches", "nasa_nonfinite_dropped_batches_total", "counter",
+     "Training batches dropped for non-finite values"),
 )
 # Figures of each entry of actors[], labelled actor="<id>".
 ACTOR_FIGURES: tuple[tuple[str, str, str, str], ...] = (
@@ -65,12 +69,35 @@ LABELLED: tuple[tuple[str, str, str, str], ...] = (
 )
 INTRINSIC_MEANS = ("novelty_mean", "surprise_mean")
 INFO = ("run_id", "algo", "task", "device", "config_digest")
+# Parts of /status given otherwise (the above, the info, the intrinsic means, the non-finite losses
+# and the replay's write error below) or that are no figure (row indices of dropped batches).
+HANDLED = {"actors", "policy_lag", "losses", "nonfinite.losses", "nonfinite.dropped_rows",
+           "replay.write_error", *(f"intrinsic.{k}" for k in INTRINSIC_MEANS), *INFO}
+
+
+def unnamed_figures(status: dict, prefix: str = "") -> list[tuple[str, float]]:
+    """Numbers of /status the tables above do not name (a field added since): each becomes a
+    gauge `nasa_status_<path>`, so /metrics never lacks a figure of /status."""
+    named = {path for path, *_ in SCALARS}
+    out = []
+    for key, value in status.items():
+        path = prefix + key
+        if path in HANDLED or path in named:
+            continue
+        if isinstance(value, dict):
+            out += unnamed_figures(value, path + ".")
+        elif isinstance(value, bool | int | float):
+            out.append((path, float(value)))
+    return out
 
 
 def lookup(status: dict, path: str) -> object:
+    """The value at a dotted path, or None where /status has none (an older run's status.json)."""
     value: object = status
     for key in path.split("."):
-        value = value[key]  # type: ignore[index]
+        if not isinstance(value, dict) or key not in value:
+            return None
+        value = value[key]
     return value
 
 
@@ -101,9 +128,14 @@ class StatusCollector:
                 yield family
         for path, name, label, help_text in LABELLED:
             family = GaugeMetricFamily(name, help_text, labels=[label])
-            for key, value in lookup(s, path).items():  # type: ignore[attr-defined]
+            for key, value in (lookup(s, path) or {}).items():  # type: ignore[attr-defined]
                 if value is not None:
                     family.add_metric([key], float(value))
+            yield family
+        yield from self.collect_health(s)
+        for path, value in unnamed_figures(s):
+            family = GaugeMetricFamily("nasa_status_" + path.replace(".", "_"), f"/status field {path}")
+            family.add_metric([], value)
             yield family
         family = GaugeMetricFamily("nasa_intrinsic_mean", "Running mean of each intrinsic reward",
                                    labels=["name"])
@@ -114,7 +146,21 @@ class StatusCollector:
         for key, name, kind, help_text in ACTOR_FIGURES:
             family = _family(kind, name, help_text, ["actor"])
             for a in s["actors"]:
-                family.add_metric([str(a["id"])], float(a[key]))
+                if isinstance(a.get(key), bool | int | float):
+                    family.add_metric([str(a["id"])], float(a[key]))
+            yield family
+
+    @staticmethod
+    def collect_health(s: dict) -> Iterator[Metric]:
+        """The non-finite losses by name and whether the replay's writes fail."""
+        family = CounterMetricFamily("nasa_nonfinite_losses", "Non-finite values of each loss",
+                                     labels=["name"])
+        for key, entry in (lookup(s, "nonfinite.losses") or {}).items():  # type: ignore[attr-defined]
+            family.add_metric([key], float(entry["count"]))
+        yield family
+        if (error := lookup(s, "replay.write_error")) is not None:
+            family = GaugeMetricFamily("nasa_replay_write_failing", "1 while the replay cannot write")
+            family.add_metric([], float(bool(error)))
             yield family
 
 
