@@ -115,7 +115,7 @@ def test_nasa_up_refuses_a_resumed_folder_started_with_other_flags(tmp_path, cap
     assert code == 2
     assert "nasa up: error: settings differ from the run's" in err
     assert "batch_size (16 here, 64 in the run), env.image_size (48 here, 32 in the run)" in err
-    assert started == [] and sorted(p.name for p in data.iterdir()) == ["config.json"]
+    assert started == [] and sorted(p.name for p in data.iterdir() if p.name != ".lock") == ["config.json"]
     assert (data / "config.json").read_bytes() == before
 
 
