@@ -42,6 +42,14 @@ SHOWN = """() => ({
 })"""
 
 
+def _value(text: str) -> float | str:
+    """A cell's value as a number where it is one (JavaScript writes 7.0 as "7")."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def shown_matches(shown: dict, status: dict, evals: list[dict], exact: bool) -> list[str]:
     """What differs between the page and the learner's /status (and /history's evaluations)."""
     diffs = []
@@ -57,8 +65,8 @@ def shown_matches(shown: dict, status: dict, evals: list[dict], exact: bool) -> 
         diffs.append(f"latest evaluation {steps[-1]}, {means[-1]}, {shown['latest']} vs /status {e}")
     keys = ["id", "incarnation", "alive"] + (["env_steps", "episodes", "steps_per_s", "policy_version",
                                                "last_seen_s"] if exact else [])
-    table = [{k: row[k] for k in keys} for row in shown["actors"]]
-    want = [{k: str(a[k]).lower() if isinstance(a[k], bool) else str(a[k]) for k in keys}
+    table = [{k: _value(row[k]) for k in keys} for row in shown["actors"]]
+    want = [{k: _value(str(a[k]).lower() if isinstance(a[k], bool) else str(a[k])) for k in keys}
             for a in status["actors"]]
     if table != want:
         diffs.append(f"actors table {table} vs /status {want}")
