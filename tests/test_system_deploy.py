@@ -4,9 +4,15 @@ every flag they are given. tests/test_docker.py runs the same files under a real
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import shutil
 import subprocess
 import sys
+
+import pytest
+from compose_spec import PyCompose
 
 from nasa.up import UpCommand
 from shared.config import EnvConfig, TrainConfig, auto_preset, default_config
@@ -32,6 +38,25 @@ def test_compose_file_is_commented_yaml_for_both_compose_versions():
     # docker-compose 1.29 rejects a top-level `name`; the project name comes from .env
     assert set(compose) <= {"services", "volumes", "networks"} | {k for k in compose if k.startswith("x-")}
     assert "version" not in compose
+
+
+def test_compose_file_is_valid_for_the_compose_specification():
+    # compose-spec (a strict parser of the Compose Specification, which Compose v2 implements);
+    # YAML merge keys resolved first, as compose does
+    compose = load_compose()
+    assert PyCompose.from_json(json.dumps(compose)).service_names() == list(compose["services"])
+    broken = load_compose()
+    broken["services"]["actor"]["depends_on"]["replay"]["condition"] = "service_ready"
+    with pytest.raises(ValueError, match="service_ready"):
+        PyCompose.from_json(json.dumps(broken))
+
+
+@pytest.mark.skipif(not shutil.which("docker-compose"), reason="docker-compose (1.29) is not installed")
+def test_docker_compose_1_29_accepts_the_file():
+    env = {k: v for k, v in os.environ.items() if k not in load_env()}  # .env's defaults, not the shell's
+    proc = subprocess.run(["docker-compose", "-f", str(COMPOSE), "config", "-q"], capture_output=True,
+                          text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
 
 
 def test_compose_has_the_topology():
