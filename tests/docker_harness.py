@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from tests.deploy_files import DEPLOY, REPO
+from deploy_files import DEPLOY, REPO
 
 DOCKERD_LOG = Path("/tmp/nasa-td3-test-dockerd.log")
 

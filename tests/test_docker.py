@@ -16,9 +16,8 @@ import urllib.request
 from collections.abc import Callable, Iterator
 
 import pytest
-
-from tests.deploy_files import COMPOSE, torch_version
-from tests.docker_harness import DockerHost, Unavailable, run
+from deploy_files import COMPOSE, torch_version
+from docker_harness import DockerHost, Unavailable, run
 
 pytestmark = [pytest.mark.docker, pytest.mark.system, pytest.mark.timeout(3600)]
 

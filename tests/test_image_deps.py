@@ -8,8 +8,7 @@ import subprocess
 import sys
 
 import torch
-
-from tests.deploy_files import DEPLOY, REPO, torch_version
+from deploy_files import DEPLOY, REPO, torch_version
 
 SCRIPT = DEPLOY / "image_deps.py"
 PYPROJECT = str(REPO / "pyproject.toml")

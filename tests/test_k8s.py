@@ -8,9 +8,7 @@ from pathlib import Path
 
 import kubernetes_validate
 import pytest
-
-from nasa.up import UpCommand, service_argv
-from tests.deploy_files import (
+from deploy_files import (
     CONFIG_FLAGS,
     K8S,
     ROLES,
@@ -21,6 +19,8 @@ from tests.deploy_files import (
     load_env,
     load_k8s,
 )
+
+from nasa.up import UpCommand, service_argv
 
 KUBERNETES_VERSION = "1.37.0"
 # What each topology sets on its own, by design: nasa up numbers its actors (replicas draw an id),

@@ -13,11 +13,7 @@ import sys
 
 import pytest
 from compose_spec import PyCompose
-
-from nasa.up import UpCommand
-from shared.config import EnvConfig, TrainConfig, auto_preset, default_config
-from shared.zenoh_session import env_run_id
-from tests.deploy_files import (
+from deploy_files import (
     COMPOSE,
     CONFIG_FLAGS,
     REPO,
@@ -27,6 +23,10 @@ from tests.deploy_files import (
     load_compose,
     load_env,
 )
+
+from nasa.up import UpCommand
+from shared.config import EnvConfig, TrainConfig, auto_preset, default_config
+from shared.zenoh_session import env_run_id
 
 UP = UpCommand()
 
