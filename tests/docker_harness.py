@@ -64,7 +64,7 @@ class DockerHost:
 
     def _start_dockerd(self) -> None:
         if os.geteuid() != 0:
-            raise Unavailable("no Docker engine is running and starting one needs root")
+            raise Unavailable("no Docker engine answers `docker info` and starting one needs root")
         if not shutil.which("dockerd") or not shutil.which("docker"):
             apt_install("docker.io")
         log = DOCKERD_LOG.open("wb")
