@@ -1,58 +1,155 @@
-"""deploy/: the compose file parses, has every service, and each command is a real module whose
---help works and lists every flag the command passes. (No Docker engine here: see DESIGN.md.)"""
+"""deploy/: the compose file and its .env, read as compose reads them: the topology, defaults that
+match `nasa up`'s and shared/config.py's, and commands that are real modules whose --help lists
+every flag they are given. tests/test_docker.py runs the same files under a real Docker engine."""
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
 import subprocess
 import sys
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-COMPOSE = REPO / "deploy" / "docker-compose.yml"
+import pytest
+from compose_spec import PyCompose
+from deploy_files import (
+    COMPOSE,
+    CONFIG_FLAGS,
+    REPO,
+    ROLES,
+    compose_variables,
+    flag_values,
+    load_compose,
+    load_env,
+)
+
+from nasa.up import UpCommand
+from shared.config import EnvConfig, TrainConfig, auto_preset, default_config
+from shared.zenoh_session import env_run_id
+
+UP = UpCommand()
 
 
-def load_compose() -> dict:
-    # The file is JSON-compatible YAML (PyYAML is not a dependency): drop the comment lines.
-    text = "\n".join(line for line in COMPOSE.read_text().splitlines() if not line.lstrip().startswith("#"))
-    return json.loads(text)
+def test_compose_file_is_commented_yaml_for_both_compose_versions():
+    text = COMPOSE.read_text()
+    assert text.lstrip().startswith("#") and not text.lstrip("# \n").startswith("{")
+    compose = load_compose()
+    # docker-compose 1.29 rejects a top-level `name`; the project name comes from .env
+    assert set(compose) <= {"services", "volumes", "networks"} | {k for k in compose if k.startswith("x-")}
+    assert "version" not in compose
+
+
+def test_compose_file_is_valid_for_the_compose_specification():
+    # compose-spec (a strict parser of the Compose Specification, which Compose v2 implements);
+    # YAML merge keys resolved first, as compose does
+    compose = load_compose()
+    assert PyCompose.from_json(json.dumps(compose)).service_names() == list(compose["services"])
+    broken = load_compose()
+    broken["services"]["actor"]["depends_on"]["replay"]["condition"] = "service_ready"
+    with pytest.raises(ValueError, match="service_ready"):
+        PyCompose.from_json(json.dumps(broken))
+
+
+@pytest.mark.skipif(not shutil.which("docker-compose"), reason="docker-compose (1.29) is not installed")
+def test_docker_compose_1_29_accepts_the_file():
+    env = {k: v for k, v in os.environ.items() if k not in load_env()}  # .env's defaults, not the shell's
+    proc = subprocess.run(["docker-compose", "-f", str(COMPOSE), "config", "-q"], capture_output=True,
+                          text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
 
 
 def test_compose_has_the_topology():
-    compose = load_compose()
-    services = compose["services"]
-    assert set(services) == {"router", "replay", "learner", "evaluator", "actor"}
-    actor = services["actor"]
-    # `docker compose up --scale actor=N` needs no fixed name, port or actor id on the actor service
-    assert "container_name" not in actor and "ports" not in actor
-    assert "NASA_ACTOR_ID" not in actor.get("environment", {})
+    services = load_compose()["services"]
+    assert set(services) == {*ROLES, "learner-gpu"}
+    env = load_env()
     for name, svc in services.items():
-        assert svc["image"] == "nasa-td3"
-        if name != "router":
+        assert svc["image"] == env["IMAGE"]
+        assert svc["build"]["dockerfile"] == "deploy/Dockerfile"
+        assert (COMPOSE.parent / svc["build"]["context"] / svc["build"]["dockerfile"]).exists()
+        role = name.removesuffix("-gpu")
+        assert svc["command"][:3] == ["python", "-m", f"services.{role}"]
+        assert svc["healthcheck"]["test"] == ["CMD", "python", "/opt/nasa/healthcheck.py", role]
+        if role != "router":
             assert svc["environment"]["NASA_ZENOH_CONNECT"] == "tcp/router:7447"
-            assert "router" in svc["depends_on"]
-    assert (REPO / services["router"]["build"]["dockerfile"]).exists()
-    # every service of a run gets the same config flags
-    configs = [_config_flags(s["command"]) for n, s in services.items() if n != "router"]
-    assert all(c == configs[0] for c in configs)
-    assert "--algo" in configs[0] and "--task" in configs[0]
+            assert svc["environment"]["NASA_RUN_ID"] == env["NASA_RUN_ID"]
+            # nothing starts before what it needs is healthy
+            assert set(svc["depends_on"]) & {"router", "replay"}
+            assert all(d["condition"] == "service_healthy" for d in svc["depends_on"].values())
+    actor = services["actor"]
+    # `--scale actor=N` needs no fixed name, host port or actor id on the actor service
+    assert "container_name" not in actor and "ports" not in actor
+    assert "NASA_ACTOR_ID" not in actor["environment"]
+    assert actor["scale"] == int(env["ACTORS"])
+    # the gpu profile swaps the learner for one that reserves a GPU and runs on it
+    assert services["learner"]["profiles"] == ["cpu"] and services["learner-gpu"]["profiles"] == ["gpu"]
+    assert env["COMPOSE_PROFILES"] == "cpu"
+    (device,) = services["learner-gpu"]["deploy"]["resources"]["reservations"]["devices"]
+    assert device["driver"] == "nvidia" and device["capabilities"] == ["gpu"]
+    assert flag_values(services["learner-gpu"]["command"])["--device"] == "cuda"
+    for name in ("replay", "learner", "learner-gpu"):
+        assert "run-data:/data" in services[name]["volumes"]
+        assert flag_values(services[name]["command"])["--data"] == "/data"
 
 
-def _config_flags(command: list[str]) -> dict[str, str]:
-    pairs = dict(zip(command[3::2], command[4::2], strict=False))
-    return {k: v for k, v in pairs.items() if k in ("--task", "--algo", "--preset", "--steps")}
+def test_every_service_gets_the_same_config_flags():
+    services = load_compose()["services"]
+    env = load_env()
+    expected = {"--preset": env["PRESET"], "--task": env["TASK"], "--algo": env["ALGO"],
+                "--seed": env["SEED"], "--steps": env["STEPS"]}
+    for name, svc in services.items():
+        if name != "router":
+            flags = flag_values(svc["command"][3:])
+            assert {f: flags[f] for f in CONFIG_FLAGS} == expected, name
+
+
+def test_ports_are_published_on_the_configured_address_only():
+    services = load_compose({"PUBLISH_ADDRESS": "10.1.2.3", "ROUTER_PORT": "17447", "STATUS_PORT": "18000"})[
+        "services"]
+    assert services["router"]["ports"] == ["10.1.2.3:17447:7447"]
+    assert services["learner"]["ports"] == ["10.1.2.3:18000:8000"]
+    assert [n for n, s in services.items() if "ports" in s] == ["router", "learner", "learner-gpu"]
+    assert load_env()["PUBLISH_ADDRESS"] == "127.0.0.1"  # no authentication: this host only by default
+
+
+def test_env_file_holds_every_setting_and_nothing_else():
+    env = load_env()
+    used = compose_variables()
+    assert used - set(env) == set(), "compose uses variables .env does not define"
+    compose_own = {"COMPOSE_PROJECT_NAME", "COMPOSE_PROFILES"}
+    assert set(env) - used - compose_own == set(), ".env sets variables compose does not use"
+    # every variable but TORCH_INDEX (empty: the variant's own index) must be set: ${VAR:?}
+    for name in used - {"TORCH_INDEX"}:
+        assert re.search(rf"\$\{{{name}:\?", COMPOSE.read_text()), f"{name} has a default outside .env"
+
+
+def test_env_defaults_match_nasa_up_and_config(monkeypatch):
+    env = load_env()
+    monkeypatch.delenv("NASA_RUN_ID", raising=False)
+    train, env_config = TrainConfig(), EnvConfig()
+    assert env["TASK"] == UP.task == env_config.task
+    assert env["ALGO"] == UP.algo == train.algo
+    assert int(env["SEED"]) == UP.seed == train.seed
+    assert env["DEVICE"] == UP.device == train.device
+    assert int(env["ACTORS"]) == UP.actors
+    assert int(env["ROUTER_PORT"]) == UP.router_port
+    assert int(env["STATUS_PORT"]) == UP.port
+    assert int(env["LEARNER_THREADS"]) == UP.learner_threads
+    assert env["NASA_RUN_ID"] == env_run_id()
+    # nasa up's `auto` resolves once per run; compose names what it resolves to on a CPU host,
+    # and that preset's step budget (nasa up's --steps default)
+    assert UP.preset == "auto" and env["PRESET"] == auto_preset("cpu")
+    assert UP.steps is None and int(env["STEPS"]) == default_config(env["ALGO"], env["PRESET"]).steps
 
 
 def test_every_command_is_a_module_with_working_help():
     services = load_compose()["services"]
     procs = {}
     for name, svc in services.items():
-        cmd = svc["command"]
-        assert cmd[:2] == ["python", "-m"] and cmd[2] == f"services.{name}"
-        assert (REPO / "services" / name / "__main__.py").exists()
+        module = svc["command"][2]
+        assert (REPO / "services" / module.split(".")[1] / "__main__.py").exists()
         procs[name] = subprocess.Popen(
-            [sys.executable, "-m", cmd[2], "--preset", "cpu-small", "--help"], cwd=REPO,
+            [sys.executable, "-m", module, "--preset", "cpu-small", "--help"], cwd=REPO,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
     for name, proc in procs.items():

@@ -1,0 +1,83 @@
+"""Container health checks, one per role: `python healthcheck.py ROLE`, exit 0 when healthy.
+
+    learner   GET /healthz of its status API (NASA_STATUS_PORT, default 8000) answers 200
+    router    its Zenoh port (from NASA_ZENOH_LISTEN, default 7447) accepts a connection
+    replay    its liveliness token is visible through the router (NASA_ZENOH_CONNECT, NASA_RUN_ID)
+    actor, evaluator
+              the router they are told about (NASA_ZENOH_CONNECT) accepts a connection
+
+The image's HEALTHCHECK runs the learner's; the compose file and the Kubernetes manifests run
+the one of each service's role.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import urllib.request
+
+TIMEOUT_S = 4.0
+
+
+def _host_port(endpoint: str, default_port: int) -> tuple[str, int]:
+    # tcp/host:port (Zenoh's endpoint syntax); the first of a comma-separated list
+    address = endpoint.split(",")[0].strip().split("/", 1)[-1]
+    host, _, port = address.rpartition(":")
+    return (host or "127.0.0.1").strip("[]"), int(port or default_port)
+
+
+def tcp_open(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=TIMEOUT_S):
+            return True
+    except OSError:
+        return False
+
+
+def learner() -> bool:
+    port = int(os.environ.get("NASA_STATUS_PORT", "8000"))
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=TIMEOUT_S) as response:
+            return response.status == 200
+    except OSError:
+        return False
+
+
+def router() -> bool:
+    _, port = _host_port(os.environ.get("NASA_ZENOH_LISTEN", "tcp/0.0.0.0:7447"), 7447)
+    return tcp_open("127.0.0.1", port)
+
+
+def replay() -> bool:
+    from shared.wire import Keys
+    from shared.zenoh_session import env_connect, env_run_id, open_client
+
+    with open_client(env_connect(), timeout_s=TIMEOUT_S) as session:
+        replies = session.liveliness().get(Keys(env_run_id()).alive("replay", 0), timeout=TIMEOUT_S)
+        return any(reply.ok is not None for reply in replies)
+
+
+def reaches_router() -> bool:
+    return tcp_open(*_host_port(os.environ.get("NASA_ZENOH_CONNECT", "tcp/127.0.0.1:7447"), 7447))
+
+
+CHECKS = {"learner": learner, "router": router, "replay": replay, "actor": reaches_router,
+          "evaluator": reaches_router}
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1 or argv[0] not in CHECKS:
+        print(f"usage: healthcheck.py {{{','.join(CHECKS)}}}", file=sys.stderr)
+        return 2
+    try:
+        healthy = CHECKS[argv[0]]()
+    except Exception as err:  # noqa: BLE001 (any failure to check is "unhealthy", with its reason)
+        print(f"healthcheck {argv[0]}: {err}", file=sys.stderr)
+        return 1
+    print(f"healthcheck {argv[0]}: {'ok' if healthy else 'unhealthy'}")
+    return 0 if healthy else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

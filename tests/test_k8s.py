@@ -1,0 +1,107 @@
+"""deploy/k8s/: the manifests are valid against the Kubernetes schemas (kubernetes-validate), and
+the three ways to run the system -- `nasa up`, compose and Kubernetes -- start the same roles with
+the same commands and config flags, so none of them can drift from the others."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import kubernetes_validate
+import pytest
+from deploy_files import (
+    CONFIG_FLAGS,
+    K8S,
+    ROLES,
+    flag_values,
+    k8s_config_map,
+    k8s_containers,
+    load_compose,
+    load_env,
+    load_k8s,
+)
+
+from nasa.up import UpCommand, service_argv
+
+KUBERNETES_VERSION = "1.37.0"
+# What each topology sets on its own, by design: nasa up numbers its actors (replicas draw an id),
+# points --data at its run folder and computes the learner's threads from the host's cores.
+OWN_FLAGS = {"actor": {"--actor-id"}}
+
+
+def test_every_manifest_is_valid_against_the_schemas():
+    docs = load_k8s()
+    assert {d["kind"] for d in docs} >= {"ConfigMap", "Deployment", "StatefulSet", "Service"}
+    for doc in docs:
+        kubernetes_validate.validate(doc, KUBERNETES_VERSION, strict=True)
+
+
+def test_the_validator_rejects_a_broken_manifest():
+    (actor,) = [d for d in load_k8s() if d["metadata"]["name"] == "actor"]
+    actor["spec"]["template"]["spec"]["containers"][0]["comand"] = ["python"]
+    with pytest.raises(kubernetes_validate.ValidationError):
+        kubernetes_validate.validate(actor, KUBERNETES_VERSION, strict=True)
+
+
+def test_manifests_have_the_topology():
+    docs = load_k8s()
+    kinds = {d["metadata"]["name"]: d["kind"] for d in docs if d["kind"] != "Service"}
+    assert kinds == {"nasa-td3-config": "ConfigMap", "router": "Deployment", "replay": "StatefulSet",
+                     "learner": "StatefulSet", "evaluator": "Deployment", "actor": "Deployment"}
+    services = {d["metadata"]["name"]: d for d in docs if d["kind"] == "Service"}
+    assert [p["port"] for p in services["router"]["spec"]["ports"]] == [7447]
+    assert [p["port"] for p in services["learner-status"]["spec"]["ports"]] == [8000]
+    by_name = {d["metadata"]["name"]: d for d in docs}
+    for name in ("replay", "learner"):  # a volume of its own, mounted where --data points
+        (claim,) = by_name[name]["spec"]["volumeClaimTemplates"]
+        (mount,) = by_name[name]["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
+        assert mount == {"name": claim["metadata"]["name"], "mountPath": "/data"}
+    assert by_name["actor"]["spec"]["replicas"] == int(load_env()["ACTORS"])
+    # the GPU request is there for whoever turns it on
+    assert "nvidia.com/gpu: 1" in (K8S / "learner.yaml").read_text()
+    for doc in docs:
+        if doc["kind"] in ("Deployment", "StatefulSet"):
+            assert doc["spec"]["template"]["spec"]["securityContext"]["runAsNonRoot"] is True
+
+
+def _up_argv(env: dict[str, str]) -> dict[str, list[str]]:
+    cmd = UpCommand(task=env["TASK"], algo=env["ALGO"], seed=int(env["SEED"]), steps=int(env["STEPS"]),
+                    device=env["DEVICE"], port=8000)
+    roles: dict[str, list[str]] = {}
+    for name, argv in service_argv(cmd, env["PRESET"], Path("/data"), []).items():
+        roles.setdefault(name.split("-")[0], argv)  # actor-0, actor-1, ...: one is enough
+    return roles
+
+
+def test_nasa_up_compose_and_kubernetes_run_the_same_commands():
+    env = load_env()
+    up = _up_argv(env)
+    compose = {n: s["command"] for n, s in load_compose()["services"].items() if n in ROLES}
+    k8s = {n: c["command"] + c["args"] for n, c in k8s_containers(load_k8s()).items()}
+    # nasa up runs the router inside its own process; the other roles are the same modules
+    assert set(compose) == set(k8s) == set(ROLES) == {*up, "router"}
+    assert compose["router"] == k8s["router"]
+    for role, argv in up.items():
+        assert compose[role][:3] == k8s[role][:3] == ["python", "-m", f"services.{role}"]
+        ours, theirs, kube = flag_values(argv), flag_values(compose[role][3:]), flag_values(k8s[role][3:])
+        assert set(ours) - OWN_FLAGS.get(role, set()) == set(theirs) == set(kube), role
+        for flag in (*CONFIG_FLAGS, "--data", "--device", "--port"):
+            assert ours.get(flag) == theirs.get(flag) == kube.get(flag), (role, flag)
+
+
+def test_kubernetes_and_compose_share_image_settings_and_checks():
+    env = load_env()
+    docs = load_k8s()
+    values = k8s_config_map(docs)
+    for key, value in values.items():
+        if key != "NASA_ZENOH_CONNECT":
+            assert value == env[key], key
+    compose = load_compose()["services"]
+    assert values["NASA_ZENOH_CONNECT"] == compose["actor"]["environment"]["NASA_ZENOH_CONNECT"]
+    for role, container in k8s_containers(docs).items():
+        assert container["image"] == compose[role]["image"] == env["IMAGE"]
+        probes = [container.get(p) for p in ("readinessProbe", "livenessProbe")]
+        execs = [p["exec"]["command"] for p in probes if p and "exec" in p]
+        for command in execs:  # the same per-role check compose runs
+            assert command == compose[role]["healthcheck"]["test"][1:]
+        if role == "learner":
+            assert all(p["httpGet"]["path"] == "/healthz" for p in probes)
