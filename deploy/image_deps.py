@@ -16,8 +16,6 @@ import tomllib
 
 # The CPU index holds the CPU build; PyPI's default Linux torch is the CUDA build.
 DEFAULT_INDEX = {"cpu": "https://download.pytorch.org/whl/cpu", "cuda": "https://pypi.org/simple"}
-# Needed at run time although pyproject lists them as development extras: `nasa status` uses httpx.
-RUNTIME_EXTRAS = ("httpx",)
 
 
 def _name(requirement: str) -> str:
@@ -40,13 +38,10 @@ def torch_requirement(pyproject: str) -> str:
 
 
 def requirements(pyproject: str) -> list[str]:
-    deps, dev = load(pyproject)
-    extras = [d for d in dev if _name(d) in RUNTIME_EXTRAS]
-    missing = set(RUNTIME_EXTRAS) - {_name(d) for d in extras}
-    if missing:
-        raise SystemExit(f"image_deps: {sorted(missing)} not pinned in {pyproject}'s dev extra")
+    """The runtime pins the image installs (torch apart: it comes from the variant's index)."""
+    deps, _ = load(pyproject)
     # setuptools: the project itself is installed without build isolation.
-    return [d for d in deps if _name(d) != "torch"] + extras + ["setuptools>=68"]
+    return [d for d in deps if _name(d) != "torch"] + ["setuptools>=68"]
 
 
 def check_torch(variant: str) -> None:

@@ -18,7 +18,7 @@ def image_deps(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=120)
 
 
-def test_requirements_are_pyproject_pins_plus_runtime_extras():
+def test_requirements_are_the_runtime_pins_without_torch():
     assert image_deps("torch", PYPROJECT).stdout.strip() == f"torch=={torch_version()}"
     lines = image_deps("requirements", PYPROJECT).stdout.split()
     assert not any(re.match(r"torch\b", line) for line in lines)

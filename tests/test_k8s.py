@@ -20,7 +20,10 @@ from deploy_files import (
     load_k8s,
 )
 
-from nasa.up import UpCommand, service_argv
+from nasa.up import parse_up, service_argv
+from services.learner.learner import LearnerArgs
+from shared.run_config import differing_fields
+from shared.service import parse_with_preset
 
 KUBERNETES_VERSION = "1.37.0"
 # What each topology sets on its own, by design: nasa up numbers its actors (replicas draw an id),
@@ -63,29 +66,33 @@ def test_manifests_have_the_topology():
             assert doc["spec"]["template"]["spec"]["securityContext"]["runAsNonRoot"] is True
 
 
-def _up_argv(env: dict[str, str]) -> dict[str, list[str]]:
-    cmd = UpCommand(task=env["TASK"], algo=env["ALGO"], seed=int(env["SEED"]), steps=int(env["STEPS"]),
-                    device=env["DEVICE"], port=8000)
+def _up_argv(env: dict[str, str]) -> tuple[dict[str, list[str]], object]:
+    """nasa up's service commands and the run config it resolves, for the .env's settings."""
+    cmd, _ = parse_up(["--task", env["TASK"], "--algo", env["ALGO"], "--seed", env["SEED"],
+                       "--steps", env["STEPS"], "--device", env["DEVICE"], "--preset", env["PRESET"]])
     roles: dict[str, list[str]] = {}
-    for name, argv in service_argv(cmd, env["PRESET"], Path("/data"), []).items():
+    for name, argv in service_argv(cmd, Path("/data")).items():
         roles.setdefault(name.split("-")[0], argv)  # actor-0, actor-1, ...: one is enough
-    return roles
+    return roles, cmd.config
 
 
 def test_nasa_up_compose_and_kubernetes_run_the_same_commands():
     env = load_env()
-    up = _up_argv(env)
+    up, up_config = _up_argv(env)
     compose = {n: s["command"] for n, s in load_compose()["services"].items() if n in ROLES}
     k8s = {n: c["command"] + c["args"] for n, c in k8s_containers(load_k8s()).items()}
     # nasa up runs the router inside its own process; the other roles are the same modules
     assert set(compose) == set(k8s) == set(ROLES) == {*up, "router"}
     assert compose["router"] == k8s["router"]
-    for role, argv in up.items():
+    for role in up:
         assert compose[role][:3] == k8s[role][:3] == ["python", "-m", f"services.{role}"]
-        ours, theirs, kube = flag_values(argv), flag_values(compose[role][3:]), flag_values(k8s[role][3:])
-        assert set(ours) - OWN_FLAGS.get(role, set()) == set(theirs) == set(kube), role
+        theirs, kube = flag_values(compose[role][3:]), flag_values(k8s[role][3:])
+        assert set(theirs) == set(kube), role
         for flag in (*CONFIG_FLAGS, "--data", "--device", "--port"):
-            assert ours.get(flag) == theirs.get(flag) == kube.get(flag), (role, flag)
+            assert theirs.get(flag) == kube.get(flag), (role, flag)
+    # nasa up hands its services a config file; compose and k8s pass flags that resolve to the same config
+    args, _ = parse_with_preset(LearnerArgs, compose["learner"][3:], "learner")
+    assert differing_fields(args.config, up_config) == []
 
 
 def test_kubernetes_and_compose_share_image_settings_and_checks():

@@ -24,7 +24,7 @@ from deploy_files import (
     load_env,
 )
 
-from nasa.up import UpCommand
+from nasa.up import UpCommand, parse_up
 from shared.config import EnvConfig, TrainConfig, auto_preset, default_config
 from shared.zenoh_session import env_run_id
 
@@ -127,19 +127,20 @@ def test_env_defaults_match_nasa_up_and_config(monkeypatch):
     env = load_env()
     monkeypatch.delenv("NASA_RUN_ID", raising=False)
     train, env_config = TrainConfig(), EnvConfig()
-    assert env["TASK"] == UP.task == env_config.task
-    assert env["ALGO"] == UP.algo == train.algo
-    assert int(env["SEED"]) == UP.seed == train.seed
-    assert env["DEVICE"] == UP.device == train.device
+    up, preset = parse_up([])  # nasa up with no flags, as the README's command 1
+    assert env["TASK"] == up.config.env.task == env_config.task
+    assert env["ALGO"] == up.config.algo == train.algo
+    assert int(env["SEED"]) == up.config.seed == train.seed
+    assert env["DEVICE"] == up.config.device == train.device
     assert int(env["ACTORS"]) == UP.actors
     assert int(env["ROUTER_PORT"]) == UP.router_port
     assert int(env["STATUS_PORT"]) == UP.port
     assert int(env["LEARNER_THREADS"]) == UP.learner_threads
     assert env["NASA_RUN_ID"] == env_run_id()
     # nasa up's `auto` resolves once per run; compose names what it resolves to on a CPU host,
-    # and that preset's step budget (nasa up's --steps default)
-    assert UP.preset == "auto" and env["PRESET"] == auto_preset("cpu")
-    assert UP.steps is None and int(env["STEPS"]) == default_config(env["ALGO"], env["PRESET"]).steps
+    # and that preset's step budget (nasa up's steps with no flag)
+    assert env["PRESET"] == auto_preset("cpu") == preset
+    assert int(env["STEPS"]) == default_config(env["ALGO"], env["PRESET"]).steps == up.config.steps
 
 
 def test_every_command_is_a_module_with_working_help():
