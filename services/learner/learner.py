@@ -24,50 +24,22 @@ import os
 import queue
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 import zenoh
 
 from services.learner.core import LearnerCore
+from services.learner.health import LearnerArgs, health_reasons
 from services.learner.history import History
 from services.learner.metrics import LearnerMetrics
 from shared import faults, run_config, wire
 from shared.device import resolve_device
 from shared.replay.client import Prefetcher, ZenohReplayClient
 from shared.service import Log, StopFlag
-from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 FINAL_STATUS = "learner/status.json"
-
-
-@dataclass
-class LearnerArgs(ServiceArgs):
-    """The learner: updates the agent from replay batches, publishes weights, serves /status."""
-
-    data: Path = field(default_factory=lambda: Path(os.environ.get("NASA_DATA", "runs/default")))
-    """Run folder: eval.csv, train.csv, learner/checkpoint.pt, learner/status.json (env NASA_DATA)."""
-    host: str = field(default_factory=lambda: os.environ.get("NASA_STATUS_HOST", "127.0.0.1"))
-    """Address of the status API (env NASA_STATUS_HOST; 0.0.0.0 in a container)."""
-    port: int = field(default_factory=lambda: int(os.environ.get("NASA_STATUS_PORT", "8000")))
-    """Port of the status API (env NASA_STATUS_PORT)."""
-    publish_every: int = 20
-    """K: publish weights every K updates."""
-    prefetch: int = 2
-    """Sample requests kept in flight."""
-    final_eval_wait_s: float = 300.0
-    """At the end, how long to wait for the evaluation of the last eval step."""
-    threads: int = 0
-    """torch threads (0: torch's default)."""
-    stall_s: float = 120.0
-    """/healthz: unhealthy when no update came for this long while the replay holds learning steps."""
-    max_skipped_updates: int = 100
-    """/healthz: unhealthy beyond this many updates skipped for non-finite losses or gradients."""
-    actor_restarts: int = 3
-    """/healthz: unhealthy when an actor restarted more than this often within crash_window_s."""
-    crash_window_s: float = 300.0
 
 
 class Learner:
@@ -264,22 +236,7 @@ class Learner:
 
     def health(self) -> list[str]:
         """Why the learner is unhealthy (empty: healthy): /healthz answers 503 with these."""
-        core, board, a = self.core, self.core.board, self.args
-        reasons = [f"stopping ({self.stop.reason})"] if self.stop else []
-        idle = time.monotonic() - board.last_update
-        if board.env_steps > core.config.warmup_steps and not core.done() and idle > a.stall_s:
-            reasons.append(f"training stalled: no update for {idle:.0f} s with {board.env_steps} env steps "
-                           f"stored")
-        if board.skipped_updates > a.max_skipped_updates:
-            reasons.append(f"{board.skipped_updates} updates skipped for non-finite losses or gradients")
-        if board.replay["write_error"]:
-            reasons.append(f"the replay cannot write: {board.replay['write_error']}")
-        if core.checkpoint_error:
-            reasons.append(f"checkpoint not written: {core.checkpoint_error}")
-        if looping := board.crash_looping(a.actor_restarts, a.crash_window_s):
-            reasons.append(f"actor(s) {looping} restarted more than {a.actor_restarts} times in "
-                           f"{a.crash_window_s:.0f} s")
-        return reasons
+        return health_reasons(self.core, self.args, self.stop)
 
     def status(self) -> dict:
         status = self.core.status(self.keys.run_id, self.wall_s)
