@@ -12,7 +12,7 @@ Finds every eval.csv under a results folder, names each run by its config.json
 - results.md: per task and algorithm, the final return (mean +- std over seeds
   of each seed's last evaluation), the best return (mean over seeds of each
   seed's best evaluation), the number of seeds, the last step, and the paper's
-  approximate figure at 1M steps where ../shared/DESIGN.md gives one.
+  approximate figure at 1M steps where the paper gives one (docs/reference.md).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from shared.runlog import read_rows
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-# Approximate final returns at 1M steps read off the reference's figure (DESIGN.md, section 1).
+# Approximate final returns at 1M steps read off the paper's figure (docs/reference.md).
 # The paper gives no Pixel-TD3 figure.
 PAPER_FINAL: dict[str, dict[str, float]] = {
     "ball_in_cup-catch": {"nasa_td3": 950, "sac_ae": 950, "td3_ae": 950},
