@@ -41,6 +41,7 @@ from typing import Annotated
 
 import tyro
 
+from nasa import layout
 from shared import envs, run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.run_config import RunConfig
@@ -69,6 +70,7 @@ class Child:
     restarts: int = 0
     exited: int | None = None  # exit code once it ended for good
     pids: list[int] = field(default_factory=list)
+    nice: int = 0  # added to the child's CPU niceness (lower priority)
 
 
 class Supervisor:
@@ -89,8 +91,8 @@ class Supervisor:
         if log_dir is not None:
             log_dir.mkdir(parents=True, exist_ok=True)
 
-    def add(self, name: str, role: str, argv: list[str]) -> Child:
-        child = Child(name, role, argv)
+    def add(self, name: str, role: str, argv: list[str], nice: int = 0) -> Child:
+        child = Child(name, role, argv, nice=nice)
         self.children[name] = child
         self._spawn(child)
         return child
@@ -101,8 +103,10 @@ class Supervisor:
         if log is not None:
             out = open(log, "ab")  # noqa: SIM115 (owned by the child)
         try:
+            # `nice` execs the service in the same process, so every thread it starts inherits the priority.
+            prefix = ["nice", "-n", str(child.nice)] if child.nice else []
             child.proc = subprocess.Popen(
-                [*self.command(child.role), *child.argv],
+                [*prefix, *self.command(child.role), *child.argv],
                 # Each service asks for SIGTERM when this process dies (shared.service.die_with_parent):
                 # no preexec_fn, which is unsafe in a process with threads (Zenoh's).
                 env={**self.env, "NASA_PARENT_PID": str(os.getpid())}, stdout=out,
@@ -191,8 +195,8 @@ class UpCommand:
     config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=TrainConfig)
     preset: str = DEFAULT_PRESET
     """`paper`, `cpu-small`, or `auto`: paper on a GPU, cpu-small on a CPU."""
-    actors: int = 2
-    """Actor processes, each stepping its own environment."""
+    actors: int = 0
+    """Actor processes, each stepping its own environment; 0: chosen from the machine (nasa.layout)."""
     data: Path | None = None
     """Run folder (default runs/<task>-<algo>-up); an existing one is resumed."""
     port: int = 8000
@@ -204,7 +208,9 @@ class UpCommand:
     evaluator: bool = True
     """Run the evaluator service (eval.csv every --eval-every env steps)."""
     learner_threads: int = 0
-    """torch threads of the learner; 0: the cores left after actors, evaluator and replay (at least 1)."""
+    """torch threads of the learner; 0: chosen from the machine (nasa.layout)."""
+    evaluator_nice: int | None = None
+    """CPU priority (nice) of the evaluator process; default: low on a machine of under 4 cores."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
 
@@ -216,8 +222,9 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
         i = argv.index("--")
         argv = [*argv[:i], *argv[i + 1 :]]
     cmd, preset = parse_with_preset(UpCommand, argv, "nasa up")
-    if cmd.actors < 1:
-        raise ConfigError(f"--actors must be >= 1, got {cmd.actors}")
+    if cmd.actors < 0 or cmd.learner_threads < 0:
+        raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
+                          f"got {cmd.actors} and {cmd.learner_threads}")
     return cmd, preset
 
 
@@ -233,18 +240,23 @@ def prepare(cmd: UpCommand, data: Path) -> RunConfig:
     return run_config.open_folder(cmd.config, data, may_change=run_config.RESUME_MAY_CHANGE)
 
 
-def service_argv(cmd: UpCommand, data: Path) -> dict[str, list[str]]:
+def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Layout:
+    """The services' layout: the flags where given, the rest chosen from the machine."""
+    return layout.choose(cores or layout.usable_cores(), gpu, cmd.actors, cmd.learner_threads,
+                         cmd.evaluator, cmd.evaluator_nice)
+
+
+def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:
     """Each service's flags: the run's config.json (written by `prepare`) and its own role's flags."""
     common = ["--run-config", str(data / run_config.CONFIG_FILE)]
-    # Oversubscribed torch threads cost several times their speed on a small CPU.
-    threads = cmd.learner_threads or max(1, (os.cpu_count() or 1) - cmd.actors - 2)
     out = {
         "replay": [*common, "--data", str(data)],
-        "learner": [*common, "--data", str(data), "--port", str(cmd.port), "--threads", str(threads)],
+        "learner": [*common, "--data", str(data), "--port", str(cmd.port),
+                    "--threads", str(lay.learner_threads)],
     }
-    if cmd.evaluator:
+    if lay.evaluator:
         out["evaluator"] = [*common, "--data", str(data)]  # the autoencoder's view and videos go there
-    for i in range(cmd.actors):
+    for i in range(lay.actors):
         out[f"actor-{i}"] = [*common, "--actor-id", str(i)]
     return out
 
@@ -266,7 +278,9 @@ def up(argv: list[str]) -> None:
     prepare(cmd, data)
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
         else f"device {device}"
-    print(f"nasa up: preset {preset} ({how}); {c.algo} on {c.env.task}, {cmd.actors} actor(s)", flush=True)
+    lay = layout_of(cmd, device.type == "cuda")
+    print(f"nasa up: preset {preset} ({how}); {c.algo} on {c.env.task}, {lay.actors} actor(s)", flush=True)
+    print(f"nasa up: {lay.describe(layout.usable_cores(), device.type == 'cuda')}", flush=True)
     run_id = cmd.run_id or re.sub(r"[^A-Za-z0-9_.\-]", "-", data.resolve().name)
     router_port = cmd.router_port or free_port()
     endpoint = f"tcp/127.0.0.1:{router_port}"
@@ -284,8 +298,9 @@ def up(argv: list[str]) -> None:
     with open_router(endpoint):
         sup = Supervisor(env, data / "logs" if cmd.logs else None)
         try:
-            for name, args in service_argv(cmd, data).items():
-                sup.add(name, name.split("-")[0], args)
+            for name, args in service_argv(cmd, data, lay).items():
+                role = name.split("-")[0]
+                sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0)
             print(f"nasa up: run {run_id} in {data}; router {endpoint}; "
                   f"status http://127.0.0.1:{cmd.port}/status", flush=True)
             while not stop["reason"]:

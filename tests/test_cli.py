@@ -11,7 +11,7 @@ import pytest
 
 import nasa.train
 from nasa import cli
-from nasa.up import UpCommand, parse_up, prepare, service_argv
+from nasa.up import UpCommand, layout_of, parse_up, prepare, service_argv
 from shared.config import TrainConfig, default_config, to_dict
 
 
@@ -88,13 +88,13 @@ def test_nasa_up_declares_no_config_field_of_its_own():
 
 def test_every_service_of_nasa_up_gets_the_run_config(tmp_path):
     cmd, _ = parse_up(["--preset", "cpu-small", "--actors", "2", "--port", "9", "--learner-threads", "1"])
-    argv = service_argv(cmd, tmp_path)
+    argv = service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))
     assert sorted(argv) == ["actor-0", "actor-1", "evaluator", "learner", "replay"]
     for args in argv.values():
         assert args[:2] == ["--run-config", str(tmp_path / "config.json")]
     assert argv["learner"][2:] == ["--data", str(tmp_path), "--port", "9", "--threads", "1"]
     cmd.evaluator = False
-    assert "evaluator" not in service_argv(cmd, tmp_path)
+    assert "evaluator" not in service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))
 
 
 def up_in_process(argv: list[str], capsys) -> tuple[int, str]:  # noqa: ANN001

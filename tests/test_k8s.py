@@ -20,7 +20,7 @@ from deploy_files import (
     load_k8s,
 )
 
-from nasa.up import parse_up, service_argv
+from nasa.up import layout_of, parse_up, service_argv
 from services.learner.learner import LearnerArgs
 from shared.run_config import differing_fields
 from shared.service import parse_with_preset
@@ -71,7 +71,7 @@ def _up_argv(env: dict[str, str]) -> tuple[dict[str, list[str]], object]:
     cmd, _ = parse_up(["--task", env["TASK"], "--algo", env["ALGO"], "--seed", env["SEED"],
                        "--steps", env["STEPS"], "--device", env["DEVICE"], "--preset", env["PRESET"]])
     roles: dict[str, list[str]] = {}
-    for name, argv in service_argv(cmd, Path("/data")).items():
+    for name, argv in service_argv(cmd, Path("/data"), layout_of(cmd, gpu=False)).items():
         roles.setdefault(name.split("-")[0], argv)  # actor-0, actor-1, ...: one is enough
     return roles, cmd.config
 

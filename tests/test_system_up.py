@@ -17,6 +17,7 @@ import pytest
 import torch
 from system_harness import REPO, TINY
 
+from nasa import layout
 from nasa.up import free_port
 
 
@@ -34,6 +35,14 @@ def children_of(pid: int) -> list[int]:
         if f"NASA_PARENT_PID={pid}".encode() in env and state != "Z":
             found.append(int(proc.name))
     return found
+
+
+def command_of(pid: int) -> list[str]:
+    return Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+
+
+def niceness(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[16])
 
 
 @contextlib.contextmanager
@@ -72,6 +81,11 @@ def wait_status(up: subprocess.Popen, port: int, pred, what: str, timeout: float
 def stop_with_ctrl_c(up: subprocess.Popen) -> None:
     kids = children_of(up.pid)
     assert len(kids) == 4  # replay, learner, evaluator, one actor
+    # On a small machine the evaluator runs at a low CPU priority, and only the evaluator.
+    expected = layout.choose(layout.usable_cores(), gpu=False).evaluator_nice
+    nice = {" ".join(command_of(p)[1:3]): niceness(p) for p in kids}
+    assert nice == {"-m services.evaluator": expected, "-m services.replay": 0, "-m services.learner": 0,
+                    "-m services.actor": 0}, nice
     up.send_signal(signal.SIGINT)
     rest, _ = up.communicate(timeout=90)
     assert up.returncode == 0, rest
@@ -85,6 +99,8 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
     with nasa_up(data) as (up, port):
         first = up.stdout.readline()
         assert first.startswith("nasa up: preset cpu-small (auto: no GPU"), first
+        chosen = up.stdout.readline()  # the layout: the flags' values kept, the rest from the machine
+        assert "1 actor(s), learner 1 torch thread(s), evaluator own process" in chosen, chosen
         assert f"http://127.0.0.1:{port}/status" in up.stdout.readline()
         status = wait_status(up, port, lambda s: s["actors"] and s["updates"] > 0, "actors and updates")
         assert status["task"] == "cartpole-balance" and status["algo"] == "nasa_td3"

@@ -1,0 +1,63 @@
+"""How `nasa up` lays the services out on this machine, where its flags do not say.
+
+On a CPU the learner is the run's bottleneck: every env step costs G updates,
+and an update costs far more CPU than an env step. So the cores go to the
+learner's torch threads, and one actor is enough to keep it fed (the rate
+limiter holds any other back). On a small machine the evaluator runs in its own
+process at a low CPU priority: it evaluates in the time the learner leaves, and
+an evaluation that starts late takes the newest weights at the newest eval step,
+so the learner never waits for it. With a GPU the updates leave the CPU, env
+steps become the cost, and the spare cores go to actors.
+
+The rate limiter keeps G faithful in every layout: the layout only moves where
+the CPU time goes.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+# Below this many cores the evaluator would take its CPU time from the learner.
+SMALL_MACHINE_CORES = 4
+LOW_PRIORITY = 10
+MAX_GPU_ACTORS = 8
+
+
+@dataclass(frozen=True)
+class Layout:
+    actors: int
+    learner_threads: int
+    evaluator: bool
+    evaluator_nice: int
+
+    def describe(self, cores: int, gpu: bool) -> str:
+        evaluator = "off" if not self.evaluator else "own process" + (
+            f" at nice {self.evaluator_nice}" if self.evaluator_nice else "")
+        return (f"layout for {cores} core(s), {'a GPU' if gpu else 'no GPU'}: {self.actors} actor(s), "
+                f"learner {self.learner_threads} torch thread(s), evaluator {evaluator} "
+                "(--actors, --learner-threads, --evaluator-nice, --no-evaluator override)")
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (a container's or taskset's limit, not the host's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,
+           evaluator_nice: int | None = None) -> Layout:
+    """The layout for `cores` and a GPU or not; a nonzero (or not None) argument is the user's choice
+    and is kept as given."""
+    small = cores < SMALL_MACHINE_CORES
+    if not actors:
+        actors = max(1, min(MAX_GPU_ACTORS, cores - 3)) if gpu else max(1, cores // 8)
+    if not learner_threads:
+        # A GPU learner needs a thread for its host-side work; a CPU one everything the actors leave,
+        # and on a small machine all of it: the actors mostly wait on the rate limiter.
+        learner_threads = 2 if gpu else cores if small else max(1, cores - actors - 1)
+    if evaluator_nice is None:
+        evaluator_nice = LOW_PRIORITY if small else 0
+    return Layout(actors, learner_threads, evaluator, evaluator_nice)
