@@ -31,7 +31,7 @@ from pathlib import Path
 
 from nasa.layout import usable_cores
 from nasa.up import free_port
-from shared.runlog import read_rows
+from shared.runlog import eval_walls, read_rows
 
 TASK = "ball_in_cup-catch"
 ALGO = "nasa_td3"
@@ -67,11 +67,10 @@ def summarize(run: Path, wall_s: float, bound_s: float) -> dict:
     episode that ends at or after it); the goal counts only within the bound.
     """
     rows = read_rows(run / "eval.csv") if (run / "eval.csv").exists() else []
-    episodes = read_rows(run / "train.csv") if (run / "train.csv").exists() else []
-    ends = [(int(e["step"]), float(e["wall_s"])) for e in episodes if e.get("wall_s")]
+    walls = eval_walls(run)
 
     def wall_at(step: int) -> float | None:
-        return next((round(w, 1) for s, w in ends if s >= step), None) if step else 0.0
+        return round(walls[step], 1) if step in walls else None
 
     curve = [[int(r["step"]), round(float(r["mean"]), 1), wall_at(int(r["step"]))] for r in rows]
     within = [(s, m, w) for s, m, w in curve if w is not None and w <= bound_s]

@@ -4,11 +4,16 @@ Finds every eval.csv under a results folder, names each run by its config.json
 ("algo", "seed", "env"["task"]) or else by the layout `nasa reproduce` writes
 (<task>/<algo>/seed<S>), and writes:
 
-- curves.png, curves.svg: one panel per task, one line per algorithm: the mean
+- curves.png, curves.svg: one panel per task, one line per algorithm and
+  runner (a run of the distributed system, `nasa up`, is told by the learner/
+  folder it leaves, and drawn as "<algo>, nasa up"): the mean
   over seeds of the evaluation return, with a band of +-1 standard deviation
   over seeds (population std). Seeds are aligned on the steps every seed was
   evaluated at, so a curve stops where its shortest seed stops (no
-  interpolation: nothing is drawn that was not measured).
+  interpolation: nothing is drawn that was not measured). A dotted line marks
+  the untrained policy's return (the evaluation at step 0, mean over the
+  task's runs). With `--x minutes` the x axis is the run's wall-clock time at
+  which each evaluated step was reached (train.csv), to compare runners.
 - results.md: per task and algorithm, the final return (mean +- std over seeds
   of each seed's last evaluation), the best return (mean over seeds of each
   seed's best evaluation), the number of seeds, the last step, and the paper's
@@ -22,14 +27,14 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import TYPE_CHECKING, Literal, NoReturn
 
 import numpy as np
 import tyro
 
 from shared.config import ALGOS
 from shared.envs import PAPER_TASKS
-from shared.runlog import read_rows
+from shared.runlog import eval_walls, read_rows
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -57,6 +62,15 @@ class SeedCurve:
     steps: np.ndarray
     means: np.ndarray
     path: Path
+    runner: str = "train"
+    """`train` (nasa train, nasa reproduce) or `up` (the distributed system)."""
+    walls: np.ndarray | None = None
+    """Wall-clock seconds at which each step was reached (NaN: not known)."""
+
+    @property
+    def series(self) -> str:
+        """The curve's name in a panel: the algorithm, and the runner when it is the distributed one."""
+        return self.algo if self.runner == "train" else f"{self.algo}, nasa up"
 
 
 @dataclass
@@ -90,7 +104,7 @@ def run_identity(folder: Path) -> tuple[str, str, int] | None:
 def find_runs(results_dir: Path) -> list[SeedCurve]:
     """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed."""
     runs: list[SeedCurve] = []
-    seen: dict[tuple[str, str, int], Path] = {}
+    seen: dict[tuple[str, str, int, str], Path] = {}
     for path in sorted(Path(results_dir).rglob("eval.csv")):
         identity = run_identity(path.parent)
         rows = read_rows(path)
@@ -100,13 +114,17 @@ def find_runs(results_dir: Path) -> list[SeedCurve]:
             continue
         if not rows:
             continue  # a run that has not evaluated yet
-        if identity in seen:
-            print(f"nasa plot: skipping {path}: same task/algo/seed as {seen[identity]}", file=sys.stderr)
+        runner = "up" if (path.parent / "learner").is_dir() else "train"
+        if (*identity, runner) in seen:
+            print(f"nasa plot: skipping {path}: same task/algo/seed/runner as {seen[(*identity, runner)]}",
+                  file=sys.stderr)
             continue
-        seen[identity] = path
+        seen[(*identity, runner)] = path
         steps = np.array([int(float(r["step"])) for r in rows])
         means = np.array([float(r["mean"]) for r in rows])
-        runs.append(SeedCurve(*identity, steps=steps, means=means, path=path))
+        walls = eval_walls(path.parent)
+        runs.append(SeedCurve(*identity, steps=steps, means=means, path=path, runner=runner,
+                              walls=np.array([walls.get(int(s), np.nan) for s in steps])))
     return runs
 
 
@@ -116,13 +134,13 @@ def _order(names: set[str], preferred: tuple[str, ...]) -> list[str]:
 
 
 def group(runs: list[SeedCurve]) -> dict[str, dict[str, list[SeedCurve]]]:
-    """task -> algo -> seed curves, tasks and algorithms in the paper's order."""
+    """task -> series (algorithm, and runner) -> seed curves, tasks and algorithms in the paper's order."""
     out: dict[str, dict[str, list[SeedCurve]]] = {}
     for task in _order({r.task for r in runs}, PAPER_TASKS):
         of_task = [r for r in runs if r.task == task]
         out[task] = {
-            algo: sorted((r for r in of_task if r.algo == algo), key=lambda r: r.seed)
-            for algo in _order({r.algo for r in of_task}, ALGOS)
+            series: sorted((r for r in of_task if r.series == series), key=lambda r: r.seed)
+            for series in _order({r.series for r in of_task}, ALGOS)
         }
     return out
 
@@ -132,6 +150,12 @@ def align(curves: list[SeedCurve]) -> tuple[np.ndarray, np.ndarray]:
     per_seed = [dict(zip(c.steps.tolist(), c.means.tolist(), strict=True)) for c in curves]
     common = sorted(set.intersection(*(set(d) for d in per_seed)))
     return np.array(common, dtype=int), np.array([[d[s] for s in common] for d in per_seed])
+
+
+def untrained(curves: list[SeedCurve]) -> float | None:
+    """Mean return of the evaluations at step 0 (the untrained policy), or None if none has one."""
+    first = [float(c.means[0]) for c in curves if len(c.steps) and c.steps[0] == 0]
+    return float(np.mean(first)) if first else None
 
 
 def summarize(runs: list[SeedCurve]) -> list[Summary]:
@@ -166,8 +190,18 @@ def results_table(summaries: list[Summary]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_curves(runs: list[SeedCurve]) -> Figure:
-    """One panel per task, one line per algorithm (mean over seeds, +-1 std band)."""
+def x_values(curves: list[SeedCurve], steps: np.ndarray, x: str) -> np.ndarray:
+    """The x of each aligned step: the step, or the mean over seeds of the minutes it was reached at."""
+    if x == "steps":
+        return steps
+    walls = [dict(zip(c.steps.tolist(), (c.walls if c.walls is not None else c.steps * np.nan).tolist(),
+                      strict=True)) for c in curves]
+    return np.array([np.nanmean([w[s] for w in walls]) / 60.0 for s in steps.tolist()])
+
+
+def plot_curves(runs: list[SeedCurve], x: str = "steps") -> Figure:
+    """One panel per task, one line per algorithm and runner (mean over seeds, +-1 std band), and the
+    untrained policy's return as a dotted line."""
     # Imported here: `nasa` loads this module for every subcommand, matplotlib only plots.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -180,16 +214,20 @@ def plot_curves(runs: list[SeedCurve]) -> Figure:
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     for ax in axes[len(grouped):]:
         fig.delaxes(ax)  # so the figure holds exactly one axes per task
-    all_algos = _order({r.algo for r in runs}, ALGOS)
-    colors = {algo: f"C{i}" for i, algo in enumerate(all_algos)}  # same color in every panel
-    for ax, (task, by_algo) in zip(axes, grouped.items(), strict=False):
-        for algo, curves in by_algo.items():
+    all_series = _order({r.series for r in runs}, ALGOS)
+    colors = {name: f"C{i}" for i, name in enumerate(all_series)}  # same color in every panel
+    for ax, (task, by_series) in zip(axes, grouped.items(), strict=False):
+        for name, curves in by_series.items():
             steps, values = align(curves)
             mean, std = values.mean(axis=0), values.std(axis=0)
-            ax.plot(steps, mean, color=colors[algo], label=f"{algo} (n={len(curves)})")
-            ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2, linewidth=0)
+            xs = x_values(curves, steps, x)
+            ax.plot(xs, mean, color=colors[name], label=f"{name} (n={len(curves)})")
+            ax.fill_between(xs, mean - std, mean + std, color=colors[name], alpha=0.2, linewidth=0)
+        base = untrained([c for curves in by_series.values() for c in curves])
+        if base is not None:
+            ax.axhline(base, color="0.4", linestyle=":", label=f"untrained ({base:.0f})")
         ax.set_title(task)
-        ax.set_xlabel("environment steps")
+        ax.set_xlabel("environment steps" if x == "steps" else "wall-clock minutes")
         ax.set_ylabel("evaluation return")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
@@ -207,6 +245,8 @@ class PlotCommand:
     """Folder holding run folders (as `nasa reproduce` writes them, or any with a config.json)."""
     out: Path | None = None
     """Where to write the figures and table (default: the results folder)."""
+    x: Literal["steps", "minutes"] = "steps"
+    """The x axis: environment steps, or the wall-clock minutes at which each step was reached."""
 
 
 def plot(argv: list[str]) -> None:
@@ -218,7 +258,7 @@ def plot(argv: list[str]) -> None:
         _fail(f"no run with an evaluation under {cmd.results}")
     out = cmd.out or cmd.results
     out.mkdir(parents=True, exist_ok=True)
-    fig = plot_curves(runs)
+    fig = plot_curves(runs, cmd.x)
     fig.savefig(out / "curves.png", dpi=150)
     fig.savefig(out / "curves.svg")
     table = results_table(summarize(runs))

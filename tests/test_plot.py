@@ -11,7 +11,7 @@ import pytest
 
 from nasa.plot import PAPER_FINAL, SeedCurve, align, find_runs, plot, plot_curves, summarize
 from shared.envs import PAPER_TASKS
-from shared.runlog import CsvLog, eval_fields
+from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 
 TASKS = ("cartpole-balance", "cheetah-run")
 ALGOS = ("nasa_td3", "td3_ae")
@@ -63,14 +63,16 @@ def test_find_runs_reads_both_layouts(results: tuple[Path, dict]) -> None:
 
 
 def test_figure_has_one_panel_per_task(results: tuple[Path, dict]) -> None:
-    root, _ = results
+    root, data = results
     fig = plot_curves(find_runs(root))
     assert len(fig.axes) == len(TASKS)
     assert [ax.get_title() for ax in fig.axes] == list(TASKS)
-    for ax in fig.axes:
-        assert len(ax.get_lines()) == len(ALGOS)
+    for ax, task in zip(fig.axes, TASKS, strict=True):
+        assert len(ax.get_lines()) == len(ALGOS) + 1  # and the untrained policy's return
         labels = [t.get_text() for t in ax.get_legend().get_texts()]
-        assert labels == [f"{a} (n=3)" for a in ALGOS]
+        base = statistics.mean(data[task, a, s][1][0] for a in ALGOS for s in SEEDS)
+        assert labels == [*(f"{a} (n=3)" for a in ALGOS), f"untrained ({base:.0f})"]
+        assert ax.get_lines()[-1].get_ydata()[0] == pytest.approx(base)
     assert "std over seeds" in fig.get_suptitle()
 
 
@@ -152,3 +154,26 @@ def test_no_runs_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[
         plot([str(tmp_path)])
     assert exc.value.code == 2
     assert "no run with an evaluation" in capsys.readouterr().err
+
+
+def test_a_distributed_run_is_its_own_curve_and_minutes_come_from_train_csv(tmp_path: Path) -> None:
+    """nasa train and nasa up on the same task, algo and seed: two curves, and on the wall-clock axis
+    each step sits at the minute its run reached it."""
+    root = tmp_path / "runs"
+    for runner, minutes in (("train", 1.0), ("up", 2.0)):
+        folder = root / runner / "cartpole-balance" / "nasa_td3" / "seed0"
+        write_eval(folder, [0, 10, 20], [5.0, 50.0, 500.0])
+        log = CsvLog(folder / "train.csv", TRAIN_FIELDS)
+        for step in (10, 20):
+            log.append({"step": step, "wall_s": 60.0 * minutes * step / 10})
+        if runner == "up":
+            (folder / "learner").mkdir()  # what the distributed system's learner leaves
+    runs = find_runs(root)
+    assert sorted(r.series for r in runs) == ["nasa_td3", "nasa_td3, nasa up"]
+    fig = plot_curves(runs, x="minutes")
+    (ax,) = fig.axes
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert lines["nasa_td3 (n=1)"].get_xdata().tolist() == [0.0, 1.0, 2.0]
+    assert lines["nasa_td3, nasa up (n=1)"].get_xdata().tolist() == [0.0, 2.0, 4.0]
+    assert lines["untrained (5)"].get_ydata()[0] == 5.0
+    assert ax.get_xlabel() == "wall-clock minutes"
