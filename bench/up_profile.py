@@ -5,7 +5,8 @@ say otherwise, e.g. `-- --learner-threads 1`), waits until the learner has
 made updates for --settle seconds, then over a window of --seconds measures:
 
 - each service's CPU seconds (user + system, all its threads, from /proc) and
-  its share of the machine's cores;
+  its share of the machine's cores, and the launcher's (it runs the Zenoh
+  router); what no service used is `unused_share_of_cores`;
 - the learner's wall-clock split: updating (scoring owed rows, then the
   agent's update), waiting for its next batch (the rate limiter holding it
   back, or the replay not serving in time), and the rest (draining messages,
@@ -140,7 +141,7 @@ def measure(a: dict, b: dict, wire_cost: dict, cores: int) -> dict:
     return {
         "window_s": round(wall, 1), "cores": cores,
         "cpu_s": cpu, "cpu_share_of_cores": {n: round(v / (wall * cores), 3) for n, v in cpu.items()},
-        "idle_share_of_cores": round(1 - sum(cpu.values()) / (wall * cores), 3),
+        "unused_share_of_cores": round(1 - sum(cpu.values()) / (wall * cores), 3),
         "learner_wall_share": {"updating": round(updating / wall, 3),
                                "waiting_for_batch": round(waiting / wall, 3),
                                "other": round(1 - (updating + waiting) / wall, 3)},
@@ -174,7 +175,7 @@ def main() -> None:
             url = f"http://127.0.0.1:{port}"
             wait_learning(url, proc, 600)
             time.sleep(args.settle)
-            pids = service_pids(proc.pid)
+            pids = {"launcher+router": proc.pid, **service_pids(proc.pid)}
             first = snapshot(url, pids)
             time.sleep(args.seconds)
             last = snapshot(url, pids)
