@@ -285,6 +285,8 @@ def up(argv: list[str]) -> None:
     router_port = cmd.router_port or free_port()
     endpoint = f"tcp/127.0.0.1:{router_port}"
     env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": run_id}
+    if lay.omp_passive:
+        env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the user's own setting wins
     from shared.zenoh_session import open_router
 
     stop = {"reason": ""}

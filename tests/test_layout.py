@@ -7,6 +7,8 @@ from nasa.up import layout_of, parse_up
 def test_a_small_cpu_machine_gives_the_learner_every_core_and_one_actor():
     lay = choose(2, gpu=False)
     assert (lay.actors, lay.learner_threads, lay.evaluator, lay.evaluator_nice) == (1, 2, True, LOW_PRIORITY)
+    assert lay.omp_passive  # the learner's threads share the cores with the other services
+    assert not choose(16, gpu=False).omp_passive
 
 
 def test_a_large_cpu_machine_keeps_cores_for_the_learner_and_a_normal_priority_evaluator():

@@ -100,7 +100,7 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         first = up.stdout.readline()
         assert first.startswith("nasa up: preset cpu-small (auto: no GPU"), first
         chosen = up.stdout.readline()  # the layout: the flags' values kept, the rest from the machine
-        assert "1 actor(s), learner 1 torch thread(s), evaluator own process" in chosen, chosen
+        assert "1 actor(s), learner 1 torch thread(s)" in chosen and "evaluator own process" in chosen, chosen
         assert f"http://127.0.0.1:{port}/status" in up.stdout.readline()
         status = wait_status(up, port, lambda s: s["actors"] and s["updates"] > 0, "actors and updates")
         assert status["task"] == "cartpole-balance" and status["algo"] == "nasa_td3"
