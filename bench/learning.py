@@ -67,7 +67,7 @@ def summarize(run: Path, wall_s: float, bound_s: float) -> dict:
     episode that ends at or after it); the goal counts only within the bound.
     """
     rows = read_rows(run / "eval.csv") if (run / "eval.csv").exists() else []
-    walls = eval_walls(run)
+    walls = eval_walls(run, [int(r["step"]) for r in rows])
 
     def wall_at(step: int) -> float | None:
         return round(walls[step], 1) if step in walls else None

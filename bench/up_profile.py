@@ -34,6 +34,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
 
@@ -41,7 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def service_pids(launcher: int) -> dict[str, int]:
-    """The services `nasa up` process `launcher` started, by module (they carry NASA_PARENT_PID)."""
+    """The live services `nasa up` process `launcher` started, by module (they carry NASA_PARENT_PID)."""
     found: dict[str, int] = {}
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
@@ -50,6 +51,8 @@ def service_pids(launcher: int) -> dict[str, int]:
             if f"NASA_PARENT_PID={launcher}".encode() not in (proc / "environ").read_bytes().split(b"\0"):
                 continue
             argv = (proc / "cmdline").read_bytes().decode().split("\0")
+            if (proc / "stat").read_text().split(")")[-1].split()[0] == "Z":
+                continue
         except OSError:
             continue
         module = argv[argv.index("-m") + 1].removeprefix("services.") if "-m" in argv else "?"
@@ -60,13 +63,12 @@ def service_pids(launcher: int) -> dict[str, int]:
     return found
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU seconds of a process, all its threads (Linux /proc)."""
+def cpu_or_nan(pid: int) -> float:
+    """bench.system's cpu_seconds, NaN for a process that has gone (a restarted service)."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()
+        return cpu_seconds(pid)
     except OSError:
         return float("nan")
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def histogram_sums(text: str) -> dict[str, tuple[float, float]]:
@@ -84,7 +86,7 @@ def histogram_sums(text: str) -> dict[str, tuple[float, float]]:
 
 def snapshot(url: str, pids: dict[str, int]) -> dict:
     status = httpx.get(url + "/status", timeout=5).json()
-    return {"t": time.monotonic(), "cpu": {n: cpu_seconds(p) for n, p in pids.items()},
+    return {"t": time.monotonic(), "cpu": {n: cpu_or_nan(p) for n, p in pids.items()},
             "hist": histogram_sums(httpx.get(url + "/metrics", timeout=5).text),
             "env_steps": status["env_steps"], "updates": status["updates"],
             "g": status["updates_target_per_env_step"]}

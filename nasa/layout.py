@@ -30,14 +30,17 @@ class Layout:
     learner_threads: int
     evaluator: bool
     evaluator_nice: int
+    cores: int
+    gpu: bool
     omp_passive: bool = False
     """OpenMP threads sleep rather than spin while they wait: on a machine the learner's threads share
     with the other services, spinning threads take the cores the others need."""
 
-    def describe(self, cores: int, gpu: bool) -> str:
+    def describe(self) -> str:
         evaluator = "off" if not self.evaluator else "own process" + (
             f" at nice {self.evaluator_nice}" if self.evaluator_nice else "")
-        return (f"layout for {cores} core(s), {'a GPU' if gpu else 'no GPU'}: {self.actors} actor(s), "
+        gpu = "a GPU" if self.gpu else "no GPU"
+        return (f"layout for {self.cores} core(s), {gpu}: {self.actors} actor(s), "
                 f"learner {self.learner_threads} torch thread(s)"
                 f"{' (OpenMP waits passive)' if self.omp_passive else ''}, evaluator {evaluator} "
                 "(--actors, --learner-threads, --evaluator-nice, --no-evaluator override)")
@@ -64,5 +67,5 @@ def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, eva
         learner_threads = 2 if gpu else cores if small else max(1, cores - actors - 1)
     if evaluator_nice is None:
         evaluator_nice = LOW_PRIORITY if small else 0
-    return Layout(actors, learner_threads, evaluator, evaluator_nice,
+    return Layout(actors, learner_threads, evaluator, evaluator_nice, cores, gpu,
                   omp_passive=not gpu and learner_threads + actors + 1 > cores)

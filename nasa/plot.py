@@ -122,7 +122,7 @@ def find_runs(results_dir: Path) -> list[SeedCurve]:
         seen[(*identity, runner)] = path
         steps = np.array([int(float(r["step"])) for r in rows])
         means = np.array([float(r["mean"]) for r in rows])
-        walls = eval_walls(path.parent)
+        walls = eval_walls(path.parent, steps.tolist())
         runs.append(SeedCurve(*identity, steps=steps, means=means, path=path, runner=runner,
                               walls=np.array([walls.get(int(s), np.nan) for s in steps])))
     return runs

@@ -280,7 +280,7 @@ def up(argv: list[str]) -> None:
         else f"device {device}"
     lay = layout_of(cmd, device.type == "cuda")
     print(f"nasa up: preset {preset} ({how}); {c.algo} on {c.env.task}, {lay.actors} actor(s)", flush=True)
-    print(f"nasa up: {lay.describe(layout.usable_cores(), device.type == 'cuda')}", flush=True)
+    print(f"nasa up: {lay.describe()}", flush=True)
     run_id = cmd.run_id or re.sub(r"[^A-Za-z0-9_.\-]", "-", data.resolve().name)
     router_port = cmd.router_port or free_port()
     endpoint = f"tcp/127.0.0.1:{router_port}"

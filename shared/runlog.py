@@ -49,17 +49,15 @@ class CsvLog:
             f.writelines(lines[: rows + 1])
 
 
-def eval_walls(run: str | Path) -> dict[int, float]:
-    """Wall-clock seconds of the run at which each evaluated step was reached: the end of the first
-    training episode at or after it (train.csv's wall_s); step 0 at 0. A step no episode reached
-    yet has none."""
-    run = Path(run)
-    evals = read_rows(run / "eval.csv") if (run / "eval.csv").exists() else []
-    episodes = read_rows(run / "train.csv") if (run / "train.csv").exists() else []
+def eval_walls(run: str | Path, steps: list[int]) -> dict[int, float]:
+    """Wall-clock seconds of the run at which each of its evaluated `steps` was reached: the end of
+    the first training episode at or after it (train.csv's wall_s); step 0 at 0. A step no episode
+    reached yet has none."""
+    train = Path(run) / "train.csv"
+    episodes = read_rows(train) if train.exists() else []
     ends = [(int(e["step"]), float(e["wall_s"])) for e in episodes if e.get("wall_s")]
     out: dict[int, float] = {}
-    for row in evals:
-        step = int(float(row["step"]))
+    for step in steps:
         wall = 0.0 if step == 0 else next((w for s, w in ends if s >= step), None)
         if wall is not None:
             out[step] = wall

@@ -31,6 +31,6 @@ def test_flags_override_each_choice():
 
 
 def test_the_layout_says_what_it_chose_and_how_to_change_it():
-    text = choose(2, gpu=False).describe(2, gpu=False)
+    text = choose(2, gpu=False).describe()
     assert "1 actor(s)" in text and "learner 2 torch thread(s)" in text and f"nice {LOW_PRIORITY}" in text
     assert "--actors" in text and "--learner-threads" in text

@@ -17,28 +17,14 @@ import pytest
 import torch
 from system_harness import REPO, TINY
 
+from bench.up_profile import service_pids
 from nasa import layout
 from nasa.up import free_port
 
 
 def children_of(pid: int) -> list[int]:
-    """Processes started under launcher `pid` (services carry NASA_PARENT_PID)."""
-    found = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            env = (proc / "environ").read_bytes().split(b"\0")
-            state = (proc / "stat").read_text().split(")")[-1].split()[0]
-        except OSError:
-            continue
-        if f"NASA_PARENT_PID={pid}".encode() in env and state != "Z":
-            found.append(int(proc.name))
-    return found
-
-
-def command_of(pid: int) -> list[str]:
-    return Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+    """Live processes started under launcher `pid`."""
+    return list(service_pids(pid).values())
 
 
 def niceness(pid: int) -> int:
@@ -79,13 +65,13 @@ def wait_status(up: subprocess.Popen, port: int, pred, what: str, timeout: float
 
 
 def stop_with_ctrl_c(up: subprocess.Popen) -> None:
-    kids = children_of(up.pid)
+    services = service_pids(up.pid)
+    kids = list(services.values())
     assert len(kids) == 4  # replay, learner, evaluator, one actor
     # On a small machine the evaluator runs at a low CPU priority, and only the evaluator.
     expected = layout.choose(layout.usable_cores(), gpu=False).evaluator_nice
-    nice = {" ".join(command_of(p)[1:3]): niceness(p) for p in kids}
-    assert nice == {"-m services.evaluator": expected, "-m services.replay": 0, "-m services.learner": 0,
-                    "-m services.actor": 0}, nice
+    nice = {name: niceness(p) for name, p in services.items()}
+    assert nice == {"evaluator": expected, "replay": 0, "learner": 0, "actor": 0}, nice
     up.send_signal(signal.SIGINT)
     rest, _ = up.communicate(timeout=90)
     assert up.returncode == 0, rest
