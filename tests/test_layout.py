@@ -1,7 +1,10 @@
 """nasa up's layout: chosen from the cores and the GPU, every choice overridable by a flag."""
 
+import pytest
+
 from nasa.layout import LOW_PRIORITY, choose
 from nasa.up import layout_of, parse_up
+from shared.config import ConfigError
 
 
 def test_a_small_cpu_machine_gives_the_learner_every_core_and_one_actor():
@@ -34,3 +37,9 @@ def test_the_layout_says_what_it_chose_and_how_to_change_it():
     text = choose(2, gpu=False).describe()
     assert "1 actor(s)" in text and "learner 2 torch thread(s)" in text and f"nice {LOW_PRIORITY}" in text
     assert "--actors" in text and "--learner-threads" in text
+
+
+def test_a_negative_count_is_refused_with_a_clear_error():
+    for flag in ("--actors", "--learner-threads"):
+        with pytest.raises(ConfigError, match="must be >= 0"):
+            parse_up([flag, "-1"])
