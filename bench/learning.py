@@ -11,7 +11,10 @@ reward: the untrained policy scores near 0 there. Goals on a 2-core CPU:
 takes (`up_vs_train_time_to_goal`).
 
     python -m bench.learning [--task T] [--minutes 30] [--up-minutes M] [--out bench-results/learning]
-                             [--only train|up] [--report]
+                             [--only train|up] [--report] [-- SETTINGS]
+
+SETTINGS are `nasa train` flags passed to both runs after the preset's, for a documented
+per-task variant (the gripper's 50-step episodes take `-- --action-repeat 1`).
 
 The last line is one JSON object. `nasa plot <out>` draws the curves.
 """
@@ -114,11 +117,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--task", default=TASK, help="the task (default: the headline task)")
     parser.add_argument("--report", action="store_true", help="only summarize the runs already in --out")
-    args = parser.parse_args()
+    argv = sys.argv[1:]
+    settings = argv[argv.index("--") + 1 :] if "--" in argv else []
+    args = parser.parse_args(argv[: len(argv) - len(settings) - (1 if settings else 0)])
     result: dict = {"task": args.task, "algo": ALGO, "preset": "cpu-small", "minutes": args.minutes,
-                    "goal": GOAL, "cores": usable_cores(), "machine": platform.node()}
+                    "goal": GOAL, "cores": usable_cores(), "machine": platform.node(), "settings": settings}
     nasa = [sys.executable, "-m", "nasa.cli"]
-    common = ["--task", args.task, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu"]
+    common = ["--task", args.task, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu", *settings]
     if args.only in (None, "train"):
         out = args.out / args.task / ALGO / f"seed{args.seed}"
         argv = [
