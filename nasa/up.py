@@ -17,6 +17,11 @@ with the same settings (else exit 2 naming the fields; only --steps may
 change). Every service is then started with `--run-config <data>/config.json`,
 so all of them run that file's settings.
 
+With `--bridge` (gripper tasks), each actor steps its gripper through a robot
+bridge process that `nasa up` starts first and supervises like the others
+(`with_bridges`): the MuJoCo stand-in, the real driver on an emulated servo
+bus, or the real gripper.
+
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
 then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM.
