@@ -81,6 +81,7 @@ class ActorArgs(ServiceArgs):
     """Step the environment through the robot bridge of this id (`python -m services.robot_bridge
     --bridge-id ID`) instead of in this process; "": in this process."""
 
+
 PAUSE_S = 1.0
 """How long an actor waits before it asks a bridge that refused (e-stop, fault) for a new episode."""
 
