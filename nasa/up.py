@@ -17,6 +17,11 @@ with the same settings (else exit 2 naming the fields; only --steps may
 change). Every service is then started with `--run-config <data>/config.json`,
 so all of them run that file's settings.
 
+With `--bridge` (gripper tasks), each actor steps its gripper through a robot
+bridge process that `nasa up` starts first and supervises like the others
+(`with_bridges`): the MuJoCo stand-in, the real driver on an emulated servo
+bus, or the real gripper.
+
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
 then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM.
@@ -37,7 +42,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -47,7 +52,7 @@ from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
 
-STOP_ORDER = ("actor", "evaluator", "learner", "replay")
+STOP_ORDER = ("actor", "robot_bridge", "evaluator", "learner", "replay")  # a bridge e-stops as it stops
 
 
 def service_command(role: str) -> list[str]:
@@ -213,6 +218,13 @@ class UpCommand:
     """CPU priority (nice) of the evaluator process; default: low on a machine of under 4 cores."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
+    bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
+    """Gripper tasks: each actor steps its gripper through a robot bridge process, started and
+    restarted here: `stand-in` (the MuJoCo stand-in in the bridge), `emulator` (the real gripper's
+    driver and interlocks against an emulated servo bus, with a drawn camera), `hardware` (the real
+    gripper of --bridge-config; one actor). `off`: the environment in each actor's process."""
+    bridge_config: Path | None = None
+    """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware."""
 
 
 def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
@@ -225,7 +237,49 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
     if cmd.actors < 0 or cmd.learner_threads < 0:
         raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
                           f"got {cmd.actors} and {cmd.learner_threads}")
+    check_bridge(cmd)
     return cmd, preset
+
+
+def check_bridge(cmd: UpCommand) -> None:
+    """--bridge needs a task a bridge serves; the real gripper needs its config, and is one gripper."""
+    if cmd.bridge == "off":
+        if cmd.bridge_config is not None:
+            raise ConfigError("--bridge-config is for --bridge hardware")
+        return
+    task = cmd.config.env.task
+    if not hasattr(envs.source_for(task), "make_remote"):
+        raise ConfigError(f"--bridge {cmd.bridge}: {task} is not a task a robot bridge serves (gripper-*)")
+    if cmd.bridge == "hardware" and cmd.bridge_config is None:
+        raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
+    if cmd.bridge == "hardware" and cmd.actors not in (0, 1):
+        raise ConfigError(f"--bridge hardware drives one gripper: --actors 1, not {cmd.actors}")
+
+
+def bridge_id(run_id: str, i: int) -> str:
+    """Actor i's robot bridge: bridges' keys are not under a run, so the id names the run."""
+    return f"{run_id}-{i}"
+
+
+def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dict[str, list[str]]:
+    """`service_argv`'s children plus, for --bridge, one robot bridge per actor (`robot_bridge-<i>`,
+    started first) and each actor pointed at its own; unchanged when --bridge is off."""
+    if cmd.bridge == "off":
+        return argv
+    c = cmd.config
+    how = {"emulator": ["--emulate"], "hardware": ["--config", str(cmd.bridge_config)]}.get(cmd.bridge, [])
+    actors = [name for name in argv if name.startswith("actor-")]
+    bridges = {
+        f"robot_bridge-{i}": [
+            "--bridge-id", bridge_id(run_id, i), "--task", c.env.task, "--seed", str(c.seed + i),
+            "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how,
+        ]
+        for i in range(len(actors))
+    }
+    out = {**bridges, **argv}
+    for i, name in enumerate(actors):
+        out[name] = [*argv[name], "--bridge", bridge_id(run_id, i)]
+    return out
 
 
 def run_folder(cmd: UpCommand) -> Path:
@@ -242,7 +296,8 @@ def prepare(cmd: UpCommand, data: Path) -> RunConfig:
 
 def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Layout:
     """The services' layout: the flags where given, the rest chosen from the machine."""
-    return layout.choose(cores or layout.usable_cores(), gpu, cmd.actors, cmd.learner_threads,
+    actors = 1 if cmd.bridge == "hardware" else cmd.actors  # one real gripper, whatever the machine
+    return layout.choose(cores or layout.usable_cores(), gpu, actors, cmd.learner_threads,
                          cmd.evaluator, cmd.evaluator_nice)
 
 
@@ -300,7 +355,7 @@ def up(argv: list[str]) -> None:
     with open_router(endpoint):
         sup = Supervisor(env, data / "logs" if cmd.logs else None)
         try:
-            for name, args in service_argv(cmd, data, lay).items():
+            for name, args in with_bridges(cmd, service_argv(cmd, data, lay), run_id).items():
                 role = name.split("-")[0]
                 sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0)
             print(f"nasa up: run {run_id} in {data}; router {endpoint}; "

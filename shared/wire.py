@@ -246,6 +246,20 @@ class ActorStatus(Message):
     steps_per_s: float
     episode_returns: list
     """(return, length) of each episode finished since the previous status."""
+    fault: str | None = None
+    """The environment's fault state where it reports one (a robot bridge: ok, estop, overload,
+    torque_off, bridge_lost, ...); None for environments without one (the suite's tasks)."""
+    step_counts: list = field(default_factory=list)
+    """This incarnation's env steps per bucket of STEP_SECONDS_BUCKETS, the last one slower than
+    all (empty: not measured); with step_seconds, a Prometheus histogram's figures."""
+    step_seconds: float = 0.0
+    """This incarnation's total env step time."""
+
+
+STEP_SECONDS_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+"""Upper bounds of the env step time histogram's buckets (seconds): a suite task's step to a real
+robot's (which the paper's budget puts under a second)."""
+MAX_FAULT_TEXT = 64
 
 
 @dataclass
@@ -550,6 +564,13 @@ def check_actor_status(m: ActorStatus, b: Bounds) -> None:
         ok = (isinstance(e, list) and len(e) == 2 and _is_number(e[0]) and abs(e[0]) <= 1e12
               and isinstance(e[1], int) and not isinstance(e[1], bool) and 0 <= e[1] < MAX_INT)
         _need(ok, f"episode return {e!r} is not [finite return, length]")
+    _need(m.fault is None or len(m.fault) <= MAX_FAULT_TEXT, "fault: longer than a state name")
+    counts = m.step_counts
+    _need(not counts or len(counts) == len(STEP_SECONDS_BUCKETS) + 1,
+          f"step_counts: {len(counts)} buckets, expected {len(STEP_SECONDS_BUCKETS) + 1}")
+    _need(all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < MAX_INT for n in counts),
+          "step_counts: not counts")
+    _need(m.step_seconds >= 0, f"step_seconds {m.step_seconds}")
 
 
 def check_eval_result(m: EvalResult, b: Bounds) -> None:

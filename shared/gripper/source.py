@@ -10,14 +10,16 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from shared.config import ConfigError
 from shared.gripper import ACTION_DIM, TASK_NAMES, frame_shape
 
 if TYPE_CHECKING:
     from shared.config import EnvConfig
 
 
-class BridgeMismatch(ValueError):
-    """The bridge serves another task or frame size than the run's config."""
+class BridgeMismatch(ConfigError):
+    """The bridge serves another task or frame size than the run's config (bad input: a service
+    that meets it exits 2 rather than restarting into the same mismatch)."""
 
 
 class GripperSource:
