@@ -52,6 +52,7 @@ def test_every_key_has_a_route() -> None:
     assert {role for r in wire.routes() for role in (*r.senders, *r.receivers)} <= set(wire.ROLES)
 
 
+@pytest.mark.system  # a `nasa` subprocess
 def test_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: Path) -> None:
     folder = tmp_path / "auth"
     out = subprocess.run([sys.executable, "-m", "nasa.cli", "auth", "init", str(folder), "--run-id", RUN],
@@ -168,6 +169,34 @@ def test_an_actor_cannot_sample_the_replay(router: str, auth_dir: Path) -> None:
         queryable.undeclare()
 
 
+def test_liveliness_tokens_follow_the_routes(router: str, auth_dir: Path) -> None:
+    """The replay's token is seen by actors and by the replay's own healthcheck, not by the evaluator;
+    an actor cannot pose as the replay by declaring its token."""
+    k = wire.Keys(RUN)
+
+    def seen(session: zenoh.Session) -> bool:
+        return any(r.ok is not None for r in session.liveliness().get(k.alive("replay", 0), timeout=2.0))
+
+    with (login(router, auth_dir, "replay") as replay, login(router, auth_dir, "actor") as actor,
+          login(router, auth_dir, "evaluator") as evaluator, login(router, auth_dir, "learner") as learner):
+        forged = actor.liveliness().declare_token(k.alive("replay", 0))
+        own = actor.liveliness().declare_token(k.alive("actor", 0, 1))
+        # The actor's own token reached the router after the forged one, on the same link.
+        while not any(r.ok is not None for r in learner.liveliness().get(k.alive_actors, timeout=2.0)):
+            pass
+        assert not seen(replay)
+        forged.undeclare()
+        own.undeclare()
+        token = replay.liveliness().declare_token(k.alive("replay", 0))
+        while not seen(actor):
+            pass
+        with login(router, auth_dir, "replay") as healthcheck:
+            assert seen(healthcheck)
+        assert not seen(evaluator)
+        token.undeclare()
+
+
+@pytest.mark.system  # a service process
 def test_a_router_without_its_acl_refuses_to_start(tmp_path: Path) -> None:
     folder = zenoh_auth.init(tmp_path / "auth", RUN)
     (folder / zenoh_auth.ACL_FILE).unlink()
@@ -219,3 +248,24 @@ def test_the_token_comes_from_the_environment_or_a_file(tmp_path: Path, monkeypa
     assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
     assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5")
     assert os.environ["NASA_API_TOKEN"] == "from-env"
+
+
+# -- compose ----------------------------------------------------------------------------------------
+
+
+def test_compose_passes_auth_to_every_service_and_keeps_it_off_by_default() -> None:
+    from deploy_files import DEPLOY, load_compose, load_env
+
+    env = load_env()
+    assert env["NASA_ZENOH_AUTH"] == "" and env["NASA_API_TOKEN"] == ""  # off, as under `nasa up`
+    assert (DEPLOY / env["ZENOH_AUTH_DIR"]).is_dir()  # a bind mount of a missing folder would make one
+    off = load_compose()["services"]
+    on = load_compose({"NASA_ZENOH_AUTH": "/run/nasa-auth", "NASA_API_TOKEN": "t0ken"})["services"]
+    for name, svc in on.items():
+        assert svc["environment"]["NASA_ZENOH_AUTH"] == "/run/nasa-auth", name
+        assert off[name]["environment"]["NASA_ZENOH_AUTH"] == "", name
+        assert f"{env['ZENOH_AUTH_DIR']}:/run/nasa-auth:ro" in svc["volumes"], name
+    for name in ("learner", "learner-gpu"):
+        assert on[name]["environment"]["NASA_API_TOKEN"] == "t0ken"
+        assert on[name]["environment"]["NASA_STATUS_HOST"] == "0.0.0.0"
+    assert "NASA_API_TOKEN" not in on["actor"]["environment"]
