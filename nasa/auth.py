@@ -29,7 +29,11 @@ def auth(argv: list[str]) -> None:
         print("usage: nasa auth init DIR [--run-id ID] [--force]", file=sys.stderr)
         sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
     cmd = tyro.cli(AuthInit, args=argv[1:], prog="nasa auth init")
-    folder = zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force)
+    try:
+        folder = zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force)
+    except ValueError as err:  # a run id that cannot be a key prefix
+        print(f"nasa auth: error: {err}", file=sys.stderr)
+        sys.exit(2)
     roles = ", ".join(zenoh_auth.AUTH_ROLES)
     print(f"nasa auth: credentials for {roles} in {folder / zenoh_auth.USERS_FILE} (0600); "
           f"ACL for run {cmd.run_id!r} in {folder / zenoh_auth.ACL_FILE}", flush=True)

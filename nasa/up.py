@@ -320,7 +320,9 @@ def up_auth(cmd: UpCommand, run_id: str, env: dict[str, str]) -> Path | None:
 
     if not (cmd.zenoh_auth / USERS_FILE).exists():
         zenoh_auth.init(cmd.zenoh_auth, run_id)
+    zenoh_auth.check_acl(cmd.zenoh_auth, run_id)
     env["NASA_ZENOH_AUTH"] = str(cmd.zenoh_auth.resolve())
+    print(f"nasa up: Zenoh logins and access control from {cmd.zenoh_auth}", flush=True)
     return cmd.zenoh_auth
 
 

@@ -75,14 +75,14 @@ def check_run_id(run_id: str) -> str:
 
 
 ANY = "*"
-"""A run or bridge id that stands for every one: `Keys(ANY)` holds key expressions matching every run's."""
+"""A run or bridge id that stands for every one, in key expressions that match every run's (the ACL's)."""
 
 
 class Keys:
-    """The key expressions of one run (of every run, for Keys(ANY))."""
+    """The key expressions of one run (of every run for `Keys(ANY, wildcard=True)`)."""
 
-    def __init__(self, run_id: str) -> None:
-        self.run_id = run_id if run_id == ANY else check_run_id(run_id)
+    def __init__(self, run_id: str, *, wildcard: bool = False) -> None:
+        self.run_id = run_id if wildcard and run_id == ANY else check_run_id(run_id)
         p = f"{PREFIX}/{run_id}"
         self.prefix = p
         self.insert_all = f"{p}/replay/insert/*"
@@ -597,8 +597,8 @@ CHECKS: dict[type[Message], Any] = {
 class BridgeKeys:
     """The key expressions of one robot bridge."""
 
-    def __init__(self, bridge_id: str | int) -> None:
-        ident = ANY if bridge_id == ANY else check_run_id(str(bridge_id))
+    def __init__(self, bridge_id: str | int, *, wildcard: bool = False) -> None:
+        ident = ANY if wildcard and bridge_id == ANY else check_run_id(str(bridge_id))
         p = f"{PREFIX}/bridge/{ident}"
         self.prefix = p
         self.spec = f"{p}/spec"
@@ -697,7 +697,7 @@ class Route:
 
 def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
     """The wiring of the table above, from `Keys` and `BridgeKeys` (per-id keys for every id)."""
-    k, b = Keys(run_id), BridgeKeys(bridge_id)
+    k, b = Keys(run_id, wildcard=True), BridgeKeys(bridge_id, wildcard=True)
     services = ("replay", "learner", "actor", "evaluator")
     return (
         Route(k.insert(ANY), PUT, ("actor",), ("replay",)),

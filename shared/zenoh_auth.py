@@ -85,6 +85,7 @@ def acl(wiring: tuple[Route, ...] | None = None) -> dict:
 def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
     """Write new credentials (users.txt, 0600) and the ACL for run `run_id` (every run: ANY) to `folder`.
     An existing users.txt is kept unless `force` (rotation: write new ones, restart every process)."""
+    wiring = routes(run_id)  # first: a bad run id leaves no folder
     folder.mkdir(parents=True, exist_ok=True)
     users = folder / USERS_FILE
     if users.exists() and not force:
@@ -95,8 +96,18 @@ def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
     with os.fdopen(fd, "w") as f:
         f.write(lines)
     os.replace(tmp, users)
-    (folder / ACL_FILE).write_text(json.dumps(acl(routes(run_id)), indent=1) + "\n")
+    (folder / ACL_FILE).write_text(json.dumps(acl(wiring), indent=1) + "\n")
     return folder
+
+
+def check_acl(folder: Path, run_id: str) -> None:
+    """AuthError unless the folder's acl.json is the one `init` makes today for `run_id` or every run:
+    an ACL for another run, or from an older wiring, would deny this run's messages."""
+    path = folder / ACL_FILE
+    held = json.loads(path.read_text()) if path.exists() else None
+    if held not in (acl(routes(run_id)), acl(routes(ANY))):
+        raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
+                        f"`nasa auth init {folder} --run-id {run_id} --force` makes it anew")
 
 
 def credentials(folder: Path) -> dict[str, str]:

@@ -41,7 +41,7 @@ def login(endpoint: str, auth_dir: Path, role: str) -> zenoh.Session:
 
 def test_every_key_has_a_route() -> None:
     """A key added to Keys or BridgeKeys without a route would be denied to everyone under auth."""
-    k, b = wire.Keys(wire.ANY), wire.BridgeKeys(wire.ANY)
+    k, b = wire.Keys(wire.ANY, wildcard=True), wire.BridgeKeys(wire.ANY, wildcard=True)
     routed = {r.key for r in wire.routes()}
     plain = {v for name, v in vars(k).items() if name not in ("prefix", "run_id") and not v.endswith("*")}
     plain |= {k.insert(wire.ANY), k.ack(wire.ANY), k.actor_status(wire.ANY)}
@@ -50,6 +50,8 @@ def test_every_key_has_a_route() -> None:
     for role in ("actor", "replay", "learner", "evaluator"):
         assert k.alive(role, "**") in routed
     assert {role for r in wire.routes() for role in (*r.senders, *r.receivers)} <= set(wire.ROLES)
+    with pytest.raises(ValueError):
+        wire.Keys(wire.ANY)  # a service's run id is never a wildcard
 
 
 @pytest.mark.system  # a `nasa` subprocess
@@ -269,3 +271,16 @@ def test_compose_passes_auth_to_every_service_and_keeps_it_off_by_default() -> N
         assert on[name]["environment"]["NASA_API_TOKEN"] == "t0ken"
         assert on[name]["environment"]["NASA_STATUS_HOST"] == "0.0.0.0"
     assert "NASA_API_TOKEN" not in on["actor"]["environment"]
+
+
+def test_an_acl_for_another_run_or_an_older_wiring_is_refused(tmp_path: Path) -> None:
+    zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "mine", RUN), RUN)
+    zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "every", wire.ANY), RUN)
+    other = zenoh_auth.init(tmp_path / "other", "another-run")
+    with pytest.raises(zenoh_auth.AuthError, match="another run"):
+        zenoh_auth.check_acl(other, RUN)
+    stale = json.loads((other / zenoh_auth.ACL_FILE).read_text())
+    stale["rules"] = stale["rules"][1:]
+    (other / zenoh_auth.ACL_FILE).write_text(json.dumps(stale))
+    with pytest.raises(zenoh_auth.AuthError):
+        zenoh_auth.check_acl(other, "another-run")
