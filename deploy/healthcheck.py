@@ -53,7 +53,7 @@ def replay() -> bool:
     from shared.wire import Keys
     from shared.zenoh_session import env_connect, env_run_id, open_client
 
-    with open_client(env_connect(), timeout_s=TIMEOUT_S) as session:
+    with open_client(env_connect(), timeout_s=TIMEOUT_S, role="replay") as session:
         replies = session.liveliness().get(Keys(env_run_id()).alive("replay", 0), timeout=TIMEOUT_S)
         return any(reply.ok is not None for reply in replies)
 

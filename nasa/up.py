@@ -51,6 +51,7 @@ from shared import envs, run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
+from shared.zenoh_auth import USERS_FILE, env_auth
 
 STOP_ORDER = ("actor", "robot_bridge", "evaluator", "learner", "replay")  # a bridge e-stops as it stops
 
@@ -225,6 +226,9 @@ class UpCommand:
     gripper of --bridge-config; one actor). `off`: the environment in each actor's process."""
     bridge_config: Path | None = None
     """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware."""
+    zenoh_auth: Path | None = field(default_factory=env_auth)
+    """Auth folder (env NASA_ZENOH_AUTH): the router requires each role's login and enforces the
+    ACL; made with `nasa auth init` for this run if it holds no users.txt. None: no authentication."""
 
 
 def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
@@ -342,6 +346,7 @@ def up(argv: list[str]) -> None:
     env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": run_id}
     if lay.omp_passive:
         env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the user's own setting wins
+    auth = up_auth(cmd, run_id, env)
     from shared.zenoh_session import open_router
 
     stop = {"reason": ""}
@@ -352,7 +357,7 @@ def up(argv: list[str]) -> None:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     ended: Child | None = None
-    with open_router(endpoint):
+    with open_router(endpoint, auth=auth):
         sup = Supervisor(env, data / "logs" if cmd.logs else None)
         try:
             for name, args in with_bridges(cmd, service_argv(cmd, data, lay), run_id).items():
@@ -375,6 +380,22 @@ def up(argv: list[str]) -> None:
     lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
+
+
+def up_auth(cmd: UpCommand, run_id: str, env: dict[str, str]) -> Path | None:
+    """The run's auth folder (made for this run when it has no credentials yet), passed on to every
+    service in `env`; None without --zenoh-auth."""
+    if cmd.zenoh_auth is None:
+        env.pop("NASA_ZENOH_AUTH", None)
+        return None
+    from shared import zenoh_auth
+
+    if not (cmd.zenoh_auth / USERS_FILE).exists():
+        zenoh_auth.init(cmd.zenoh_auth, run_id)
+    zenoh_auth.check_acl(cmd.zenoh_auth, run_id)
+    env["NASA_ZENOH_AUTH"] = str(cmd.zenoh_auth.resolve())
+    print(f"nasa up: Zenoh logins and access control from {cmd.zenoh_auth}", flush=True)
+    return cmd.zenoh_auth
 
 
 def status(argv: list[str]) -> None:

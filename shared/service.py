@@ -54,14 +54,16 @@ def bad_input_errors() -> tuple[type[Exception], ...]:
     """The errors that mean the user's input is wrong, not that something crashed.
 
     ConfigError covers shared.run_config.ConfigMismatch (settings that differ from the
-    run's); StoreFormatError is a replay folder this config or version cannot open.
+    run's); StoreFormatError is a replay folder this config or version cannot open; AuthError an auth
+    folder without this role's credential.
     """
     from shared.checkpoint import CheckpointError  # torch: imported only when needed
     from shared.device import DeviceError
     from shared.envs import UnknownTaskError
     from shared.replay.log import StoreFormatError
+    from shared.zenoh_auth import AuthError
 
-    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError)
+    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError, AuthError)
 
 
 def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
@@ -217,7 +219,8 @@ def run_service(
         args, _ = parse(cls, argv, prog)
         stop = StopFlag()
         stop.install_signal_handlers()
-        with open_client(args.connect) as session:  # type: ignore[attr-defined]
+        role = prog.rsplit(".", 1)[-1]  # "python -m services.<role>": its Zenoh login under auth
+        with open_client(args.connect, role=role) as session:  # type: ignore[attr-defined]
             run(args, session, stop)
     except bad_input_errors() as err:
         print(f"{prog}: error: {err}", file=sys.stderr, flush=True)

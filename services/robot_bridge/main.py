@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     stop = StopFlag()
     stop.install_signal_handlers()
     try:
-        with open_client(args.connect) as session:
+        with open_client(args.connect, role="bridge") as session:
             server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
             with server.serve():
                 kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
