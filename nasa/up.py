@@ -223,7 +223,8 @@ class UpCommand:
     """Gripper tasks: each actor steps its gripper through a robot bridge process, started and
     restarted here: `stand-in` (the MuJoCo stand-in in the bridge), `emulator` (the real gripper's
     driver and interlocks against an emulated servo bus, with a drawn camera), `hardware` (the real
-    gripper of --bridge-config; one actor). `off`: the environment in each actor's process."""
+    gripper of --bridge-config; one actor and no evaluator, as there is one gripper). The evaluator
+    gets a bridge of its own. `off`: the environment in each service's process."""
     bridge_config: Path | None = None
     """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware."""
     zenoh_auth: Path | None = field(default_factory=env_auth)
@@ -260,14 +261,15 @@ def check_bridge(cmd: UpCommand) -> None:
         raise ConfigError(f"--bridge hardware drives one gripper: --actors 1, not {cmd.actors}")
 
 
-def bridge_id(run_id: str, i: int) -> str:
+def bridge_id(run_id: str, i: int | str) -> str:
     """Actor i's robot bridge: bridges' keys are not under a run, so the id names the run."""
     return f"{run_id}-{i}"
 
 
 def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dict[str, list[str]]:
-    """`service_argv`'s children plus, for --bridge, one robot bridge per actor (`robot_bridge-<i>`,
-    started first) and each actor pointed at its own; unchanged when --bridge is off."""
+    """`service_argv`'s children plus, for --bridge, one robot bridge per actor (`robot_bridge-<i>`)
+    and one for the evaluator (`robot_bridge-eval`), started first, each client pointed at its
+    own; unchanged when --bridge is off."""
     if cmd.bridge == "off":
         return argv
     c = cmd.config
@@ -280,9 +282,16 @@ def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dic
         ]
         for i in range(len(actors))
     }
+    if "evaluator" in argv:  # its own bridge: a bridge serves one client's episodes
+        bridges["robot_bridge-eval"] = [
+            "--bridge-id", bridge_id(run_id, "eval"), "--task", c.env.task, "--seed", str(c.seed + 1_000_000),
+            "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how,
+        ]  # fmt: skip
     out = {**bridges, **argv}
     for i, name in enumerate(actors):
         out[name] = [*argv[name], "--bridge", bridge_id(run_id, i)]
+    if "evaluator" in argv:
+        out["evaluator"] = [*argv["evaluator"], "--bridge", bridge_id(run_id, "eval")]
     return out
 
 
@@ -300,9 +309,10 @@ def prepare(cmd: UpCommand, data: Path) -> RunConfig:
 
 def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Layout:
     """The services' layout: the flags where given, the rest chosen from the machine."""
-    actors = 1 if cmd.bridge == "hardware" else cmd.actors  # one real gripper, whatever the machine
-    return layout.choose(cores or layout.usable_cores(), gpu, actors, cmd.learner_threads,
-                         cmd.evaluator, cmd.evaluator_nice)
+    # One real gripper, whatever the machine: the actor's; no second one to evaluate on.
+    hardware = cmd.bridge == "hardware"
+    return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
+                         cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice)
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:

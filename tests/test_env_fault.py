@@ -104,7 +104,8 @@ def test_nasa_up_bridge_checks_its_flags() -> None:
         parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", "g.toml",
                   "--actors", "2"])
     hardware, _ = parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", "g.toml"])
-    assert layout_of(hardware, gpu=True, cores=16).actors == 1  # the machine's choice yields to one gripper
+    one = layout_of(hardware, gpu=True, cores=16)  # the machine's choice yields to one gripper
+    assert one.actors == 1 and not one.evaluator
     with pytest.raises(ConfigError, match="for --bridge hardware"):
         parse_up(["--task", "gripper-valve", "--bridge-config", "g.toml"])
 
@@ -122,6 +123,9 @@ def test_nasa_up_starts_a_bridge_per_actor_and_points_each_actor_at_its_own(tmp_
         assert bridge[bridge.index("--image-size") + 1] == "32"
         assert bridge[bridge.index("--seed") + 1] == str(5 + i)
         assert actor[-2:] == ["--bridge", f"run1-{i}"]
+    evaluator, eval_bridge = argv["evaluator"], argv["robot_bridge-eval"]  # its own bridge, its own seed
+    assert evaluator[-2:] == ["--bridge", "run1-eval"] and "--emulate" in eval_bridge
+    assert eval_bridge[eval_bridge.index("--seed") + 1] == str(5 + 1_000_000)
     off, _ = parse_up(["--task", "gripper-valve"])
     lay = layout_of(off, gpu=False)
     assert with_bridges(off, service_argv(off, tmp_path, lay), "run1") == service_argv(off, tmp_path, lay)

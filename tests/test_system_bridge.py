@@ -19,6 +19,7 @@ from system_harness import System
 
 from nasa.up import bridge_id
 from services.robot_bridge import operate
+from shared.runlog import read_rows
 
 pytestmark = pytest.mark.system
 
@@ -33,9 +34,9 @@ def metric_samples(url: str) -> dict[tuple[str, tuple], float]:
             for f in text_string_to_metric_families(text) for s in f.samples}
 
 
-def start(tmp_path, bridge: str, task: str) -> System:
-    return System(tmp_path / "run", actors=1, steps=100_000, evaluator=False,
-                  extra=["--task", task, "--bridge", bridge])
+def start(tmp_path, bridge: str, task: str, evaluator: bool = False, extra: tuple = ()) -> System:
+    return System(tmp_path / "run", actors=1, steps=100_000, evaluator=evaluator,
+                  extra=["--task", task, "--bridge", bridge, *extra])
 
 
 def test_the_actor_steps_the_emulated_gripper_through_a_bridge_and_its_safety_state_reaches_status(tmp_path):
@@ -90,3 +91,25 @@ def test_killing_the_bridge_pauses_the_actor_and_its_restart_resumes_it(tmp_path
         assert actor.proc.poll() is None and actor.restarts == 0
     finally:
         system.close()
+
+
+def test_the_evaluator_plays_its_episodes_through_a_bridge_of_its_own(tmp_path):
+    system = start(tmp_path, "stand-in", "gripper-valve", evaluator=True,
+                   extra=("--eval-every", "100", "--eval-episodes", "1"))
+    eval_csv = tmp_path / "run" / "eval.csv"
+
+    def evaluated(_s: dict) -> bool:
+        return eval_csv.exists() and any(int(r["step"]) >= 100 for r in read_rows(eval_csv))
+
+    try:
+        system.wait_for("an evaluation after step 0", evaluated, timeout=120)
+        assert "robot_bridge-eval" in system.sup.children
+        assert system.sup.children["evaluator"].restarts == 0
+    finally:
+        system.close()
+    # The evaluator has no environment of its own with --bridge: every return came through its bridge.
+    log = (tmp_path / "run" / "logs" / "evaluator.log").read_text()
+    assert "through bridge " + bridge_id(f"t{system.port}", "eval") in log
+    rows = read_rows(eval_csv)
+    assert [int(r["step"]) for r in rows][:2] == [0, 100]
+    assert all(-50.0 <= float(r["mean"]) <= 0.0 for r in rows)  # 50 steps, each reward in [-1, 0]
