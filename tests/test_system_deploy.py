@@ -87,7 +87,7 @@ def test_compose_has_the_topology():
     (device,) = services["learner-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert device["driver"] == "nvidia" and device["capabilities"] == ["gpu"]
     assert flag_values(services["learner-gpu"]["command"])["--device"] == "cuda"
-    for name in ("replay", "learner", "learner-gpu"):
+    for name in ("replay", "learner", "learner-gpu", "evaluator"):  # the evaluator's media: the dashboard's
         assert "run-data:/data" in services[name]["volumes"]
         assert flag_values(services[name]["command"])["--data"] == "/data"
 
