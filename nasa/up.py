@@ -51,7 +51,10 @@ from shared import envs, run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
-from shared.zenoh_auth import USERS_FILE, env_auth
+from shared.zenoh_auth import USERS_FILE
+
+RUN_AUTH = "run"
+"""--zenoh-auth's default: the run folder's own credentials."""
 
 STOP_ORDER = ("actor", "robot_bridge", "evaluator", "learner", "replay")  # a bridge e-stops as it stops
 
@@ -227,9 +230,10 @@ class UpCommand:
     gets a bridge of its own. `off`: the environment in each service's process."""
     bridge_config: Path | None = None
     """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware."""
-    zenoh_auth: Path | None = field(default_factory=env_auth)
-    """Auth folder (env NASA_ZENOH_AUTH): the router requires each role's login and enforces the
-    ACL; made with `nasa auth init` for this run if it holds no users.txt. None: no authentication."""
+    zenoh_auth: str = field(default_factory=lambda: os.environ.get("NASA_ZENOH_AUTH") or RUN_AUTH)
+    """Zenoh logins per role and the ACL at the router: `run` (default), the run folder's auth/,
+    made for this run when it holds no users.txt; a folder (`nasa auth init`; env NASA_ZENOH_AUTH);
+    `off`: no authentication, any local process may talk to the run."""
 
 
 def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
@@ -356,7 +360,7 @@ def up(argv: list[str]) -> None:
     env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": run_id}
     if lay.omp_passive:
         env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the user's own setting wins
-    auth = up_auth(cmd, run_id, env)
+    auth = up_auth(cmd, data, run_id, env)
     from shared.zenoh_session import open_router
 
     stop = {"reason": ""}
@@ -392,20 +396,21 @@ def up(argv: list[str]) -> None:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
 
 
-def up_auth(cmd: UpCommand, run_id: str, env: dict[str, str]) -> Path | None:
+def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Path | None:
     """The run's auth folder (made for this run when it has no credentials yet), passed on to every
-    service in `env`; None without --zenoh-auth."""
-    if cmd.zenoh_auth is None:
+    service in `env`; None with --zenoh-auth off."""
+    if cmd.zenoh_auth == "off":
         env.pop("NASA_ZENOH_AUTH", None)
         return None
     from shared import zenoh_auth
 
-    if not (cmd.zenoh_auth / USERS_FILE).exists():
-        zenoh_auth.init(cmd.zenoh_auth, run_id)
-    zenoh_auth.check_acl(cmd.zenoh_auth, run_id)
-    env["NASA_ZENOH_AUTH"] = str(cmd.zenoh_auth.resolve())
-    print(f"nasa up: Zenoh logins and access control from {cmd.zenoh_auth}", flush=True)
-    return cmd.zenoh_auth
+    folder = data / "auth" if cmd.zenoh_auth == RUN_AUTH else Path(cmd.zenoh_auth)
+    if not (folder / USERS_FILE).exists():
+        zenoh_auth.init(folder, run_id)
+    zenoh_auth.check_acl(folder, run_id)
+    env["NASA_ZENOH_AUTH"] = str(folder.resolve())
+    print(f"nasa up: Zenoh logins and access control from {folder} (--zenoh-auth off: none)", flush=True)
+    return folder
 
 
 def status(argv: list[str]) -> None:

@@ -284,3 +284,26 @@ def test_an_acl_for_another_run_or_an_older_wiring_is_refused(tmp_path: Path) ->
     (other / zenoh_auth.ACL_FILE).write_text(json.dumps(stale))
     with pytest.raises(zenoh_auth.AuthError):
         zenoh_auth.check_acl(other, "another-run")
+
+
+def test_nasa_up_turns_logins_on_by_default_with_the_run_folders_own(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    from nasa.up import parse_up, up_auth
+
+    monkeypatch.delenv("NASA_ZENOH_AUTH", raising=False)
+    data = tmp_path / "run"
+    default, _ = parse_up([])
+    assert default.zenoh_auth == "run"
+    env: dict[str, str] = {}
+    folder = up_auth(default, data, RUN, env)
+    assert folder == data / "auth" and env["NASA_ZENOH_AUTH"] == str(folder.resolve())
+    assert stat.S_IMODE((folder / zenoh_auth.USERS_FILE).stat().st_mode) == 0o600
+    creds = zenoh_auth.credentials(folder)
+    up_auth(default, data, RUN, {})  # a resumed run keeps its credentials
+    assert zenoh_auth.credentials(folder) == creds
+    off, _ = parse_up(["--zenoh-auth", "off"])
+    env = {"NASA_ZENOH_AUTH": "/elsewhere"}
+    assert up_auth(off, tmp_path / "other", RUN, env) is None and "NASA_ZENOH_AUTH" not in env
+    assert not (tmp_path / "other").exists()
+    monkeypatch.setenv("NASA_ZENOH_AUTH", str(tmp_path / "shared"))
+    mine, _ = parse_up([])
+    assert up_auth(mine, data, RUN, {}) == tmp_path / "shared"
