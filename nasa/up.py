@@ -259,6 +259,9 @@ def check_bridge(cmd: UpCommand) -> None:
     task = cmd.config.env.task
     if not hasattr(envs.source_for(task), "make_remote"):
         raise ConfigError(f"--bridge {cmd.bridge}: {task} is not a task a robot bridge serves (gripper-*)")
+    if cmd.config.env.action_repeat != 1:
+        raise ConfigError(f"--bridge: a robot bridge steps one action at a time; --action-repeat 1, "
+                          f"not {cmd.config.env.action_repeat}")
     if cmd.bridge == "hardware" and cmd.bridge_config is None:
         raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
     if cmd.bridge == "hardware" and cmd.actors not in (0, 1):

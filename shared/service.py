@@ -77,10 +77,10 @@ def parse_with_preset(
 ) -> tuple[T, str]:
     """Parse a dataclass with fields `config` and `preset`; returns it and the preset used.
 
-    --preset, --algo and --device are read first: they choose the defaults (shared.config's)
-    every other flag overrides. With `base` (a run's config), or when `cls` has a
-    `run_config` field and --run-config FILE is given, that config is the default
-    instead, and the preset returned is "run".
+    --preset, --algo, --device and --task are read first: they choose the defaults (shared.config's
+    preset and its variant for the task) every other flag overrides. With `base` (a run's
+    config), or when `cls` has a `run_config` field and --run-config FILE is given, that config
+    is the default instead, and the preset returned is "run".
     """
     defaults = TrainConfig()
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
@@ -88,6 +88,7 @@ def parse_with_preset(
     pre.add_argument("--algo", default=defaults.algo)
     pre.add_argument("--device", default=defaults.device)
     pre.add_argument("--run-config", type=Path, default=None)
+    pre.add_argument("--task", default=None)  # a preset may have a variant for it
     known, _ = pre.parse_known_args(argv)
     if known.preset not in PRESET_NAMES:
         raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
@@ -101,7 +102,7 @@ def parse_with_preset(
         if preset == "auto":
             # Only the device's type matters here; do not import torch for --help.
             preset = auto_preset(_device_type(known.device))
-        config = default_config(known.algo, preset)
+        config = default_config(known.algo, preset, known.task)
     default = cls(config=config, preset=known.preset)  # type: ignore[call-arg]
     args = tyro.cli(cls, args=argv, default=default, prog=prog)
     validate(args.config)  # type: ignore[attr-defined]

@@ -106,6 +106,8 @@ def test_nasa_up_bridge_checks_its_flags() -> None:
     hardware, _ = parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", "g.toml"])
     one = layout_of(hardware, gpu=True, cores=16)  # the machine's choice yields to one gripper
     assert one.actors == 1 and not one.evaluator
+    with pytest.raises(ConfigError, match="--action-repeat 1"):
+        parse_up(["--task", "gripper-valve", "--bridge", "stand-in", "--action-repeat", "8"])
     with pytest.raises(ConfigError, match="for --bridge hardware"):
         parse_up(["--task", "gripper-valve", "--bridge-config", "g.toml"])
 
