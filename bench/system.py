@@ -6,7 +6,10 @@
 - learner: updates/s of the learner service (batches from the replay process
   over Zenoh) against the single-process trainer's update loop (sample from
   a ReplayStore, batch_to_device, agent.update) on the same device, both with
-  the same torch thread count.
+  the same torch thread count;
+- with --auth-rounds N: the one-actor and the learner figures again, with the
+  router requiring each role's login and enforcing the ACL (shared/zenoh_auth)
+  and without, alternating N times, and the ratios of their medians.
 
 The replay runs without its rate limiter (--no-rate-limit) so each side is
 measured at its own speed. Transitions are marked as warm-up ones (intrinsic
@@ -30,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-GOALS = {"actor_vs_inprocess": 0.90, "two_actor_scaling": 1.7, "learner_vs_inprocess": 0.95}
+GOALS = {"actor_vs_inprocess": 0.90, "two_actor_scaling": 1.7, "learner_vs_inprocess": 0.95,
+         "auth_vs_open_actor": 0.95, "auth_vs_open_learner": 0.95}
 
 
 def preset_config(args: argparse.Namespace):  # noqa: ANN201
@@ -116,23 +120,28 @@ def inprocess_update_loop(args: argparse.Namespace) -> float:
 class Cluster:
     """A router in this process and services as child processes (nasa.up's Supervisor)."""
 
-    def __init__(self, args: argparse.Namespace, data: Path) -> None:
+    def __init__(self, args: argparse.Namespace, data: Path, auth: bool = False) -> None:
         from nasa.up import Supervisor, free_port
-        from shared import wire
+        from shared import wire, zenoh_auth
         from shared.zenoh_session import open_client, open_router
 
         self.args = args
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.router = open_router(self.endpoint)
         run_id = f"bench{free_port()}"
+        # With auth, every service logs in under its role and the router enforces the run's ACL.
+        folder = zenoh_auth.init(data / "auth", run_id) if auth else None
+        self.router = open_router(self.endpoint, auth=folder)
         env = {**os.environ, "NASA_ZENOH_CONNECT": self.endpoint, "NASA_RUN_ID": run_id,
                "PYTHONPATH": str(REPO)}
+        env.pop("NASA_ZENOH_AUTH", None)
+        if folder is not None:
+            env["NASA_ZENOH_AUTH"] = str(folder)
         self.sup = Supervisor(env, data / "logs", cwd=str(REPO))
         self.data = data
         self.common = ["--preset", "cpu-small", "--task", args.task, "--algo", args.algo,
                        "--render-quality", "fast", "--steps", "100000000"]
         self.inserted: list[tuple[float, int]] = []
-        self.session = open_client(self.endpoint)
+        self.session = open_client(self.endpoint, role="evaluator", auth=folder)  # reads replay stats
         keys = wire.Keys(run_id)
 
         def on_stats(sample) -> None:  # noqa: ANN001
@@ -168,9 +177,10 @@ class Cluster:
         self.router.close()
 
 
-def service_actor_rate(args: argparse.Namespace, actors: int) -> tuple[float, float | None]:
+def service_actor_rate(args: argparse.Namespace, actors: int,
+                       auth: bool = False) -> tuple[float, float | None]:
     with tempfile.TemporaryDirectory() as tmp:
-        cluster = Cluster(args, Path(tmp))
+        cluster = Cluster(args, Path(tmp), auth)
         try:
             # warm-up 0: actors act with their (initial) policy, as the in-process loop does
             cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", "--warmup-steps", "0"])
@@ -182,13 +192,13 @@ def service_actor_rate(args: argparse.Namespace, actors: int) -> tuple[float, fl
             cluster.close()
 
 
-def service_learner_rate(args: argparse.Namespace) -> float:
+def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
     import httpx
 
     from nasa.up import free_port
 
     with tempfile.TemporaryDirectory() as tmp:
-        cluster = Cluster(args, Path(tmp))
+        cluster = Cluster(args, Path(tmp), auth)
         # every stored transition is a warm-up one (intrinsic 0): no scoring on either side
         warm = ["--warmup-steps", "100000000"]
         try:
@@ -238,6 +248,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--fill", type=int, default=600, help="transitions in the replay for the learner figures")
     p.add_argument("--device", default="cpu")
     p.add_argument("--learner-threads", type=int, default=1)
+    p.add_argument("--auth-rounds", type=int, default=0,
+                   help="also compare the actor and learner figures with Zenoh logins and the ACL on and off")
     args = p.parse_args(argv)
 
     def report(name: str, value: float) -> float:
@@ -276,8 +288,37 @@ def main(argv: list[str] | None = None) -> None:
         "cpu_count": os.cpu_count(),
         "load_avg_1m": [round(x, 2) for x in load],
     }
-    result["goals_met"] = {k: result[k] >= v for k, v in GOALS.items()}
+    if args.auth_rounds:
+        result.update(auth_comparison(args, report))
+        load.append(os.getloadavg()[0])
+        result["load_avg_1m"] = [round(x, 2) for x in load]
+    result["goals_met"] = {k: result[k] >= v for k, v in GOALS.items() if k in result}
     print(json.dumps(result))
+
+
+def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
+    """One-actor steps/s and learner updates/s with the router's logins and ACL on and off,
+    alternating (off first in odd rounds) so a drift of the machine's load falls on both."""
+    import statistics
+
+    runs: dict[bool, dict[str, list[float]]] = {on: {"actor": [], "learner": []} for on in (False, True)}
+    for i in range(args.auth_rounds):
+        for on in (False, True) if i % 2 == 0 else (True, False):
+            tag = "auth" if on else "open"
+            actor = service_actor_rate(args, 1, on)[0]
+            runs[on]["actor"].append(report(f"[{tag}] 1 actor process steps/s", actor))
+            learner = service_learner_rate(args, on)
+            runs[on]["learner"].append(report(f"[{tag}] learner service updates/s", learner))
+    med = {on: {k: statistics.median(v) for k, v in r.items()} for on, r in runs.items()}
+    return {
+        "auth_rounds": args.auth_rounds,
+        "open_actor_steps_per_s": [round(x, 2) for x in runs[False]["actor"]],
+        "auth_actor_steps_per_s": [round(x, 2) for x in runs[True]["actor"]],
+        "open_learner_updates_per_s": [round(x, 3) for x in runs[False]["learner"]],
+        "auth_learner_updates_per_s": [round(x, 3) for x in runs[True]["learner"]],
+        "auth_vs_open_actor": round(med[True]["actor"] / med[False]["actor"], 3),
+        "auth_vs_open_learner": round(med[True]["learner"] / med[False]["learner"], 3),
+    }
 
 
 if __name__ == "__main__":

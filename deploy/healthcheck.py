@@ -5,6 +5,8 @@
     replay    its liveliness token is visible through the router (NASA_ZENOH_CONNECT, NASA_RUN_ID)
     actor, evaluator
               the router they are told about (NASA_ZENOH_CONNECT) accepts a connection
+    robot_bridge
+              its liveliness token (bridge NASA_BRIDGE_ID) is visible through the router
 
 The image's HEALTHCHECK runs the learner's; the compose file and the Kubernetes manifests run
 the one of each service's role.
@@ -53,8 +55,18 @@ def replay() -> bool:
     from shared.wire import Keys
     from shared.zenoh_session import env_connect, env_run_id, open_client
 
-    with open_client(env_connect(), timeout_s=TIMEOUT_S) as session:
+    with open_client(env_connect(), timeout_s=TIMEOUT_S, role="replay") as session:
         replies = session.liveliness().get(Keys(env_run_id()).alive("replay", 0), timeout=TIMEOUT_S)
+        return any(reply.ok is not None for reply in replies)
+
+
+def robot_bridge() -> bool:
+    from shared.wire import BridgeKeys
+    from shared.zenoh_session import env_connect, open_client
+
+    # Logged in as an actor: the role that watches a bridge's token.
+    with open_client(env_connect(), timeout_s=TIMEOUT_S, role="actor") as session:
+        replies = session.liveliness().get(BridgeKeys(os.environ["NASA_BRIDGE_ID"]).alive, timeout=TIMEOUT_S)
         return any(reply.ok is not None for reply in replies)
 
 
@@ -63,7 +75,7 @@ def reaches_router() -> bool:
 
 
 CHECKS = {"learner": learner, "router": router, "replay": replay, "actor": reaches_router,
-          "evaluator": reaches_router}
+          "evaluator": reaches_router, "robot_bridge": robot_bridge}
 
 
 def main(argv: list[str]) -> int:

@@ -98,7 +98,13 @@ def status(argv: list[str]) -> None:
     print_status(argv)
 
 
-COMMANDS = {"train": train, "reproduce": reproduce, "plot": plot, "up": up, "status": status}
+def auth(argv: list[str]) -> None:
+    from nasa.auth import auth as run_auth
+
+    run_auth(argv)
+
+
+COMMANDS = {"train": train, "reproduce": reproduce, "plot": plot, "up": up, "status": status, "auth": auth}
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -17,6 +17,11 @@ with the same settings (else exit 2 naming the fields; only --steps may
 change). Every service is then started with `--run-config <data>/config.json`,
 so all of them run that file's settings.
 
+With `--bridge` (gripper tasks), each actor steps its gripper through a robot
+bridge process that `nasa up` starts first and supervises like the others
+(`with_bridges`): the MuJoCo stand-in, the real driver on an emulated servo
+bus, or the real gripper.
+
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
 then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM.
@@ -37,7 +42,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -46,8 +51,12 @@ from shared import envs, run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
+from shared.zenoh_auth import USERS_FILE
 
-STOP_ORDER = ("actor", "evaluator", "learner", "replay")
+RUN_AUTH = "run"
+"""--zenoh-auth's default: the run folder's own credentials."""
+
+STOP_ORDER = ("actor", "robot_bridge", "evaluator", "learner", "replay")  # a bridge e-stops as it stops
 
 
 def service_command(role: str) -> list[str]:
@@ -213,6 +222,18 @@ class UpCommand:
     """CPU priority (nice) of the evaluator process; default: low on a machine of under 4 cores."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
+    bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
+    """Gripper tasks: each actor steps its gripper through a robot bridge process, started and
+    restarted here: `stand-in` (the MuJoCo stand-in in the bridge), `emulator` (the real gripper's
+    driver and interlocks against an emulated servo bus, with a drawn camera), `hardware` (the real
+    gripper of --bridge-config; one actor and no evaluator, as there is one gripper). The evaluator
+    gets a bridge of its own. `off`: the environment in each service's process."""
+    bridge_config: Path | None = None
+    """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware."""
+    zenoh_auth: str = field(default_factory=lambda: os.environ.get("NASA_ZENOH_AUTH") or RUN_AUTH)
+    """Zenoh logins per role and the ACL at the router: `run` (default), the run folder's auth/,
+    made for this run when it holds no users.txt; a folder (`nasa auth init`; env NASA_ZENOH_AUTH);
+    `off`: no authentication, any local process may talk to the run."""
 
 
 def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
@@ -225,7 +246,60 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
     if cmd.actors < 0 or cmd.learner_threads < 0:
         raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
                           f"got {cmd.actors} and {cmd.learner_threads}")
+    check_bridge(cmd)
     return cmd, preset
+
+
+def check_bridge(cmd: UpCommand) -> None:
+    """--bridge needs a task a bridge serves; the real gripper needs its config, and is one gripper."""
+    if cmd.bridge == "off":
+        if cmd.bridge_config is not None:
+            raise ConfigError("--bridge-config is for --bridge hardware")
+        return
+    task = cmd.config.env.task
+    if not hasattr(envs.source_for(task), "make_remote"):
+        raise ConfigError(f"--bridge {cmd.bridge}: {task} is not a task a robot bridge serves (gripper-*)")
+    if cmd.config.env.action_repeat != 1:
+        raise ConfigError(f"--bridge: a robot bridge steps one action at a time; --action-repeat 1, "
+                          f"not {cmd.config.env.action_repeat}")
+    if cmd.bridge == "hardware" and cmd.bridge_config is None:
+        raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
+    if cmd.bridge == "hardware" and cmd.actors not in (0, 1):
+        raise ConfigError(f"--bridge hardware drives one gripper: --actors 1, not {cmd.actors}")
+
+
+def bridge_id(run_id: str, i: int | str) -> str:
+    """Actor i's robot bridge: bridges' keys are not under a run, so the id names the run."""
+    return f"{run_id}-{i}"
+
+
+def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dict[str, list[str]]:
+    """`service_argv`'s children plus, for --bridge, one robot bridge per actor (`robot_bridge-<i>`)
+    and one for the evaluator (`robot_bridge-eval`), started first, each client pointed at its
+    own; unchanged when --bridge is off."""
+    if cmd.bridge == "off":
+        return argv
+    c = cmd.config
+    how = {"emulator": ["--emulate"], "hardware": ["--config", str(cmd.bridge_config)]}.get(cmd.bridge, [])
+    actors = [name for name in argv if name.startswith("actor-")]
+    bridges = {
+        f"robot_bridge-{i}": [
+            "--bridge-id", bridge_id(run_id, i), "--task", c.env.task, "--seed", str(c.seed + i),
+            "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how,
+        ]
+        for i in range(len(actors))
+    }
+    if "evaluator" in argv:  # its own bridge: a bridge serves one client's episodes
+        bridges["robot_bridge-eval"] = [
+            "--bridge-id", bridge_id(run_id, "eval"), "--task", c.env.task, "--seed", str(c.seed + 1_000_000),
+            "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how,
+        ]  # fmt: skip
+    out = {**bridges, **argv}
+    for i, name in enumerate(actors):
+        out[name] = [*argv[name], "--bridge", bridge_id(run_id, i)]
+    if "evaluator" in argv:
+        out["evaluator"] = [*argv["evaluator"], "--bridge", bridge_id(run_id, "eval")]
+    return out
 
 
 def run_folder(cmd: UpCommand) -> Path:
@@ -242,8 +316,10 @@ def prepare(cmd: UpCommand, data: Path) -> RunConfig:
 
 def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Layout:
     """The services' layout: the flags where given, the rest chosen from the machine."""
-    return layout.choose(cores or layout.usable_cores(), gpu, cmd.actors, cmd.learner_threads,
-                         cmd.evaluator, cmd.evaluator_nice)
+    # One real gripper, whatever the machine: the actor's; no second one to evaluate on.
+    hardware = cmd.bridge == "hardware"
+    return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
+                         cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice)
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:
@@ -287,6 +363,7 @@ def up(argv: list[str]) -> None:
     env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": run_id}
     if lay.omp_passive:
         env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the user's own setting wins
+    auth = up_auth(cmd, data, run_id, env)
     from shared.zenoh_session import open_router
 
     stop = {"reason": ""}
@@ -297,10 +374,10 @@ def up(argv: list[str]) -> None:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     ended: Child | None = None
-    with open_router(endpoint):
+    with open_router(endpoint, auth=auth):
         sup = Supervisor(env, data / "logs" if cmd.logs else None)
         try:
-            for name, args in service_argv(cmd, data, lay).items():
+            for name, args in with_bridges(cmd, service_argv(cmd, data, lay), run_id).items():
                 role = name.split("-")[0]
                 sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0)
             print(f"nasa up: run {run_id} in {data}; router {endpoint}; "
@@ -320,6 +397,23 @@ def up(argv: list[str]) -> None:
     lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
+
+
+def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Path | None:
+    """The run's auth folder (made for this run when it has no credentials yet), passed on to every
+    service in `env`; None with --zenoh-auth off."""
+    if cmd.zenoh_auth == "off":
+        env.pop("NASA_ZENOH_AUTH", None)
+        return None
+    from shared import zenoh_auth
+
+    folder = data / "auth" if cmd.zenoh_auth == RUN_AUTH else Path(cmd.zenoh_auth)
+    if not (folder / USERS_FILE).exists():
+        zenoh_auth.init(folder, run_id)
+    zenoh_auth.check_acl(folder, run_id)
+    env["NASA_ZENOH_AUTH"] = str(folder.resolve())
+    print(f"nasa up: Zenoh logins and access control from {folder} (--zenoh-auth off: none)", flush=True)
+    return folder
 
 
 def status(argv: list[str]) -> None:

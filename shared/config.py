@@ -239,13 +239,25 @@ PRESETS: dict[str, dict[str, object]] = {
 }
 PRESET_NAMES = ("auto", *PRESETS)
 
+# A preset's per-task variants, by task-name prefix: what a task's own definition fixes over the
+# preset. The gripper's 50-step episodes are the paper's task only at one action per step.
+TASK_VARIANTS: dict[str, dict[str, dict[str, object]]] = {
+    "cpu-small": {"gripper-": {"env.action_repeat": 1}},
+}
 
-def apply_preset(config: TrainConfig, preset: str) -> TrainConfig:
-    """A copy of `config` with the preset's values set."""
+
+def apply_preset(config: TrainConfig, preset: str, task: str | None = None) -> TrainConfig:
+    """A copy of `config` with the preset's values set, and its variant for `task` (default: the
+    config's task) where it has one."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESET_NAMES)}")
     config = from_dict(to_dict(config))
-    for key, value in PRESETS[preset].items():
+    task = config.env.task if task is None else task
+    values = dict(PRESETS[preset])
+    for prefix, variant in TASK_VARIANTS.get(preset, {}).items():
+        if task.startswith(prefix):
+            values |= variant
+    for key, value in values.items():
         target = config
         *parents, name = key.split(".")
         for parent in parents:
@@ -261,6 +273,7 @@ def auto_preset(device_type: str) -> str:
     return "paper" if device_type == "cuda" else "cpu-small"
 
 
-def default_config(algo: str, preset: str) -> TrainConfig:
-    """Reference settings of `algo` with a preset applied."""
-    return apply_preset(TrainConfig(algo=algo, agent=agent_defaults(algo)), preset)  # type: ignore[arg-type]
+def default_config(algo: str, preset: str, task: str | None = None) -> TrainConfig:
+    """Reference settings of `algo` with a preset (and its variant for `task`) applied."""
+    config = TrainConfig(algo=algo, agent=agent_defaults(algo))  # type: ignore[arg-type]
+    return apply_preset(config, preset, task)

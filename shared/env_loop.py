@@ -9,6 +9,7 @@ decides what happens between steps (updates, weights, evaluation).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
@@ -29,6 +30,7 @@ class EnvLoop:
         self.episode_return = 0.0
         self.episode_length = 0
         self.steps = 0  # over every episode
+        self.last_step_s = 0.0  # the environment's time for the newest step (the adder's wait aside)
 
     def reset(self) -> TimeStep:
         """Begin an episode (the adder gets its first frame)."""
@@ -40,7 +42,9 @@ class EnvLoop:
 
     def step(self, action: np.ndarray, policy_version: int = 0) -> TimeStep:
         """One environment step; the transition goes to the adder with the policy version that chose it."""
+        start = time.perf_counter()
         ts = self.env.step(action)
+        self.last_step_s = time.perf_counter() - start
         self.episode_return += ts.reward
         self.episode_length += 1
         self.steps += 1

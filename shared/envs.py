@@ -45,6 +45,11 @@ class UnknownTaskError(ValueError):
     """A task name that no environment source owns."""
 
 
+class EnvUnavailable(RuntimeError):
+    """A remote environment (a robot bridge) is gone or refuses for now: the episode under way
+    is abandoned, and the caller starts a new one once the environment is back."""
+
+
 @dataclass(frozen=True)
 class EnvSpec:
     """What a learner, a replay or a network needs to know about an environment."""
@@ -279,6 +284,16 @@ class FrameStack:
         self.spec = EnvSpec(env.frame_shape, k, env.action_dim)
         self.action_dim = env.action_dim
         self.obs_shape = self.spec.obs_shape
+
+    @property
+    def pixels(self) -> Pixels:
+        """The layer below, which renders each frame (a suite task, the stand-in, a robot bridge)."""
+        return self._env
+
+    def fault(self) -> str | None:
+        """The environment's fault state where it reports one (a robot bridge); None otherwise."""
+        fault = getattr(self._env, "fault", None)
+        return fault() if fault is not None else None
 
     def rng_state(self) -> dict:
         return self._env.rng_state()

@@ -54,14 +54,16 @@ def bad_input_errors() -> tuple[type[Exception], ...]:
     """The errors that mean the user's input is wrong, not that something crashed.
 
     ConfigError covers shared.run_config.ConfigMismatch (settings that differ from the
-    run's); StoreFormatError is a replay folder this config or version cannot open.
+    run's); StoreFormatError is a replay folder this config or version cannot open; AuthError an auth
+    folder without this role's credential.
     """
     from shared.checkpoint import CheckpointError  # torch: imported only when needed
     from shared.device import DeviceError
     from shared.envs import UnknownTaskError
     from shared.replay.log import StoreFormatError
+    from shared.zenoh_auth import AuthError
 
-    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError)
+    return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError, AuthError)
 
 
 def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
@@ -75,10 +77,10 @@ def parse_with_preset(
 ) -> tuple[T, str]:
     """Parse a dataclass with fields `config` and `preset`; returns it and the preset used.
 
-    --preset, --algo and --device are read first: they choose the defaults (shared.config's)
-    every other flag overrides. With `base` (a run's config), or when `cls` has a
-    `run_config` field and --run-config FILE is given, that config is the default
-    instead, and the preset returned is "run".
+    --preset, --algo, --device and --task are read first: they choose the defaults (shared.config's
+    preset and its variant for the task) every other flag overrides. With `base` (a run's
+    config), or when `cls` has a `run_config` field and --run-config FILE is given, that config
+    is the default instead, and the preset returned is "run".
     """
     defaults = TrainConfig()
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
@@ -86,6 +88,7 @@ def parse_with_preset(
     pre.add_argument("--algo", default=defaults.algo)
     pre.add_argument("--device", default=defaults.device)
     pre.add_argument("--run-config", type=Path, default=None)
+    pre.add_argument("--task", default=None)  # a preset may have a variant for it
     known, _ = pre.parse_known_args(argv)
     if known.preset not in PRESET_NAMES:
         raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
@@ -99,7 +102,7 @@ def parse_with_preset(
         if preset == "auto":
             # Only the device's type matters here; do not import torch for --help.
             preset = auto_preset(_device_type(known.device))
-        config = default_config(known.algo, preset)
+        config = default_config(known.algo, preset, known.task)
     default = cls(config=config, preset=known.preset)  # type: ignore[call-arg]
     args = tyro.cli(cls, args=argv, default=default, prog=prog)
     validate(args.config)  # type: ignore[attr-defined]
@@ -217,7 +220,8 @@ def run_service(
         args, _ = parse(cls, argv, prog)
         stop = StopFlag()
         stop.install_signal_handlers()
-        with open_client(args.connect) as session:  # type: ignore[attr-defined]
+        role = prog.rsplit(".", 1)[-1]  # "python -m services.<role>": its Zenoh login under auth
+        with open_client(args.connect, role=role) as session:  # type: ignore[attr-defined]
             run(args, session, stop)
     except bad_input_errors() as err:
         print(f"{prog}: error: {err}", file=sys.stderr, flush=True)

@@ -20,8 +20,11 @@ services count and log it and carry on.
 | learner/weights/latest (queryable) | Weights    | learner answers      | actors, evaluator at start    |
 | actor/status/<actor_id>      | ActorStatus      | actor (1 Hz)         | learner                       |
 | eval/result                  | EvalResult       | evaluator (BLOCK)    | learner (writes eval.csv)     |
-| control/stop                 | Stop             | learner (run done), nasa up | every service          |
+| control/stop                 | Stop             | learner (run done), operator | every service         |
 | alive/<role>/<id>[/<inc>]    | liveliness token | every service        | learner (actors' alive flag)  |
+
+`routes()` holds the same wiring as data (who puts, answers or declares on each key, and who
+listens): the router's access-control list (shared/zenoh_auth.py) is made from it.
 
 Frames travel once: an actor sends each newly rendered frame (3, H, W) once,
 never stacks; a batch's frames are delta-coded to the previous frame of the
@@ -71,11 +74,15 @@ def check_run_id(run_id: str) -> str:
     return run_id
 
 
-class Keys:
-    """The key expressions of one run."""
+ANY = "*"
+"""A run or bridge id that stands for every one, in key expressions that match every run's (the ACL's)."""
 
-    def __init__(self, run_id: str) -> None:
-        self.run_id = check_run_id(run_id)
+
+class Keys:
+    """The key expressions of one run (of every run for `Keys(ANY, wildcard=True)`)."""
+
+    def __init__(self, run_id: str, *, wildcard: bool = False) -> None:
+        self.run_id = run_id if wildcard and run_id == ANY else check_run_id(run_id)
         p = f"{PREFIX}/{run_id}"
         self.prefix = p
         self.insert_all = f"{p}/replay/insert/*"
@@ -92,13 +99,13 @@ class Keys:
         self.alive_all = f"{p}/alive/**"
         self.alive_actors = f"{p}/alive/actor/**"
 
-    def insert(self, actor_id: int) -> str:
+    def insert(self, actor_id: int | str) -> str:
         return f"{self.prefix}/replay/insert/{actor_id}"
 
-    def ack(self, actor_id: int) -> str:
+    def ack(self, actor_id: int | str) -> str:
         return f"{self.prefix}/replay/ack/{actor_id}"
 
-    def actor_status(self, actor_id: int) -> str:
+    def actor_status(self, actor_id: int | str) -> str:
         return f"{self.prefix}/actor/status/{actor_id}"
 
     def alive(self, role: str, ident: str | int, incarnation: int | None = None) -> str:
@@ -246,6 +253,20 @@ class ActorStatus(Message):
     steps_per_s: float
     episode_returns: list
     """(return, length) of each episode finished since the previous status."""
+    fault: str | None = None
+    """The environment's fault state where it reports one (a robot bridge: ok, estop, overload,
+    torque_off, bridge_lost, ...); None for environments without one (the suite's tasks)."""
+    step_counts: list = field(default_factory=list)
+    """This incarnation's env steps per bucket of STEP_SECONDS_BUCKETS, the last one slower than
+    all (empty: not measured); with step_seconds, a Prometheus histogram's figures."""
+    step_seconds: float = 0.0
+    """This incarnation's total env step time."""
+
+
+STEP_SECONDS_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+"""Upper bounds of the env step time histogram's buckets (seconds): a suite task's step to a real
+robot's (which the paper's budget puts under a second)."""
+MAX_FAULT_TEXT = 64
 
 
 @dataclass
@@ -550,6 +571,13 @@ def check_actor_status(m: ActorStatus, b: Bounds) -> None:
         ok = (isinstance(e, list) and len(e) == 2 and _is_number(e[0]) and abs(e[0]) <= 1e12
               and isinstance(e[1], int) and not isinstance(e[1], bool) and 0 <= e[1] < MAX_INT)
         _need(ok, f"episode return {e!r} is not [finite return, length]")
+    _need(m.fault is None or len(m.fault) <= MAX_FAULT_TEXT, "fault: longer than a state name")
+    counts = m.step_counts
+    _need(not counts or len(counts) == len(STEP_SECONDS_BUCKETS) + 1,
+          f"step_counts: {len(counts)} buckets, expected {len(STEP_SECONDS_BUCKETS) + 1}")
+    _need(all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < MAX_INT for n in counts),
+          "step_counts: not counts")
+    _need(m.step_seconds >= 0, f"step_seconds {m.step_seconds}")
 
 
 def check_eval_result(m: EvalResult, b: Bounds) -> None:
@@ -590,8 +618,8 @@ CHECKS: dict[type[Message], Any] = {
 class BridgeKeys:
     """The key expressions of one robot bridge."""
 
-    def __init__(self, bridge_id: str | int) -> None:
-        ident = check_run_id(str(bridge_id))
+    def __init__(self, bridge_id: str | int, *, wildcard: bool = False) -> None:
+        ident = ANY if wildcard and bridge_id == ANY else check_run_id(str(bridge_id))
         p = f"{PREFIX}/bridge/{ident}"
         self.prefix = p
         self.spec = f"{p}/spec"
@@ -667,3 +695,53 @@ MESSAGES.update({
     cls.TYPE: cls
     for cls in (BridgeSpecRequest, BridgeSpec, BridgeReset, BridgeStep, BridgeReply, BridgeEStop)
 })
+
+
+# -- who may do what on each key (the access-control list is made from this) -----------------------
+
+PUT, QUERY, TOKEN = "put", "query", "token"
+ROLES = ("actor", "replay", "learner", "evaluator", "bridge", "operator")
+"""The roles a process connects to the router as; `operator` is a person's or launcher's credential."""
+
+
+@dataclass(frozen=True)
+class Route:
+    """One key expression and who uses it. `kind` PUT: `senders` put, `receivers` subscribe.
+    QUERY: `senders` answer (a queryable), `receivers` query. TOKEN: `senders` declare a liveliness
+    token, `receivers` watch or query it."""
+
+    key: str
+    kind: str
+    senders: tuple[str, ...]
+    receivers: tuple[str, ...]
+
+
+def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
+    """The wiring of the table above, from `Keys` and `BridgeKeys` (per-id keys for every id)."""
+    k, b = Keys(run_id, wildcard=True), BridgeKeys(bridge_id, wildcard=True)
+    services = ("replay", "learner", "actor", "evaluator")
+    return (
+        Route(k.insert(ANY), PUT, ("actor",), ("replay",)),
+        Route(k.ack(ANY), PUT, ("replay",), ("actor",)),
+        Route(k.sample, QUERY, ("replay",), ("learner",)),
+        Route(k.unscored, QUERY, ("replay",), ("learner",)),
+        Route(k.intrinsic, PUT, ("learner",), ("replay",)),
+        Route(k.config, QUERY, ("replay",), ("learner", "actor", "evaluator")),
+        Route(k.replay_stats, PUT, ("replay",), ("learner", "actor", "evaluator")),
+        Route(k.weights, PUT, ("learner",), ("actor", "evaluator")),
+        Route(k.weights_latest, QUERY, ("learner",), ("actor", "evaluator")),
+        Route(k.actor_status(ANY), PUT, ("actor",), ("learner",)),
+        Route(k.eval_result, PUT, ("evaluator",), ("learner",)),
+        # The learner ends a finished run; an operator may stop one. No other role can.
+        Route(k.stop, PUT, ("learner", "operator"), services),
+        Route(k.alive("actor", "**"), TOKEN, ("actor",), ("learner",)),
+        # The replay's own container healthcheck asks for its token, under the replay's credentials.
+        Route(k.alive("replay", "**"), TOKEN, ("replay",), ("actor", "replay")),
+        Route(k.alive("learner", "**"), TOKEN, ("learner",), ()),
+        Route(k.alive("evaluator", "**"), TOKEN, ("evaluator",), ()),
+        Route(b.spec, QUERY, ("bridge",), ("actor",)),
+        Route(b.reset, QUERY, ("bridge",), ("actor",)),
+        Route(b.step, QUERY, ("bridge",), ("actor",)),
+        Route(b.estop, PUT, ("operator",), ("bridge",)),
+        Route(b.alive, TOKEN, ("bridge",), ("actor",)),
+    )

@@ -4,6 +4,8 @@ Services connect as clients to a router (`NASA_ZENOH_CONNECT`, e.g.
 tcp/127.0.0.1:7447); `nasa up` and `python -m services.router` run that
 router. Multicast scouting is off: a service talks only to the router it is
 told about, so runs on one host never find each other by accident.
+With an auth folder (NASA_ZENOH_AUTH, shared/zenoh_auth.py) clients log in as their role and the
+router checks logins and its access-control list; without one nothing changes.
 Use the returned session as a context manager: a process holding a callback
 subscriber hangs at exit unless its session is closed.
 """
@@ -20,6 +22,7 @@ from typing import Annotated
 import tyro
 import zenoh
 
+from shared import zenoh_auth
 from shared.config import DEFAULT_PRESET, TrainConfig
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -40,13 +43,22 @@ def _base_config(mode: str) -> zenoh.Config:
     return config
 
 
-def open_client(connect: str, timeout_s: float = 30.0) -> zenoh.Session:
-    """A client session to the router(s) in `connect` (comma-separated endpoints), retried until up."""
+def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
+                auth: Path | None = None) -> zenoh.Session:
+    """A client session to the router(s) in `connect` (comma-separated endpoints), retried until up.
+
+    With an auth folder (`auth`, else env NASA_ZENOH_AUTH) it logs in as `role`; a router that
+    refuses the login looks like one that is not up, so this raises zenoh.ZError after `timeout_s`."""
     endpoints = [e.strip() for e in connect.split(",") if e.strip()]
     if not endpoints:
         raise ValueError("no Zenoh endpoint to connect to (set --connect or NASA_ZENOH_CONNECT)")
     config = _base_config("client")
     config.insert_json5("connect/endpoints", json.dumps(endpoints))
+    folder = auth or zenoh_auth.env_auth()
+    if folder is not None:
+        if role is None:
+            raise zenoh_auth.AuthError(f"an auth folder ({folder}) is set, but this session has no role")
+        zenoh_auth.apply_client(config, folder, role)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -57,10 +69,13 @@ def open_client(connect: str, timeout_s: float = 30.0) -> zenoh.Session:
             time.sleep(0.2)
 
 
-def open_router(listen: str) -> zenoh.Session:
-    """A session in router mode listening on `listen` (e.g. tcp/127.0.0.1:7447): the run's router."""
+def open_router(listen: str, auth: Path | None = None) -> zenoh.Session:
+    """A session in router mode listening on `listen` (e.g. tcp/127.0.0.1:7447): the run's router.
+    With an auth folder it accepts only the logins of its users.txt and enforces its acl.json."""
     config = _base_config("router")
     config.insert_json5("listen/endpoints", json.dumps([listen]))
+    if auth is not None:
+        zenoh_auth.apply_router(config, auth)
     return zenoh.open(config)
 
 

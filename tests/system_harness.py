@@ -14,7 +14,7 @@ from pathlib import Path
 
 import httpx
 
-from nasa.up import Supervisor, free_port, layout_of, parse_up, prepare, service_argv
+from nasa.up import Supervisor, free_port, layout_of, parse_up, prepare, service_argv, with_bridges
 from shared.zenoh_session import open_router
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,7 +47,8 @@ class System:
         ])
         cmd.evaluator = evaluator
         prepare(cmd, data)
-        argv = service_argv(cmd, data, layout_of(cmd, gpu=False))
+        # robot bridges, for --bridge
+        argv = with_bridges(cmd, service_argv(cmd, data, layout_of(cmd, gpu=False)), f"t{self.port}")
         argv["replay"] += ["--error-buffer", str(ERROR_BUFFER), *(replay_extra or [])]
         for name, args in argv.items():
             self.sup.add(name, name.split("-")[0], args)

@@ -82,6 +82,19 @@ def test_presets_touch_only_existing_fields_and_round_trip():
         apply_preset(TrainConfig(), "huge")
 
 
+def test_a_preset_has_per_task_variants_and_flags_still_win():
+    from nasa.cli import parse_train
+
+    # cpu-small repeats actions 8 times on the suite's tasks; the gripper's task is one action a step
+    assert default_config("nasa_td3", "cpu-small", "ball_in_cup-catch").env.action_repeat == 8
+    assert default_config("nasa_td3", "cpu-small", "gripper-valve_reset").env.action_repeat == 1
+    assert default_config("nasa_td3", "paper", "gripper-valve").env.action_repeat == 1
+    cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve"])
+    assert cmd.config.env.action_repeat == 1 and cmd.config.env.image_size == 64  # the rest is the preset's
+    cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve", "--action-repeat", "2"])
+    assert cmd.config.env.action_repeat == 2
+
+
 @pytest.mark.parametrize("command", ["train", "up"])
 def test_every_config_field_has_a_cli_flag(command, capsys):
     from nasa.cli import main

@@ -138,4 +138,5 @@ def _check_run_folder(compose: Compose) -> None:
                  "/data", "-type", "f", "-size", "+0"]).stdout.split()
     assert "/data/learner/checkpoint.pt" in files, files
     assert "/data/replay/MANIFEST.json" in files, files
+    assert any(f.startswith("/data/media/") for f in files), files  # the evaluator's, on the same volume
     assert any(f.startswith("/data/replay/") and f != "/data/replay/MANIFEST.json" for f in files), files

@@ -47,5 +47,8 @@ def test_a_bridge_behind_the_same_spec(tmp_path) -> None:
                 assert env.reset().obs.shape == env.spec.obs_shape
                 with pytest.raises(BridgeMismatch, match="gripper-valve_reset"):
                     GripperSource().make_remote(EnvConfig(task="gripper-valve_reset"), actor, "src")
+                with pytest.raises(BridgeMismatch, match="--action-repeat 1"):
+                    repeated = EnvConfig(task="gripper-valve", action_repeat=8)
+                    GripperSource().make_remote(repeated, actor, "src")
         finally:
             sim.close()

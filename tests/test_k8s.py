@@ -58,6 +58,9 @@ def test_manifests_have_the_topology():
         (claim,) = by_name[name]["spec"]["volumeClaimTemplates"]
         (mount,) = by_name[name]["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
         assert mount == {"name": claim["metadata"]["name"], "mountPath": "/data"}
+    evaluator = by_name["evaluator"]["spec"]["template"]["spec"]  # its pictures: a scratch volume
+    assert evaluator["containers"][0]["volumeMounts"] == [{"name": "media", "mountPath": "/data"}]
+    assert evaluator["volumes"] == [{"name": "media", "emptyDir": {}}]
     assert by_name["actor"]["spec"]["replicas"] == int(load_env()["ACTORS"])
     # the GPU request is there for whoever turns it on
     assert "nvidia.com/gpu: 1" in (K8S / "learner.yaml").read_text()

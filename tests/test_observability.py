@@ -35,9 +35,10 @@ STATUS = {
     "a_field_added_later": {"count": 7},
     "actors": [
         {"id": 0, "incarnation": 1111, "alive": True, "env_steps": 170, "episodes": 4, "policy_version": 300,
-         "steps_per_s": 6.5, "last_seen_s": 0.25},
+         "steps_per_s": 6.5, "last_seen_s": 0.25, "fault": "estop",
+         "env_step_seconds": {"count": 170, "sum": 0.85, "le": {"0.001": 0, "0.005": 150, "+Inf": 170}}},
         {"id": 1, "incarnation": 2222, "alive": False, "env_steps": 175, "episodes": 4, "policy_version": 280,
-         "steps_per_s": 6.0, "last_seen_s": 3.5},
+         "steps_per_s": 6.0, "last_seen_s": 3.5, "fault": None, "env_step_seconds": None},
     ],
     "policy_lag": {"mean": 14.5, "max": 41},
     "losses": {"critic_loss": 0.5, "actor_loss": -1.25, "ae_loss": 0.03, "ensemble_loss": 0.001},
@@ -70,6 +71,14 @@ def expected_samples(status: dict) -> dict[tuple[str, tuple], float]:
     for a in status["actors"]:
         for key, name, _, _ in ACTOR_FIGURES:
             want[(name, (("actor", str(a["id"])),))] = float(a[key])
+        label = (("actor", str(a["id"])),)
+        if a["fault"] is not None:
+            want[("nasa_actor_fault_state", (*label, ("state", a["fault"])))] = 1.0
+        if (h := a["env_step_seconds"]) is not None:
+            want[("nasa_actor_env_step_duration_seconds_count", label)] = float(h["count"])
+            want[("nasa_actor_env_step_duration_seconds_sum", label)] = h["sum"]
+            for le, n in h["le"].items():
+                want[("nasa_actor_env_step_duration_seconds_bucket", (*label, ("le", le)))] = float(n)
     for key, entry in status["nonfinite"]["losses"].items():
         want[("nasa_nonfinite_losses_total", (("name", key),))] = float(entry["count"])
     want[("nasa_replay_write_failing", ())] = 1.0
@@ -106,9 +115,12 @@ def test_metrics_parse_and_hold_every_figure_of_status():
     covered = {path for path, *_ in SCALARS} | {"policy_lag.mean", "policy_lag.max"} \
         | {f"losses.{k}" for k in STATUS["losses"]} | {"intrinsic.novelty_mean", "intrinsic.surprise_mean"} \
         | {f"actors[].{key}" for key, *_ in ACTOR_FIGURES} | {"actors[].id"} | set(INFO) \
+        | {"actors[].fault", "actors[].env_step_seconds"} \
         | {"nonfinite.losses.critic_loss.count", "nonfinite.losses.critic_loss.last", "replay.write_error",
            "a_field_added_later.count"} | {"nonfinite.dropped_rows[]"}
     assert leaves(STATUS) <= covered, leaves(STATUS) - covered
+    # An actor whose environment reports no fault state (a suite task) has no fault series.
+    assert not any(name == "nasa_actor_fault_state" and ("actor", "1") in labels for name, labels in got)
     # Counters end in _total; no series carries the run id.
     assert all(name.endswith("_total") for _, name, kind, _ in SCALARS if kind == "counter")
     assert not any(dict(labels).get("run_id") for (name, labels) in got if name != "nasa_run_info")

@@ -88,7 +88,7 @@ def test_a_child_that_refuses_its_input_is_not_restarted_and_its_error_is_report
 
 def test_stop_all_stops_role_by_role_in_order(tmp_path):
     sup = supervisor(tmp_path, WAIT_FOR_SIGTERM)
-    roles = ["replay", "learner", "actor", "evaluator"]  # started in another order than stopped
+    roles = ["replay", "learner", "robot_bridge", "actor", "evaluator"]  # not in the order they stop
     for role in roles:
         sup.add(role, role, [str(tmp_path)])
     wait_ready(tmp_path, roles)

@@ -61,13 +61,13 @@ def test_docker_compose_1_29_accepts_the_file():
 
 def test_compose_has_the_topology():
     services = load_compose()["services"]
-    assert set(services) == {*ROLES, "learner-gpu"}
+    assert set(services) == {*ROLES, "learner-gpu", "robot_bridge", "actor-robot"}
     env = load_env()
     for name, svc in services.items():
         assert svc["image"] == env["IMAGE"]
         assert svc["build"]["dockerfile"] == "deploy/Dockerfile"
         assert (COMPOSE.parent / svc["build"]["context"] / svc["build"]["dockerfile"]).exists()
-        role = name.removesuffix("-gpu")
+        role = name.removesuffix("-gpu").removesuffix("-robot")
         assert svc["command"][:3] == ["python", "-m", f"services.{role}"]
         assert svc["healthcheck"]["test"] == ["CMD", "python", "/opt/nasa/healthcheck.py", role]
         if role != "router":
@@ -87,7 +87,18 @@ def test_compose_has_the_topology():
     (device,) = services["learner-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert device["driver"] == "nvidia" and device["capabilities"] == ["gpu"]
     assert flag_values(services["learner-gpu"]["command"])["--device"] == "cuda"
-    for name in ("replay", "learner", "learner-gpu"):
+    # the robot profile: the bridge owns the host's servo bus and camera, its actor steps it
+    bridge, robot_actor = services["robot_bridge"], services["actor-robot"]
+    assert bridge["profiles"] == robot_actor["profiles"] == ["robot"]
+    assert bridge["devices"] == [f"{env['SERIAL_DEVICE']}:{env['SERIAL_DEVICE']}",
+                                 f"{env['CAMERA_DEVICE']}:{env['CAMERA_DEVICE']}"]
+    config = flag_values(bridge["command"][3:])["--config"]
+    assert f"{env['GRIPPER_CONFIG']}:{config}:ro" in bridge["volumes"]
+    assert flag_values(bridge["command"][3:])["--bridge-id"] == env["BRIDGE_ID"] == bridge["environment"][
+        "NASA_BRIDGE_ID"]
+    assert flag_values(robot_actor["command"][3:])["--bridge"] == env["BRIDGE_ID"]
+    assert "robot_bridge" in robot_actor["depends_on"] and "ports" not in bridge
+    for name in ("replay", "learner", "learner-gpu", "evaluator"):  # the evaluator's media: the dashboard's
         assert "run-data:/data" in services[name]["volumes"]
         assert flag_values(services[name]["command"])["--data"] == "/data"
 
@@ -98,8 +109,10 @@ def test_every_service_gets_the_same_config_flags():
     expected = {"--preset": env["PRESET"], "--task": env["TASK"], "--algo": env["ALGO"],
                 "--seed": env["SEED"], "--steps": env["STEPS"]}
     for name, svc in services.items():
-        if name != "router":
-            flags = flag_values(svc["command"][3:])
+        flags = flag_values(svc["command"][3:])
+        if name == "robot_bridge":  # it takes the task and seed only: it is no learner's client
+            assert (flags["--task"], flags["--seed"]) == (env["TASK"], env["SEED"])
+        elif name != "router":
             assert {f: flags[f] for f in CONFIG_FLAGS} == expected, name
 
 
@@ -118,8 +131,9 @@ def test_env_file_holds_every_setting_and_nothing_else():
     assert used - set(env) == set(), "compose uses variables .env does not define"
     compose_own = {"COMPOSE_PROJECT_NAME", "COMPOSE_PROFILES"}
     assert set(env) - used - compose_own == set(), ".env sets variables compose does not use"
-    # every variable but TORCH_INDEX (empty: the variant's own index) must be set: ${VAR:?}
-    for name in used - {"TORCH_INDEX"}:
+    # every variable must be set (${VAR:?}) but those whose empty value means something: TORCH_INDEX
+    # (the variant's own index), NASA_ZENOH_AUTH (no Zenoh logins), NASA_API_TOKEN (open controls)
+    for name in used - {"TORCH_INDEX", "NASA_ZENOH_AUTH", "NASA_API_TOKEN"}:
         assert re.search(rf"\$\{{{name}:\?", COMPOSE.read_text()), f"{name} has a default outside .env"
 
 

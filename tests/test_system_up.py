@@ -7,6 +7,7 @@ import contextlib
 import json
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -87,10 +88,13 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         assert first.startswith("nasa up: preset cpu-small (auto: no GPU"), first
         chosen = up.stdout.readline()  # the layout: the flags' values kept, the rest from the machine
         assert "1 actor(s), learner 1 torch thread(s)" in chosen and "evaluator own process" in chosen, chosen
+        # Logins on by default: the run's own credentials, readable by its owner only.
+        assert f"Zenoh logins and access control from {data / 'auth'}" in up.stdout.readline()
         assert f"http://127.0.0.1:{port}/status" in up.stdout.readline()
         status = wait_status(up, port, lambda s: s["actors"] and s["updates"] > 0, "actors and updates")
         assert status["task"] == "cartpole-balance" and status["algo"] == "nasa_td3"
         assert not status["resumed"]
+        assert stat.S_IMODE((data / "auth" / "users.txt").stat().st_mode) == 0o600
         stop_with_ctrl_c(up)
     assert (data / "replay" / "MANIFEST.json").exists() and (data / "learner" / "checkpoint.pt").exists()
 

@@ -16,10 +16,20 @@
 - Replay loss: while the replay is gone the actor does not act; the episode
   under way is abandoned (the writer marks it broken), so the first batch
   after the replay's return starts a new episode.
+- Robot bridge (`--bridge ID`): the environment is a bridge's (the gripper, or
+  its stand-in, in its own process), stacked here. While the bridge's
+  liveliness token is gone, or it refuses (e-stop, a fault), the actor sends
+  nothing and waits; the episode under way is abandoned and a new one starts
+  when the bridge is back.
+- Reports: each heartbeat carries the environment's fault state where it has
+  one (the bridge's safety state; the worst seen since the previous heartbeat)
+  and the counts of a histogram of env step times.
 """
 
 from __future__ import annotations
 
+import bisect
+import contextlib
 import os
 import random
 import threading
@@ -31,8 +41,10 @@ import numpy as np
 import torch
 import zenoh
 
+from services.robot_bridge.client import BRIDGE_LOST, BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import collect_action, make_agent
+from shared.config import ConfigError
 from shared.env_loop import EnvLoop
 from shared.replay.adder import ZenohWriter
 from shared.service import Log, StopFlag
@@ -65,6 +77,26 @@ class ActorArgs(ServiceArgs):
     status_every_s: float = 1.0
     threads: int = 1
     """torch threads for acting."""
+    bridge: str = ""
+    """Step the environment through the robot bridge of this id (`python -m services.robot_bridge
+    --bridge-id ID`) instead of in this process; "": in this process."""
+
+
+PAUSE_S = 1.0
+"""How long an actor waits before it asks a bridge that refused (e-stop, fault) for a new episode."""
+
+
+class StepTimes:
+    """Env step times counted in the buckets of wire.STEP_SECONDS_BUCKETS since this incarnation
+    began: a Prometheus histogram's figures, which each heartbeat carries to the learner."""
+
+    def __init__(self) -> None:
+        self.counts = [0] * (len(wire.STEP_SECONDS_BUCKETS) + 1)
+        self.total_s = 0.0
+
+    def observe(self, seconds: float) -> None:
+        self.counts[bisect.bisect_left(wire.STEP_SECONDS_BUCKETS, seconds)] += 1
+        self.total_s += seconds
 
 
 class StepRate:
@@ -96,7 +128,17 @@ class ActorService:
         self.incarnation = new_incarnation()
         self.log = Log(f"actor {self.actor_id}")
         seeds = np.random.SeedSequence([c.seed, self.actor_id, self.incarnation]).generate_state(2)
-        self.env = envs.from_config(c.env, int(seeds[0]) % 2**31)
+        self.bridge: BridgePresence | None = None
+        if args.bridge:
+            if not hasattr(envs.source_for(c.env.task), "make_remote"):
+                raise ConfigError(f"--bridge: {c.env.task} is not a task a robot bridge serves")
+            self.bridge = BridgePresence(session, args.bridge)
+        # A bridge's environment is built once the bridge is there (`_connect`).
+        env_seed = int(seeds[0]) % 2**31
+        self.env: envs.PixelEnv | None = None if args.bridge else envs.from_config(c.env, env_seed)
+        self.loop: EnvLoop | None = None
+        self.step_times = StepTimes()
+        self._fault_seen: str | None = None
         self.rng = np.random.default_rng(int(seeds[1]))
         torch.manual_seed(int(seeds[1]))
         torch.set_num_threads(max(1, args.threads))
@@ -125,53 +167,115 @@ class ActorService:
     def policy_version(self) -> int:
         return self.weights.version or 0
 
-    def _publish_status(self, env_steps: int) -> None:
+    @property
+    def env_steps(self) -> int:
+        return self.loop.steps if self.loop is not None else 0
+
+    def fault(self) -> str | None:
+        """The environment's fault state now: a bridge that is gone is `bridge_lost`."""
+        if self.bridge is not None and (self.env is None or not self.bridge.present):
+            return BRIDGE_LOST
+        fault = getattr(self.env, "fault", None)
+        return fault() if fault is not None else None
+
+    def _note_fault(self) -> None:
+        """Keep a fault met between two heartbeats for the next one, however briefly it lasted."""
+        fault = self.fault()
+        if fault not in (None, "ok"):
+            self._fault_seen = fault
+
+    def _publish_status(self) -> None:
+        env_steps = self.env_steps
         steps_per_s = self._rate.update(time.monotonic(), env_steps)
         finished, self._finished = self._finished, []
+        fault, self._fault_seen = self._fault_seen or self.fault(), None
+        times = self.step_times
         status = wire.ActorStatus(self.actor_id, self.incarnation, env_steps, self.episodes,
-                                  self.policy_version, steps_per_s, finished)
+                                  self.policy_version, steps_per_s, finished, fault, list(times.counts),
+                                  times.total_s)
         self.session.put(self.keys.actor_status(self.actor_id), wire.encode(status))
 
     def run(self) -> None:
         s, k = self.session, self.keys
-        loop = EnvLoop(self.env, self.writer, self.config.env.time_limit)
         with (
             self.writer,
             self.weights.subscribe(s, k),
             s.declare_subscriber(k.stop, self._on_stop),
             s.liveliness().declare_token(k.alive("actor", self.actor_id, self.incarnation)),
+            self.bridge if self.bridge is not None else contextlib.nullcontext(),
         ):
-            self.log(f"incarnation {self.incarnation} acting on {self.config.env.task} (run {k.run_id})")
-            status = threading.Thread(target=self._status_loop, args=(loop,), daemon=True)
+            where = f" through bridge {self.args.bridge}" if self.bridge is not None else ""
+            task = self.config.env.task
+            self.log(f"incarnation {self.incarnation} acting on {task}{where} (run {k.run_id})")
+            status = threading.Thread(target=self._status_loop, daemon=True)
             status.start()
-            self._act(loop)
-            self._publish_status(loop.steps)
-            self.log(f"stopping after {loop.steps} steps ({self.stop.reason})")
+            if self._connect():
+                self._act()
+            self._publish_status()
+            self.log(f"stopping after {self.env_steps} steps ({self.stop.reason})")
             status.join(timeout=2.0)
 
-    def _status_loop(self, loop: EnvLoop) -> None:
+    def _status_loop(self) -> None:
         while not self.stop.wait(self.args.status_every_s):
-            self._publish_status(loop.steps)
+            self._publish_status()
 
-    def _act(self, loop: EnvLoop) -> None:
-        c, w = self.config, self.writer
+    def _connect(self) -> bool:
+        """The environment loop; a bridge's environment once the bridge is there. False: stopped."""
+        c = self.config
+        while self.env is None:
+            if not self._bridge_present():
+                return False
+            try:
+                self.env = envs.source_for(c.env.task).make_remote(c.env, self.session, self.args.bridge)
+            except envs.EnvUnavailable as err:
+                self.log.every("bridge", 10.0, f"waiting for bridge {self.args.bridge}: {err}")
+        self.loop = EnvLoop(self.env, self.writer, c.env.time_limit)
+        return True
+
+    def _bridge_present(self) -> bool:
+        """Wait while the bridge is gone (no transitions meanwhile); False if stopped first."""
+        if self.bridge is None or self.bridge.present:
+            return True
+        self.log(f"bridge {self.args.bridge} is not there: collection paused")
+        if not self.bridge.wait(lambda: bool(self.stop)):
+            return False
+        self.log(f"bridge {self.args.bridge} is there: collecting, from a new episode")
+        return True
+
+    def _act(self) -> None:
+        w = self.writer
         while not self.stop:
             if w.replay_done:  # the run's step budget is reached: wait for the stop
                 self.stop.wait(0.2)
                 continue
             w.wait_for_replay()
-            if self.stop:
+            if self.stop or not self._bridge_present():
                 return
-            ts = loop.reset()
-            while not self.stop and not w.replay_done and not w.broken:
-                self.weights.maybe_load()
-                warming_up = max(w.global_steps, self.weights.env_steps) < c.warmup_steps
-                action = collect_action(self.agent, ts.obs, warming_up, self.rng, loop.env.spec.action_dim)
-                ts = loop.step(action, self.policy_version)
-                if ts.last:
-                    self.episodes += 1
-                    self._finished.append([loop.episode_return, loop.episode_length])
-                    break
+            try:
+                self._episode()
+            except envs.EnvUnavailable as err:  # gone, or refusing: the episode is abandoned
+                self._note_fault()
+                self.log.every("unavailable", 10.0, f"environment unavailable, collection paused: {err}")
+                self.stop.wait(PAUSE_S)
+
+    def _episode(self) -> None:
+        """One episode, until its end, a stop, the replay's or the bridge's loss, or the budget."""
+        c, w, loop = self.config, self.writer, self.loop
+        ts = loop.reset()
+        self._note_fault()
+        while not self.stop and not w.replay_done and not w.broken:
+            if self.bridge is not None and not self.bridge.present:
+                return  # the bridge went: nothing more of this episode is sent
+            self.weights.maybe_load()
+            warming_up = max(w.global_steps, self.weights.env_steps) < c.warmup_steps
+            action = collect_action(self.agent, ts.obs, warming_up, self.rng, loop.env.spec.action_dim)
+            ts = loop.step(action, self.policy_version)
+            self.step_times.observe(loop.last_step_s)
+            self._note_fault()
+            if ts.last:
+                self.episodes += 1
+                self._finished.append([loop.episode_return, loop.episode_length])
+                return
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -15,10 +15,15 @@ of the first episode's frames (<data>/media/autoencoder.png, and the
 TensorBoard image `autoencoder/view`), and every `video_every` evaluations
 an MP4 of that episode. They are made here, from the episode just played:
 the learner never renders.
+
+With `--bridge ID` (a gripper task) it evaluates through that robot bridge (its
+own, never an actor's), created once the bridge is there; an evaluation the
+bridge abandons (gone, e-stop, fault) is played again when the bridge is back.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,8 +33,10 @@ import torch
 import zenoh
 
 from services.evaluator.media import AutoencoderTap, EvalMedia
+from services.robot_bridge.client import BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import make_agent
+from shared.config import ConfigError
 from shared.env_loop import EnvLoop
 from shared.evaluation import evaluate
 from shared.service import Log, StopFlag
@@ -53,6 +60,8 @@ class EvaluatorArgs(ServiceArgs):
     """An MP4 of the first evaluation episode every N evaluations (0: none)."""
     view_frames: int = 8
     """Frames in the autoencoder's view."""
+    bridge: str = ""
+    """Evaluate through the robot bridge of this id (a gripper task) instead of in this process."""
 
 
 class EvaluatorService:
@@ -63,7 +72,13 @@ class EvaluatorService:
         self.keys = wire.Keys(args.run_id)
         self.log = Log("evaluator")
         torch.set_num_threads(max(1, args.threads))
-        self.env = envs.from_config(c.env, c.seed + 1_000_000)
+        self.bridge: BridgePresence | None = None
+        if args.bridge:
+            if not hasattr(envs.source_for(c.env.task), "make_remote"):
+                raise ConfigError(f"--bridge: {c.env.task} is not a task a robot bridge serves")
+            self.bridge = BridgePresence(session, args.bridge)
+        # A bridge's environment is made once the bridge is there (`_env_ready`).
+        self.env = None if args.bridge else envs.from_config(c.env, c.seed + 1_000_000)
         spec = run.spec
         device = torch.device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
@@ -109,14 +124,38 @@ class EvaluatorService:
         target = (min(steps, c.steps) // c.eval_every) * c.eval_every
         return target if target > self.done else None
 
-    def evaluate(self, target: int) -> wire.EvalResult:
+    def _env_ready(self) -> bool:
+        """Whether there is an environment to evaluate on; through a bridge, waits for it."""
+        if self.env is not None:
+            return True
+        assert self.bridge is not None
+        if not self.bridge.wait(lambda: bool(self.stop)):
+            return False
+        try:
+            self.env = envs.source_for(self.config.env.task).make_remote(
+                self.config.env, self.session, self.args.bridge)
+        except envs.EnvUnavailable as err:
+            self.log.every("bridge", 10.0, f"waiting for bridge {self.args.bridge}: {err}")
+            return False
+        return True
+
+    def evaluate(self, target: int) -> wire.EvalResult | None:
         """The evaluation's episodes; the first one's frames (and camera, for a video) are kept
-        for the pictures, made after the episodes."""
+        for the pictures, made after the episodes. None: the bridge abandoned it (played again)."""
+        if not self._env_ready():
+            return None
         version = self.weights.version or 0
         video = self.media is not None and self.args.video_every > 0 \
             and self.evaluations % self.args.video_every == 0
-        first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
-        returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1)]
+        try:
+            first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
+            returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1)]
+        except envs.EnvUnavailable as err:  # a bridge gone or refusing: no partial result
+            self.log(f"step {target}: evaluation abandoned, played again when the bridge is back: {err}")
+            if self.bridge is not None:
+                self.env = None  # made again once the bridge is there
+            self.stop.wait(1.0)
+            return None
         self.done, self.evaluations = target, self.evaluations + 1
         if self.media is not None and obs:
             autoencoder, frames = self.tap.autoencoder, np.stack(obs)
@@ -149,13 +188,17 @@ class EvaluatorService:
             s.declare_subscriber(k.replay_stats, self._on_stats),
             s.declare_subscriber(k.stop, self._on_stop),
             s.liveliness().declare_token(k.alive("evaluator", 0)),
+            self.bridge if self.bridge is not None else contextlib.nullcontext(),
         ):
-            self.log(f"evaluating every {c.eval_every} env steps, {c.eval_episodes} episodes")
+            where = f" through bridge {self.args.bridge}" if self.args.bridge else ""
+            self.log(f"evaluating every {c.eval_every} env steps, {c.eval_episodes} episodes{where}")
             while not self.stop.wait(0.1):
                 target = self.due()
                 if target is None:
                     continue
                 msg = self.evaluate(target)
+                if msg is None:
+                    continue
                 s.put(k.eval_result, wire.encode(msg), congestion_control=BLOCK)
                 self.log(f"step {target} (policy {msg.policy_version}): mean {np.mean(msg.returns):.1f}")
             self.log(f"stopping ({self.stop.reason})")

@@ -25,6 +25,9 @@ class LearnerArgs(ServiceArgs):
     """Address of the status API (env NASA_STATUS_HOST; 0.0.0.0 in a container)."""
     port: int = field(default_factory=lambda: int(os.environ.get("NASA_STATUS_PORT", "8000")))
     """Port of the status API (env NASA_STATUS_PORT)."""
+    api_token_file: Path | None = None
+    """File whose first line is the bearer token of POST /control/* (env NASA_API_TOKEN wins).
+    Neither: the controls are open to whoever reaches the port."""
     publish_every: int = 20
     """K: publish weights every K updates."""
     prefetch: int = 2

@@ -22,7 +22,9 @@ from __future__ import annotations
 import json
 import os
 import queue
+import threading
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -61,6 +63,7 @@ class Learner:
         self.metrics = LearnerMetrics(self.status)
         self.history = History()  # read by its own thread, never the update loop
         self._scalars_at = 0.0
+        self._checkpoint_asked = threading.Event()  # POST /control/checkpoint; the loop writes it
         if self.core.resumed:
             self.log(f"resumed from checkpoint: {self.core.agent.num_updates} updates, "
                      f"env step {self.core.env_steps}")
@@ -113,6 +116,21 @@ class Learner:
             query.reply(self.keys.weights_latest, self._weights_msg)
         query.drop()
 
+    # -- the HTTP controls (POST /control/<name>) ----------------------------------------
+
+    def controls(self) -> dict[str, Callable[[], str]]:
+        def checkpoint() -> str:
+            self._checkpoint_asked.set()
+            return "a checkpoint is written at the next update"
+
+        def stop() -> str:
+            # The run's own Stop message: every service ends as at the end of the budget, this one too.
+            self.session.put(self.keys.stop, wire.encode(wire.Stop("stop requested over HTTP")),
+                             congestion_control=BLOCK)
+            return "the run is stopping (checkpoint, then every service exits)"
+
+        return {"checkpoint": checkpoint, "stop": stop}
+
     # -- the loop ----------------------------------------------------------------------
 
     def publish_weights(self, publisher: zenoh.Publisher) -> None:
@@ -122,10 +140,15 @@ class Learner:
             publisher.put(msg)
 
     def run(self) -> None:
-        from services.learner.status_api import StatusServer, make_app
+        from services.learner.status_api import StatusServer, api_token, is_loopback, make_app
 
         s, k = self.session, self.keys
-        app = make_app(self.status, self.health, self.history.points, self.metrics.render, self.args.data)
+        token = api_token(self.args.api_token_file)
+        if token is None and not is_loopback(self.args.host):
+            self.log(f"warning: the status API binds {self.args.host} with no token: anyone who reaches it "
+                     "can checkpoint or stop the run (set NASA_API_TOKEN)")
+        app = make_app(self.status, self.health, self.history.points, self.metrics.render, self.args.data,
+                       controls=self.controls(), token=token)
         server = StatusServer(app, self.args.host, self.args.port)
         server.start()
         self.history.start(self.status)
@@ -159,7 +182,8 @@ class Learner:
             while not self.stop:
                 self.wall_s = wall0 + time.monotonic() - wall_start
                 self._drain()
-                if core.checkpoint_due():
+                if core.checkpoint_due() or self._checkpoint_asked.is_set():
+                    self._checkpoint_asked.clear()
                     core.save_checkpoint(self.wall_s)
                 if core.board.replay["done"] and done_at is None:
                     done_at = time.monotonic()

@@ -2,8 +2,9 @@
 
 Every figure of /status is one sample: the table below names each one's
 metric (Prometheus conventions: units in the name, `_total` for counters),
-the actors' figures carry an `actor` label, losses and intrinsic means a
-`name` label, and the run's identity (run id, algorithm, task, device, config
+the actors' figures carry an `actor` label (an actor's fault state is a
+gauge of 1 labelled with the state, its env step times a histogram), losses
+and intrinsic means a `name` label, and the run's identity (run id, algorithm, task, device, config
 digest) is one `nasa_run_info` sample rather than a label on every series.
 The figures are read from /status when scraped, so nothing is computed in the
 update loop; the loop only observes two histograms (update time, batch wait).
@@ -14,7 +15,13 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Histogram, generate_latest
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    InfoMetricFamily,
+    Metric,
+)
 
 # (path in /status, metric name, kind, help)
 SCALARS: tuple[tuple[str, str, str, str], ...] = (
@@ -149,6 +156,25 @@ class StatusCollector:
                 if isinstance(a.get(key), bool | int | float):
                     family.add_metric([str(a["id"])], float(a[key]))
             yield family
+        yield from self.collect_actor_env(s["actors"])
+
+    @staticmethod
+    def collect_actor_env(actors: list[dict]) -> Iterator[Metric]:
+        """What each actor's environment reports: its fault state (where it has one) and step times."""
+        faults = GaugeMetricFamily(
+            "nasa_actor_fault_state", "1 for the fault state the actor's environment reports (a robot "
+            "bridge: ok, estop, overload, torque_off, bridge_lost, ...); absent where it reports none",
+            labels=["actor", "state"])
+        steps = HistogramMetricFamily(
+            "nasa_actor_env_step_duration_seconds", "Time of one env step in the actor (its incarnation's)",
+            labels=["actor"])
+        for a in actors:
+            if isinstance(a.get("fault"), str):
+                faults.add_metric([str(a["id"]), a["fault"]], 1.0)
+            if isinstance(h := a.get("env_step_seconds"), dict):
+                steps.add_metric([str(a["id"])], buckets=list(h["le"].items()), sum_value=float(h["sum"]))
+        yield faults
+        yield steps
 
     @staticmethod
     def collect_health(s: dict) -> Iterator[Metric]:

@@ -20,7 +20,19 @@ from shared import wire
 
 def _new_actor(actor_id: int, incarnation: int) -> dict:
     return {"id": actor_id, "incarnation": incarnation, "alive": True, "env_steps": 0, "episodes": 0,
-            "last_seen": time.monotonic(), "policy_version": 0, "steps_per_s": 0.0}
+            "last_seen": time.monotonic(), "policy_version": 0, "steps_per_s": 0.0, "fault": None,
+            "env_step_seconds": None}
+
+
+def step_histogram(counts: list[int], total_s: float) -> dict | None:
+    """An actor's env step times as /status shows them: count, sum, and the cumulative count at
+    each bucket's upper bound (Prometheus' `le`, "+Inf" last); None when it sent none."""
+    if not counts:
+        return None
+    bounds = [*(str(b) for b in wire.STEP_SECONDS_BUCKETS), "+Inf"]
+    cumulative = np.cumsum(counts).tolist()
+    le = dict(zip(bounds, cumulative, strict=True))
+    return {"count": int(cumulative[-1]), "sum": round(total_s, 6), "le": le}
 
 
 class StatusBoard:
@@ -66,7 +78,8 @@ class StatusBoard:
                 a = self._new_incarnation(a, s.actor_id, s.incarnation, token=False)
             if s.incarnation == a["incarnation"]:
                 a.update(env_steps=s.env_steps, policy_version=s.policy_version,
-                         steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, last_seen=time.monotonic())
+                         steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, last_seen=time.monotonic(),
+                         fault=s.fault, env_step_seconds=step_histogram(s.step_counts, s.step_seconds))
 
     def actor_alive(self, actor_id: int, incarnation: int, alive: bool) -> None:
         """An actor's liveliness token appeared (alive) or went away."""

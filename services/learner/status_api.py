@@ -8,6 +8,9 @@
   autoencoder's view, evaluation videos), whose files are under /media/.
 - `/healthz`: 200 "ok", or 503 with the reasons the health callable gives.
 - `/metrics`: Prometheus' text format, from prometheus-client (metrics.py).
+- `POST /control/<name>`: the learner's controls (`checkpoint`, `stop`), which change its state.
+  With a token configured (env NASA_API_TOKEN or the learner's --api-token-file) they answer 401
+  unless the request carries `Authorization: Bearer <token>`; the read-only routes stay open.
 
 `serve_folder` answers the same routes for a stopped run from its folder
 (`nasa status --data DIR --serve`).
@@ -15,14 +18,17 @@
 
 from __future__ import annotations
 
+import hmac
+import ipaddress
 import json
 import math
+import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
 
 import uvicorn
-from fastapi import FastAPI, HTTPException
+from fastapi import Depends, FastAPI, Header, HTTPException
 from fastapi.responses import FileResponse, PlainTextResponse, Response
 
 from services.learner import history as run_history
@@ -37,9 +43,13 @@ PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
 
 def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
              history: Callable[[], list[dict]] | None = None, metrics: Callable[[], bytes] | None = None,
-             data: Path | None = None) -> FastAPI:
-    """The routes; `health` returns the reasons the learner is unhealthy (empty: healthy)."""
+             data: Path | None = None, controls: dict[str, Callable[[], str]] | None = None,
+             token: str | None = None) -> FastAPI:
+    """The routes; `health` returns the reasons the learner is unhealthy (empty: healthy).
+    `controls`: name -> action (returns what it did), each at POST /control/<name>, behind `token`."""
     app = FastAPI(title="nasa-td3 learner", docs_url=None, redoc_url=None)
+    for name, action in (controls or {}).items():
+        _add_control(app, name, action, token)
 
     @app.get("/")
     def get_dashboard() -> FileResponse:
@@ -81,10 +91,49 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
     return app
 
 
-def _json(body: dict) -> Response:
+def _add_control(app: FastAPI, name: str, action: Callable[[], str], token: str | None) -> None:
+    @app.post(f"/control/{name}", dependencies=[Depends(bearer_guard(token))], status_code=202)
+    def control() -> Response:
+        return _json({"control": name, "done": action()}, status=202)
+
+
+def bearer_guard(token: str | None) -> Callable[[str | None], None]:
+    """A dependency that lets a request through only with `Authorization: Bearer <token>` (any request
+    when `token` is None). The comparison takes the same time wherever the two first differ."""
+    expected = f"Bearer {token}".encode()
+
+    def guard(authorization: str | None = Header(default=None)) -> None:
+        if token is None:
+            return
+        if authorization is None or not hmac.compare_digest(authorization.encode(), expected):
+            raise HTTPException(401, "a bearer token is required", headers={"WWW-Authenticate": "Bearer"})
+
+    return guard
+
+
+def api_token(path: Path | None = None) -> str | None:
+    """The control endpoints' token: env NASA_API_TOKEN, else the first line of `path`; None: open."""
+    token = os.environ.get("NASA_API_TOKEN", "")
+    if not token and path is not None:
+        lines = Path(path).read_text().splitlines()
+        token = lines[0] if lines else ""
+    return token.strip() or None
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` (an address or `localhost`) is reachable from this host only."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _json(body: dict, status: int = 200) -> Response:
     """JSON straight from json.dumps: FastAPI's encoder walks every value first, which costs the
     learner's process more than the encoding for a long history."""
-    return Response(json.dumps(body), media_type="application/json")
+    return Response(json.dumps(body), status_code=status, media_type="application/json")
 
 
 def _inside(folder: Path, name: str) -> Path:

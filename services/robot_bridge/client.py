@@ -5,23 +5,84 @@ It has the raw layer's interface (`reset`/`step` -> (frame, reward, discount, la
 the actor above it does not change. The bridge draws targets and reset angles itself, so the
 client's random state is empty. A bridge that does not answer (gone, or refusing a reset during
 an e-stop or fault) raises `BridgeUnavailable`: the actor pauses and starts a new episode later.
+`BridgePresence` follows the bridge's liveliness token, so an actor knows at once that its bridge
+went; `fault_state` names the bridge's safety state in one word for the learner's /status.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
 import numpy as np
 import zenoh
 
+from services.robot_bridge import xl320
 from shared import wire
+from shared.envs import EnvUnavailable
 
 SPEC_RETRY_S = 2.0
+BRIDGE_LOST = "bridge_lost"
 
 
-class BridgeUnavailable(RuntimeError):
+class BridgeUnavailable(EnvUnavailable):
     """The bridge did not answer, or refused (e-stop, fault, waiting for an operator)."""
+
+
+def fault_state(info: dict) -> str:
+    """The bridge's safety state (a reply's info map) in one word: `ok`, the interlocks' state
+    (`estop`, `recovering`, `waiting_for_operator`), `torque_off` (the watchdog's), or the first
+    hardware error of the last step (`overload`, `overheating`, `input_voltage`)."""
+    safety = info.get("safety") or {}
+    state = safety.get("state", "ready")
+    if state != "ready":
+        return str(state)
+    if safety.get("watchdog") == "torque_off":
+        return "torque_off"
+    for names in (safety.get("errors") or {}).values():
+        known = [n for n in xl320.ERROR_NAMES.values() if n in names]
+        if known:
+            return known[0].replace(" ", "_")
+    return "ok"
+
+
+class BridgePresence:
+    """Whether a bridge's liveliness token is present, from a liveliness subscriber (with history,
+    so a bridge already up counts); a context manager."""
+
+    def __init__(self, session: zenoh.Session, bridge_id: str | int) -> None:
+        self.session = session
+        self.keys = wire.BridgeKeys(bridge_id)
+        self._present = threading.Event()
+        self._subscriber = None
+
+    @property
+    def present(self) -> bool:
+        return self._present.is_set()
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._present.set()
+        else:
+            self._present.clear()
+
+    def wait(self, stop: Callable[[], bool], poll_s: float = 0.2) -> bool:
+        """Block until the bridge is present (True) or `stop()` (False)."""
+        while not stop():
+            if self._present.wait(poll_s):
+                return True
+        return False
+
+    def __enter__(self) -> BridgePresence:
+        self._subscriber = self.session.liveliness().declare_subscriber(
+            self.keys.alive, self._on_token, history=True)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
 
 
 class BridgeEnv:
@@ -70,9 +131,14 @@ class BridgeEnv:
     def set_rng_state(self, state: dict) -> None:
         pass  # the bridge owns the draws of targets and reset angles
 
+    def fault(self) -> str:
+        """The bridge's safety state after its last reply (`fault_state`)."""
+        return fault_state(self.info)
+
     def reset(self) -> tuple[np.ndarray, float, float, bool]:
         r = self._ask(self.keys.reset, wire.BridgeReset(self.client), wire.BridgeReply)
         if not r.ok:
+            self.info = r.info  # why: the safety state of a refusal (e-stop, waiting for an operator)
             raise BridgeUnavailable(f"bridge {self.keys.prefix} refused a reset: {r.reason}")
         self.episode, self._step = r.episode, 0
         return self._frame(r), 0.0, 1.0, False

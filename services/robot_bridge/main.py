@@ -1,8 +1,10 @@
 """`python -m services.robot_bridge`: one process per gripper, serving it (or its stand-in) over Zenoh.
 
 Without `--config` it serves the MuJoCo stand-in (`shared/gripper`); with a gripper config file it
-serves the real servos and camera. SIGINT and SIGTERM e-stop the gripper (torque off) before the
-process exits; the `estop` key e-stops it without ending the process, until a re-arm message.
+serves the real servos and camera; with `--emulate`, the real gripper's code path (driver and
+interlocks) against an emulated servo bus in this process, with a drawn camera (`emulated.py`).
+SIGINT and SIGTERM e-stop the gripper (torque off) before the process exits; the `estop` key
+e-stops it without ending the process, until a re-arm message.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ class BridgeArgs:
     """Scenario 1 (valve left where it is) or 2 (turned to a random angle at each reset)."""
     config: Path | None = None
     """The real gripper's TOML config (services/robot_bridge/example.toml); none: the stand-in."""
+    emulate: bool = False
+    """Without --config: the hardware path (dynamixel-sdk, interlocks) against an emulated bus on a
+    pty and a drawn camera, instead of the MuJoCo stand-in."""
     seed: int = 0
     """Draws targets and reset angles."""
     image_size: int = 84
@@ -38,6 +43,10 @@ class BridgeArgs:
 
 
 def build_env(args: BridgeArgs):
+    if args.config is None and args.emulate:
+        from services.robot_bridge.emulated import EmulatedGripper
+
+        return EmulatedGripper(args.task, args.seed, image_size=args.image_size)
     if args.config is None:
         from shared.gripper.sim import ValveSim
 
@@ -63,10 +72,10 @@ def main(argv: list[str] | None = None) -> None:
     stop = StopFlag()
     stop.install_signal_handlers()
     try:
-        with open_client(args.connect) as session:
+        with open_client(args.connect, role="bridge") as session:
             server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
             with server.serve():
-                kind = "hardware" if args.config else "stand-in"
+                kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
                 log(f"serving {args.task} ({kind}) on {server.keys.prefix}")
                 while not stop.wait(0.2):
                     pass

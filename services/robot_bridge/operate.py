@@ -21,7 +21,7 @@ from shared.zenoh_session import env_connect
 def send_estop(bridge_id: str, engage: bool, reason: str, connect: str) -> None:
     from shared.zenoh_session import open_client
 
-    with open_client(connect) as session:
+    with open_client(connect, role="operator") as session:
         session.put(wire.BridgeKeys(bridge_id).estop, wire.encode(wire.BridgeEStop(engage, reason)))
 
 

@@ -122,8 +122,11 @@ class BridgeServer:
         return reply
 
     def _refusal(self, reason: str) -> wire.BridgeReply:
+        safety = self._safety.status() if self._safety is not None else {"state": "ready"}
+        if self.estopped:
+            safety["state"] = "estop"
         return wire.BridgeReply(False, reason, self.episode, 0, list(self.frame_shape), b"", 0.0, 1.0,
-                                False, False, {"reason": reason})
+                                False, False, {"reason": reason, "safety": safety})
 
     # -- Zenoh ----------------------------------------------------------------------------------
     def _on_query(self, kind: str) -> Callable[[zenoh.Query], None]:

@@ -7,11 +7,14 @@ module (or the zenohd binary) as the `router` service.
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import tyro
 
-from shared.service import Log, StopFlag, die_with_parent
+from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
+from shared.zenoh_auth import AuthError, env_auth
 from shared.zenoh_session import open_router
 
 
@@ -21,6 +24,9 @@ class RouterArgs:
 
     listen: str = field(default_factory=lambda: os.environ.get("NASA_ZENOH_LISTEN", "tcp/127.0.0.1:7447"))
     """Endpoint to listen on (env NASA_ZENOH_LISTEN), e.g. tcp/0.0.0.0:7447 in a container."""
+    auth: Path | None = field(default_factory=env_auth)
+    """Auth folder (`nasa auth init DIR`; env NASA_ZENOH_AUTH): require each role's login and enforce
+    its access-control list. None: no authentication."""
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -29,8 +35,13 @@ def main(argv: list[str] | None = None) -> None:
     stop = StopFlag()
     stop.install_signal_handlers()
     log = Log("router")
-    with open_router(args.listen):
-        log(f"listening on {args.listen}")
+    try:
+        router = open_router(args.listen, auth=args.auth)
+    except AuthError as err:
+        print(f"router: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
+    with router:
+        log(f"listening on {args.listen}" + (f"; logins and ACL from {args.auth}" if args.auth else ""))
         stop.wait()
         log(f"stopping ({stop.reason})")
 

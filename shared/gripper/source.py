@@ -10,14 +10,16 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from shared.config import ConfigError
 from shared.gripper import ACTION_DIM, TASK_NAMES, frame_shape
 
 if TYPE_CHECKING:
     from shared.config import EnvConfig
 
 
-class BridgeMismatch(ValueError):
-    """The bridge serves another task or frame size than the run's config."""
+class BridgeMismatch(ConfigError):
+    """The bridge serves another task or frame size than the run's config (bad input: a service
+    that meets it exits 2 rather than restarting into the same mismatch)."""
 
 
 class GripperSource:
@@ -44,6 +46,9 @@ class GripperSource:
         from services.robot_bridge.client import BridgeEnv
         from shared.envs import FrameStack
 
+        if config.action_repeat != 1:  # a bridge step is one command to the servos, as on the robot
+            raise BridgeMismatch(f"a robot bridge steps one action at a time: --action-repeat 1, not "
+                                 f"{config.action_repeat}")
         remote = BridgeEnv(session, bridge_id, client=f"{config.task}", timeout_s=timeout_s)
         if remote.task != config.task or remote.frame_shape != frame_shape(config.image_size):
             raise BridgeMismatch(

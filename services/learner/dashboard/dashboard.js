@@ -143,6 +143,7 @@ function drawStatus(s) {
       td.dataset.key = keys[i];
       td.dataset.value = String(i === 1 ? a.alive : (typeof v === "number" ? v : (a[keys[i]] ?? "")));
       if (i === 1 && !a.alive) td.className = "dead";
+      if (i === 9 && a.fault && a.fault !== "ok") td.className = "dead";  // a bridge's fault or e-stop
       tr.appendChild(td);
     });
     body.appendChild(tr);

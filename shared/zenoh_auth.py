@@ -1,0 +1,144 @@
+"""Zenoh authentication and access control: one credential per role, one access-control list.
+
+An auth folder (`nasa auth init DIR`) holds:
+
+- `users.txt`: one `role:password` line per role (mode 0600). The router reads it whole as its
+  Zenoh user/password dictionary; a client reads its own role's line from it. A host that runs
+  one role only needs a users.txt holding that role's line.
+- `acl.json`: the router's `access_control` section, made from `shared.wire.routes()`: each role
+  may put, subscribe, query, answer and declare liveliness tokens on its own keys only; anything
+  else is denied at the router (the message never reaches a subscriber).
+
+With NASA_ZENOH_AUTH=DIR (or the router's --auth DIR) sessions authenticate; without it they
+connect with no credentials, as before. A client refused by the router (wrong or no password)
+fails to open like a router that is not there.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+from collections import defaultdict
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from shared.wire import ANY, PUT, QUERY, ROLES, TOKEN, Route, routes
+
+if TYPE_CHECKING:
+    import zenoh
+
+USERS_FILE = "users.txt"
+ACL_FILE = "acl.json"
+ROUTER = "router"
+AUTH_ROLES = (*ROLES, ROUTER)
+"""Every role with a credential; `router` is the one routers of several sites use between them."""
+
+# What a role's side of a route may send to the router (ingress) and receive from it (egress).
+_INGRESS = {
+    (PUT, "send"): ("put",), (PUT, "receive"): ("declare_subscriber",),
+    (QUERY, "send"): ("declare_queryable", "reply"), (QUERY, "receive"): ("query",),
+    (TOKEN, "send"): ("liveliness_token",),
+    (TOKEN, "receive"): ("declare_liveliness_subscriber", "liveliness_query"),
+}
+_EGRESS = {
+    (PUT, "send"): ("declare_subscriber",), (PUT, "receive"): ("put",),
+    (QUERY, "send"): ("query",), (QUERY, "receive"): ("reply", "declare_queryable"),
+    (TOKEN, "send"): (), (TOKEN, "receive"): ("liveliness_token", "reply"),
+}
+ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
+
+
+class AuthError(ValueError):
+    """An auth folder that is missing, incomplete, or has no credential for a role."""
+
+
+def env_auth() -> Path | None:
+    """The auth folder of env NASA_ZENOH_AUTH, or None (no authentication)."""
+    value = os.environ.get("NASA_ZENOH_AUTH", "")
+    return Path(value) if value else None
+
+
+def acl(wiring: tuple[Route, ...] | None = None) -> dict:
+    """The router's access_control section: deny by default; per role, allow its side of each route."""
+    grants: dict[tuple[str, str, tuple[str, ...]], list[str]] = defaultdict(list)
+    for route in wiring if wiring is not None else routes():
+        for side, roles in (("send", route.senders), ("receive", route.receivers)):
+            for role in roles:
+                for flow, table in (("ingress", _INGRESS), ("egress", _EGRESS)):
+                    if messages := table[(route.kind, side)]:
+                        grants[(role, flow, messages)].append(route.key)
+    rules = [{"id": f"{role}-{flow}-{i}", "messages": list(messages), "flows": [flow], "permission": "allow",
+              "key_exprs": sorted(set(keys))}
+             for i, ((role, flow, messages), keys) in enumerate(sorted(grants.items()))]
+    # Routers of several sites forward each other's traffic whatever it is.
+    rules.append({"id": "router-all", "messages": list(ALL_MESSAGES), "flows": ["ingress", "egress"],
+                  "permission": "allow", "key_exprs": ["nasa/**"]})
+    policies = [{"id": f"{role}-policy", "subjects": [role],
+                 "rules": [r["id"] for r in rules if r["id"].startswith(f"{role}-")]} for role in AUTH_ROLES]
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": [{"id": role, "usernames": [role]} for role in AUTH_ROLES],
+            "policies": [p for p in policies if p["rules"]]}
+
+
+def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
+    """Write new credentials (users.txt, 0600) and the ACL for run `run_id` (every run: ANY) to `folder`.
+    An existing users.txt is kept unless `force` (rotation: write new ones, restart every process)."""
+    wiring = routes(run_id)  # first: a bad run id leaves no folder
+    folder.mkdir(parents=True, exist_ok=True)
+    users = folder / USERS_FILE
+    if users.exists() and not force:
+        raise FileExistsError(f"{users} exists: pass --force to replace every credential")
+    lines = "".join(f"{role}:{secrets.token_urlsafe(24)}\n" for role in AUTH_ROLES)
+    tmp = users.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(lines)
+    os.replace(tmp, users)
+    (folder / ACL_FILE).write_text(json.dumps(acl(wiring), indent=1) + "\n")
+    return folder
+
+
+def check_acl(folder: Path, run_id: str) -> None:
+    """AuthError unless the folder's acl.json is the one `init` makes today for `run_id` or every run:
+    an ACL for another run, or from an older wiring, would deny this run's messages."""
+    path = folder / ACL_FILE
+    held = json.loads(path.read_text()) if path.exists() else None
+    if held not in (acl(routes(run_id)), acl(routes(ANY))):
+        raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
+                        f"`nasa auth init {folder} --run-id {run_id} --force` makes it anew")
+
+
+def credentials(folder: Path) -> dict[str, str]:
+    """role -> password, from `folder`/users.txt."""
+    path = folder / USERS_FILE
+    if not path.exists():
+        raise AuthError(f"no {path}: make the auth folder with `nasa auth init {folder}`")
+    out = {}
+    for line in path.read_text().splitlines():
+        user, sep, password = line.strip().partition(":")
+        if sep and user and password:
+            out[user] = password
+    return out
+
+
+def apply_client(config: zenoh.Config, folder: Path, role: str) -> None:
+    """Log in as `role` with its password from the auth folder."""
+    password = credentials(folder).get(role)
+    if password is None:
+        raise AuthError(f"{folder / USERS_FILE} holds no credential for role {role!r}")
+    config.insert_json5("transport/auth/usrpwd", json.dumps({"user": role, "password": password}))
+
+
+def apply_router(config: zenoh.Config, folder: Path) -> None:
+    """Require a login from the dictionary and enforce the folder's ACL."""
+    users, rules = folder / USERS_FILE, folder / ACL_FILE
+    known = credentials(folder)
+    if not rules.exists():
+        raise AuthError(f"no {rules}: make the auth folder with `nasa auth init {folder}`")
+    usrpwd: dict[str, str] = {"dictionary_file": str(users.resolve())}
+    if ROUTER in known:  # what this router presents when it connects to another site's
+        usrpwd |= {"user": ROUTER, "password": known[ROUTER]}
+    config.insert_json5("transport/auth/usrpwd", json.dumps(usrpwd))
+    config.insert_json5("access_control", rules.read_text())

@@ -1,0 +1,309 @@
+"""Zenoh logins and access control on a real router on loopback, and the learner API's bearer token."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zenoh
+from fastapi.testclient import TestClient
+from system_harness import REPO
+
+from nasa.up import free_port
+from services.learner.status_api import api_token, is_loopback, make_app
+from shared import wire, zenoh_auth
+from shared.zenoh_session import open_client, open_router
+
+RUN = "authrun"
+
+
+@pytest.fixture
+def auth_dir(tmp_path: Path) -> Path:
+    return zenoh_auth.init(tmp_path / "auth", RUN)
+
+
+@pytest.fixture
+def router(auth_dir: Path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with open_router(endpoint, auth=auth_dir):
+        yield endpoint
+
+
+def login(endpoint: str, auth_dir: Path, role: str) -> zenoh.Session:
+    return open_client(endpoint, timeout_s=10.0, role=role, auth=auth_dir)
+
+
+def test_every_key_has_a_route() -> None:
+    """A key added to Keys or BridgeKeys without a route would be denied to everyone under auth."""
+    k, b = wire.Keys(wire.ANY, wildcard=True), wire.BridgeKeys(wire.ANY, wildcard=True)
+    routed = {r.key for r in wire.routes()}
+    plain = {v for name, v in vars(k).items() if name not in ("prefix", "run_id") and not v.endswith("*")}
+    plain |= {k.insert(wire.ANY), k.ack(wire.ANY), k.actor_status(wire.ANY)}
+    plain |= {v for name, v in vars(b).items() if name != "prefix"}
+    assert plain - routed == set()
+    for role in ("actor", "replay", "learner", "evaluator"):
+        assert k.alive(role, "**") in routed
+    assert {role for r in wire.routes() for role in (*r.senders, *r.receivers)} <= set(wire.ROLES)
+    with pytest.raises(ValueError):
+        wire.Keys(wire.ANY)  # a service's run id is never a wildcard
+
+
+@pytest.mark.system  # a `nasa` subprocess
+def test_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: Path) -> None:
+    folder = tmp_path / "auth"
+    out = subprocess.run([sys.executable, "-m", "nasa.cli", "auth", "init", str(folder), "--run-id", RUN],
+                         cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    users = folder / zenoh_auth.USERS_FILE
+    assert stat.S_IMODE(users.stat().st_mode) == 0o600
+    creds = zenoh_auth.credentials(folder)
+    assert set(creds) == set(zenoh_auth.AUTH_ROLES) and len(set(creds.values())) == len(creds)
+    rules = json.loads((folder / zenoh_auth.ACL_FILE).read_text())
+    assert rules["default_permission"] == "deny"
+    keys = {key for rule in rules["rules"] for key in rule["key_exprs"]}
+    assert all(key.startswith((f"nasa/{RUN}/", "nasa/bridge/")) or key == "nasa/**" for key in keys)
+    again = subprocess.run([sys.executable, "-m", "nasa.cli", "auth", "init", str(folder)],
+                           cwd=REPO, capture_output=True, text=True)
+    assert again.returncode == 2 and "--force" in again.stderr
+    assert zenoh_auth.credentials(folder) == creds
+    zenoh_auth.init(folder, RUN, force=True)
+    assert zenoh_auth.credentials(folder)["actor"] != creds["actor"]
+
+
+def test_router_refuses_a_wrong_or_missing_password(router: str, auth_dir: Path, tmp_path: Path) -> None:
+    forged = tmp_path / "forged"
+    forged.mkdir()
+    (forged / zenoh_auth.USERS_FILE).write_text("actor:not-the-password\n")
+    with pytest.raises(zenoh.ZError):
+        open_client(router, timeout_s=1.0, role="actor", auth=forged)
+    with pytest.raises(zenoh.ZError):
+        open_client(router, timeout_s=1.0)  # no credentials at all
+    with pytest.raises(zenoh_auth.AuthError):
+        open_client(router, timeout_s=1.0, auth=auth_dir)  # a folder but no role
+    with login(router, auth_dir, "actor") as session:
+        assert session.info.zid() is not None
+
+
+def into(q: queue.Queue):  # noqa: ANN201
+    return lambda sample: q.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+
+def until(q: queue.Queue, last: tuple[str, bytes]) -> list[tuple[str, bytes]]:
+    """What arrives up to and including `last`."""
+    seen = []
+    while not seen or seen[-1] != last:
+        seen.append(q.get(timeout=20.0))
+    return seen
+
+
+def wait_routed(sender: zenoh.Session, key: str, q: queue.Queue) -> None:
+    """Until the subscriptions have reached the router: a put from `sender` on `key` arrives."""
+    while True:
+        sender.put(key, b"probe")
+        try:
+            q.get(timeout=0.5)
+            return
+        except queue.Empty:
+            continue
+
+
+def test_a_role_puts_only_on_its_keys(router: str, auth_dir: Path) -> None:
+    """An actor's forged stop, eval result and weights never arrive; its status does, and so do the
+    learner's weights. Messages from one session go through the router in order, so once the
+    actor's status has arrived, anything it sent before would have been passed on already."""
+    k = wire.Keys(RUN)
+    at_learner: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    at_evaluator: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    with (login(router, auth_dir, "actor") as actor, login(router, auth_dir, "learner") as learner,
+          login(router, auth_dir, "evaluator") as evaluator):
+        subs = [learner.declare_subscriber(key, into(at_learner))
+                for key in (k.stop, k.eval_result, k.actor_status_all)]
+        subs.append(evaluator.declare_subscriber(k.weights, into(at_evaluator)))
+        wait_routed(actor, k.actor_status(0), at_learner)
+        actor.put(k.weights, b"forged weights")
+        actor.put(k.stop, b"forged stop")
+        actor.put(k.eval_result, b"forged result")
+        actor.put(k.actor_status(0), b"status")
+        assert {key for key, _ in until(at_learner, (k.actor_status(0), b"status"))} == {k.actor_status(0)}
+        # The forged weights went through the router before the status the learner has now.
+        learner.put(k.weights, b"real weights")
+        assert until(at_evaluator, (k.weights, b"real weights")) == [(k.weights, b"real weights")]
+        for sub in subs:
+            sub.undeclare()
+
+
+def test_only_the_learner_and_an_operator_stop_the_run(router: str, auth_dir: Path) -> None:
+    k = wire.Keys(RUN)
+    at_learner: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    with (login(router, auth_dir, "learner") as learner, login(router, auth_dir, "evaluator") as evaluator,
+          login(router, auth_dir, "operator") as operator):
+        subs = [learner.declare_subscriber(key, into(at_learner)) for key in (k.stop, k.eval_result)]
+        wait_routed(evaluator, k.eval_result, at_learner)
+        evaluator.put(k.stop, b"forged stop")
+        evaluator.put(k.eval_result, b"result")
+        assert {key for key, _ in until(at_learner, (k.eval_result, b"result"))} == {k.eval_result}
+        operator.put(k.stop, b"operator's stop")
+        assert until(at_learner, (k.stop, b"operator's stop")) == [(k.stop, b"operator's stop")]
+        for sub in subs:
+            sub.undeclare()
+
+
+def test_an_actor_cannot_sample_the_replay(router: str, auth_dir: Path) -> None:
+    k = wire.Keys(RUN)
+
+    def answer(query: zenoh.Query) -> None:
+        query.reply(k.sample, b"batch")
+
+    with (login(router, auth_dir, "replay") as replay, login(router, auth_dir, "learner") as learner,
+          login(router, auth_dir, "actor") as actor):
+        queryable = replay.declare_queryable(k.sample, answer)
+        replies: list = []
+        while not replies:  # the queryable is known to the router once the learner gets an answer
+            replies = [r.ok.payload.to_bytes() for r in learner.get(k.sample, timeout=2.0) if r.ok]
+        assert replies == [b"batch"]
+        assert [r for r in actor.get(k.sample, timeout=2.0) if r.ok] == []
+        queryable.undeclare()
+
+
+def test_liveliness_tokens_follow_the_routes(router: str, auth_dir: Path) -> None:
+    """The replay's token is seen by actors and by the replay's own healthcheck, not by the evaluator;
+    an actor cannot pose as the replay by declaring its token."""
+    k = wire.Keys(RUN)
+
+    def seen(session: zenoh.Session) -> bool:
+        return any(r.ok is not None for r in session.liveliness().get(k.alive("replay", 0), timeout=2.0))
+
+    with (login(router, auth_dir, "replay") as replay, login(router, auth_dir, "actor") as actor,
+          login(router, auth_dir, "evaluator") as evaluator, login(router, auth_dir, "learner") as learner):
+        forged = actor.liveliness().declare_token(k.alive("replay", 0))
+        own = actor.liveliness().declare_token(k.alive("actor", 0, 1))
+        # The actor's own token reached the router after the forged one, on the same link.
+        while not any(r.ok is not None for r in learner.liveliness().get(k.alive_actors, timeout=2.0)):
+            pass
+        assert not seen(replay)
+        forged.undeclare()
+        own.undeclare()
+        token = replay.liveliness().declare_token(k.alive("replay", 0))
+        while not seen(actor):
+            pass
+        with login(router, auth_dir, "replay") as healthcheck:
+            assert seen(healthcheck)
+        assert not seen(evaluator)
+        token.undeclare()
+
+
+@pytest.mark.system  # a service process
+def test_a_router_without_its_acl_refuses_to_start(tmp_path: Path) -> None:
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    (folder / zenoh_auth.ACL_FILE).unlink()
+    out = subprocess.run([sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
+                          "--auth", str(folder)], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "acl.json" in out.stderr
+
+
+# -- the learner's HTTP controls ---------------------------------------------------------------------
+
+
+def control_app(token: str | None) -> tuple[TestClient, list[str]]:
+    done: list[str] = []
+    controls = {name: (lambda name=name: done.append(name) or "ok") for name in ("checkpoint", "stop")}
+    app = make_app(lambda: {"updates": 1}, lambda: [], metrics=lambda: b"nasa_updates 1\n",
+                   controls=controls, token=token)
+    return TestClient(app), done
+
+
+def test_controls_need_the_bearer_token() -> None:
+    client, done = control_app("s3cret-token")
+    for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "s3cret-token"},
+                    {"Authorization": "Bearer s3cret-token-and-more"}):
+        r = client.post("/control/checkpoint", headers=headers)
+        assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+    assert done == []
+    r = client.post("/control/stop", headers={"Authorization": "Bearer s3cret-token"})
+    assert r.status_code == 202 and r.json()["control"] == "stop"
+    assert done == ["stop"]
+    for path in ("/status", "/healthz", "/metrics", "/"):
+        assert client.get(path).status_code == 200, path
+    assert client.get("/control/stop").status_code == 405  # a control is never a GET
+
+
+def test_controls_are_open_without_a_token() -> None:
+    client, done = control_app(None)
+    assert client.post("/control/checkpoint").status_code == 202
+    assert done == ["checkpoint"]
+
+
+def test_the_token_comes_from_the_environment_or_a_file(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    monkeypatch.delenv("NASA_API_TOKEN", raising=False)
+    path = tmp_path / "token"
+    path.write_text("from-file\n")
+    assert api_token(None) is None
+    assert api_token(path) == "from-file"
+    monkeypatch.setenv("NASA_API_TOKEN", "from-env")
+    assert api_token(path) == "from-env"
+    assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
+    assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5")
+    assert os.environ["NASA_API_TOKEN"] == "from-env"
+
+
+# -- compose ----------------------------------------------------------------------------------------
+
+
+def test_compose_passes_auth_to_every_service_and_keeps_it_off_by_default() -> None:
+    from deploy_files import DEPLOY, load_compose, load_env
+
+    env = load_env()
+    assert env["NASA_ZENOH_AUTH"] == "" and env["NASA_API_TOKEN"] == ""  # off, as under `nasa up`
+    assert (DEPLOY / env["ZENOH_AUTH_DIR"]).is_dir()  # a bind mount of a missing folder would make one
+    off = load_compose()["services"]
+    on = load_compose({"NASA_ZENOH_AUTH": "/run/nasa-auth", "NASA_API_TOKEN": "t0ken"})["services"]
+    for name, svc in on.items():
+        assert svc["environment"]["NASA_ZENOH_AUTH"] == "/run/nasa-auth", name
+        assert off[name]["environment"]["NASA_ZENOH_AUTH"] == "", name
+        assert f"{env['ZENOH_AUTH_DIR']}:/run/nasa-auth:ro" in svc["volumes"], name
+    for name in ("learner", "learner-gpu"):
+        assert on[name]["environment"]["NASA_API_TOKEN"] == "t0ken"
+        assert on[name]["environment"]["NASA_STATUS_HOST"] == "0.0.0.0"
+    assert "NASA_API_TOKEN" not in on["actor"]["environment"]
+
+
+def test_an_acl_for_another_run_or_an_older_wiring_is_refused(tmp_path: Path) -> None:
+    zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "mine", RUN), RUN)
+    zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "every", wire.ANY), RUN)
+    other = zenoh_auth.init(tmp_path / "other", "another-run")
+    with pytest.raises(zenoh_auth.AuthError, match="another run"):
+        zenoh_auth.check_acl(other, RUN)
+    stale = json.loads((other / zenoh_auth.ACL_FILE).read_text())
+    stale["rules"] = stale["rules"][1:]
+    (other / zenoh_auth.ACL_FILE).write_text(json.dumps(stale))
+    with pytest.raises(zenoh_auth.AuthError):
+        zenoh_auth.check_acl(other, "another-run")
+
+
+def test_nasa_up_turns_logins_on_by_default_with_the_run_folders_own(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    from nasa.up import parse_up, up_auth
+
+    monkeypatch.delenv("NASA_ZENOH_AUTH", raising=False)
+    data = tmp_path / "run"
+    default, _ = parse_up([])
+    assert default.zenoh_auth == "run"
+    env: dict[str, str] = {}
+    folder = up_auth(default, data, RUN, env)
+    assert folder == data / "auth" and env["NASA_ZENOH_AUTH"] == str(folder.resolve())
+    assert stat.S_IMODE((folder / zenoh_auth.USERS_FILE).stat().st_mode) == 0o600
+    creds = zenoh_auth.credentials(folder)
+    up_auth(default, data, RUN, {})  # a resumed run keeps its credentials
+    assert zenoh_auth.credentials(folder) == creds
+    off, _ = parse_up(["--zenoh-auth", "off"])
+    env = {"NASA_ZENOH_AUTH": "/elsewhere"}
+    assert up_auth(off, tmp_path / "other", RUN, env) is None and "NASA_ZENOH_AUTH" not in env
+    assert not (tmp_path / "other").exists()
+    monkeypatch.setenv("NASA_ZENOH_AUTH", str(tmp_path / "shared"))
+    mine, _ = parse_up([])
+    assert up_auth(mine, data, RUN, {}) == tmp_path / "shared"
