@@ -101,6 +101,14 @@ def launch(argv: list[str], out: Path, minutes: float, log: Path, report_only: b
     return run_bounded(argv, minutes, log)
 
 
+def split_settings(argv: list[str]) -> tuple[list[str], list[str]]:
+    """This benchmark's flags, and the `nasa train` settings after `--` (passed to both runs)."""
+    if "--" not in argv:
+        return argv, []
+    i = argv.index("--")
+    return argv[:i], argv[i + 1 :]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -117,9 +125,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--task", default=TASK, help="the task (default: the headline task)")
     parser.add_argument("--report", action="store_true", help="only summarize the runs already in --out")
-    argv = sys.argv[1:]
-    settings = argv[argv.index("--") + 1 :] if "--" in argv else []
-    args = parser.parse_args(argv[: len(argv) - len(settings) - (1 if settings else 0)])
+    own, settings = split_settings(sys.argv[1:])
+    args = parser.parse_args(own)
     result: dict = {"task": args.task, "algo": ALGO, "preset": "cpu-small", "minutes": args.minutes,
                     "goal": GOAL, "cores": usable_cores(), "machine": platform.node(), "settings": settings}
     nasa = [sys.executable, "-m", "nasa.cli"]
