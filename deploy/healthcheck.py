@@ -51,23 +51,27 @@ def router() -> bool:
     return tcp_open("127.0.0.1", port)
 
 
+def _token_seen(key: str, role: str) -> bool:
+    """Whether the liveliness token `key` is visible through the router, logged in as `role`."""
+    from shared.zenoh_session import env_connect, open_client
+
+    with open_client(env_connect(), timeout_s=TIMEOUT_S, role=role) as session:
+        replies = session.liveliness().get(key, timeout=TIMEOUT_S)
+        return any(reply.ok is not None for reply in replies)
+
+
 def replay() -> bool:
     from shared.wire import Keys
-    from shared.zenoh_session import env_connect, env_run_id, open_client
+    from shared.zenoh_session import env_run_id
 
-    with open_client(env_connect(), timeout_s=TIMEOUT_S, role="replay") as session:
-        replies = session.liveliness().get(Keys(env_run_id()).alive("replay", 0), timeout=TIMEOUT_S)
-        return any(reply.ok is not None for reply in replies)
+    return _token_seen(Keys(env_run_id()).alive("replay", 0), role="replay")
 
 
 def robot_bridge() -> bool:
     from shared.wire import BridgeKeys
-    from shared.zenoh_session import env_connect, open_client
 
     # Logged in as an actor: the role that watches a bridge's token.
-    with open_client(env_connect(), timeout_s=TIMEOUT_S, role="actor") as session:
-        replies = session.liveliness().get(BridgeKeys(os.environ["NASA_BRIDGE_ID"]).alive, timeout=TIMEOUT_S)
-        return any(reply.ok is not None for reply in replies)
+    return _token_seen(BridgeKeys(os.environ["NASA_BRIDGE_ID"]).alive, role="actor")
 
 
 def reaches_router() -> bool:

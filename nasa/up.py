@@ -256,12 +256,10 @@ def check_bridge(cmd: UpCommand) -> None:
         if cmd.bridge_config is not None:
             raise ConfigError("--bridge-config is for --bridge hardware")
         return
-    task = cmd.config.env.task
-    if not hasattr(envs.source_for(task), "make_remote"):
-        raise ConfigError(f"--bridge {cmd.bridge}: {task} is not a task a robot bridge serves (gripper-*)")
-    if cmd.config.env.action_repeat != 1:
-        raise ConfigError(f"--bridge: a robot bridge steps one action at a time; --action-repeat 1, "
-                          f"not {cmd.config.env.action_repeat}")
+    try:
+        envs.check_remote(cmd.config.env)
+    except ConfigError as err:
+        raise ConfigError(f"--bridge {cmd.bridge}: {err}") from None
     if cmd.bridge == "hardware" and cmd.bridge_config is None:
         raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
     if cmd.bridge == "hardware" and cmd.actors not in (0, 1):
@@ -282,18 +280,14 @@ def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dic
     c = cmd.config
     how = {"emulator": ["--emulate"], "hardware": ["--config", str(cmd.bridge_config)]}.get(cmd.bridge, [])
     actors = [name for name in argv if name.startswith("actor-")]
-    bridges = {
-        f"robot_bridge-{i}": [
-            "--bridge-id", bridge_id(run_id, i), "--task", c.env.task, "--seed", str(c.seed + i),
-            "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how,
-        ]
-        for i in range(len(actors))
-    }
-    if "evaluator" in argv:  # its own bridge: a bridge serves one client's episodes
-        bridges["robot_bridge-eval"] = [
-            "--bridge-id", bridge_id(run_id, "eval"), "--task", c.env.task, "--seed", str(c.seed + 1_000_000),
-            "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how,
-        ]  # fmt: skip
+
+    def bridge(ident: int | str, seed: int) -> list[str]:
+        return ["--bridge-id", bridge_id(run_id, ident), "--task", c.env.task, "--seed", str(seed),
+                "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how]
+
+    bridges = {f"robot_bridge-{i}": bridge(i, c.seed + i) for i in range(len(actors))}
+    if "evaluator" in argv:  # its own bridge, seeded as an in-process evaluator's environment
+        bridges["robot_bridge-eval"] = bridge("eval", c.seed + 1_000_000)
     out = {**bridges, **argv}
     for i, name in enumerate(actors):
         out[name] = [*argv[name], "--bridge", bridge_id(run_id, i)]

@@ -168,6 +168,19 @@ def check_task(name: str) -> None:
     source_for(name)
 
 
+def check_remote(config: EnvConfig, error: type[Exception] | None = None) -> None:
+    """Raise `error` (default ConfigError) unless a robot bridge can serve `config`: a task whose
+    source steps it remotely, one action per step (a bridge step is one command to the servos)."""
+    from shared.config import ConfigError
+
+    error = error or ConfigError
+    if not hasattr(source_for(config.task), "make_remote"):
+        raise error(f"{config.task} is not a task a robot bridge serves (gripper-*)")
+    if config.action_repeat != 1:
+        raise error(f"a robot bridge steps one action at a time: --action-repeat 1, "
+                    f"not {config.action_repeat}")
+
+
 def spec(config: EnvConfig) -> EnvSpec:
     """The spec of the environment `config` describes, from its source; renders nothing."""
     return source_for(config.task).spec(config)

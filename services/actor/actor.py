@@ -44,7 +44,6 @@ import zenoh
 from services.robot_bridge.client import BRIDGE_LOST, BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import collect_action, make_agent
-from shared.config import ConfigError
 from shared.env_loop import EnvLoop
 from shared.replay.adder import ZenohWriter
 from shared.service import Log, StopFlag
@@ -130,8 +129,7 @@ class ActorService:
         seeds = np.random.SeedSequence([c.seed, self.actor_id, self.incarnation]).generate_state(2)
         self.bridge: BridgePresence | None = None
         if args.bridge:
-            if not hasattr(envs.source_for(c.env.task), "make_remote"):
-                raise ConfigError(f"--bridge: {c.env.task} is not a task a robot bridge serves")
+            envs.check_remote(c.env)
             self.bridge = BridgePresence(session, args.bridge)
         # A bridge's environment is built once the bridge is there (`_connect`).
         env_seed = int(seeds[0]) % 2**31

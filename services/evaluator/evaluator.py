@@ -36,7 +36,6 @@ from services.evaluator.media import AutoencoderTap, EvalMedia
 from services.robot_bridge.client import BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import make_agent
-from shared.config import ConfigError
 from shared.env_loop import EnvLoop
 from shared.evaluation import evaluate
 from shared.service import Log, StopFlag
@@ -74,8 +73,7 @@ class EvaluatorService:
         torch.set_num_threads(max(1, args.threads))
         self.bridge: BridgePresence | None = None
         if args.bridge:
-            if not hasattr(envs.source_for(c.env.task), "make_remote"):
-                raise ConfigError(f"--bridge: {c.env.task} is not a task a robot bridge serves")
+            envs.check_remote(c.env)
             self.bridge = BridgePresence(session, args.bridge)
         # A bridge's environment is made once the bridge is there (`_env_ready`).
         self.env = None if args.bridge else envs.from_config(c.env, c.seed + 1_000_000)

@@ -44,11 +44,10 @@ class GripperSource:
     def make_remote(self, config: EnvConfig, session: Any, bridge_id: str, timeout_s: float = 30.0) -> Any:
         """The bridge's environment, stacked here; the bridge keeps its own seed and render settings."""
         from services.robot_bridge.client import BridgeEnv
+        from shared import envs
         from shared.envs import FrameStack
 
-        if config.action_repeat != 1:  # a bridge step is one command to the servos, as on the robot
-            raise BridgeMismatch(f"a robot bridge steps one action at a time: --action-repeat 1, not "
-                                 f"{config.action_repeat}")
+        envs.check_remote(config, BridgeMismatch)
         remote = BridgeEnv(session, bridge_id, client=f"{config.task}", timeout_s=timeout_s)
         if remote.task != config.task or remote.frame_shape != frame_shape(config.image_size):
             raise BridgeMismatch(
