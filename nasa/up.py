@@ -403,7 +403,10 @@ def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Pat
 
     folder = data / "auth" if cmd.zenoh_auth == RUN_AUTH else Path(cmd.zenoh_auth)
     if not (folder / USERS_FILE).exists():
-        zenoh_auth.init(folder, run_id)
+        try:
+            zenoh_auth.init(folder, run_id)
+        except OSError as err:  # not a folder, not writable, a full disk: before any service starts
+            raise ConfigError(f"--zenoh-auth {folder}: cannot write the run's credentials: {err}") from None
     zenoh_auth.check_acl(folder, run_id)
     env["NASA_ZENOH_AUTH"] = str(folder.resolve())
     print(f"nasa up: Zenoh logins and access control from {folder} (--zenoh-auth off: none)", flush=True)

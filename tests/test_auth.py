@@ -288,6 +288,7 @@ def test_an_acl_for_another_run_or_an_older_wiring_is_refused(tmp_path: Path) ->
 
 def test_nasa_up_turns_logins_on_by_default_with_the_run_folders_own(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     from nasa.up import parse_up, up_auth
+    from shared.config import ConfigError
 
     monkeypatch.delenv("NASA_ZENOH_AUTH", raising=False)
     data = tmp_path / "run"
@@ -304,6 +305,10 @@ def test_nasa_up_turns_logins_on_by_default_with_the_run_folders_own(tmp_path: P
     env = {"NASA_ZENOH_AUTH": "/elsewhere"}
     assert up_auth(off, tmp_path / "other", RUN, env) is None and "NASA_ZENOH_AUTH" not in env
     assert not (tmp_path / "other").exists()
+    (tmp_path / "a-file").write_text("")
+    bad, _ = parse_up(["--zenoh-auth", str(tmp_path / "a-file")])
+    with pytest.raises(ConfigError, match="cannot write the run's credentials"):
+        up_auth(bad, data, RUN, {})
     monkeypatch.setenv("NASA_ZENOH_AUTH", str(tmp_path / "shared"))
     mine, _ = parse_up([])
     assert up_auth(mine, data, RUN, {}) == tmp_path / "shared"
