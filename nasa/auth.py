@@ -1,4 +1,5 @@
-"""`nasa auth init DIR`: the Zenoh credentials of every role and the router's access-control list."""
+"""`nasa auth init DIR`: the Zenoh credentials of every role and the router's access-control list;
+`nasa auth tls DIR --host H`: the certificates for TLS links to a router reachable as H."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 
 import tyro
 
-from shared import zenoh_auth
+from shared import zenoh_auth, zenoh_tls
 from shared.wire import ANY
 
 
@@ -24,16 +25,49 @@ class AuthInit:
     """Replace existing credentials (rotation: restart the router and every service afterwards)."""
 
 
+@dataclass
+class AuthTls:
+    """Write DIR/tls/: a CA for the run, the router's certificate for the given hosts, and one client
+    certificate per role. Then listen and connect on tls/HOST:PORT endpoints: the router accepts
+    only clients holding a certificate from this CA, and clients check the router's."""
+
+    folder: tyro.conf.Positional[Path]
+    host: tuple[str, ...] = ()
+    """Names and addresses clients reach the router by (repeat the flag); localhost and 127.0.0.1
+    are always included."""
+    force: bool = False
+    """Issue every certificate anew (restart the router and every service afterwards)."""
+
+
+USAGE = ("usage: nasa auth init DIR [--run-id ID] [--force]\n"
+         "       nasa auth tls DIR --host HOST [--host ...] [--force]")
+
+
 def auth(argv: list[str]) -> None:
-    if not argv or argv[0] != "init":
-        print("usage: nasa auth init DIR [--run-id ID] [--force]", file=sys.stderr)
+    if not argv or argv[0] not in ("init", "tls"):
+        print(USAGE, file=sys.stderr)
         sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
+    if argv[0] == "tls":
+        tls(argv[1:])
+        return
     cmd = tyro.cli(AuthInit, args=argv[1:], prog="nasa auth init")
     try:
         folder = zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force)
-    except ValueError as err:  # a run id that cannot be a key prefix
+    except (ValueError, FileExistsError) as err:  # a run id that cannot be a key prefix; no --force
         print(f"nasa auth: error: {err}", file=sys.stderr)
         sys.exit(2)
     roles = ", ".join(zenoh_auth.AUTH_ROLES)
     print(f"nasa auth: credentials for {roles} in {folder / zenoh_auth.USERS_FILE} (0600); "
           f"ACL for run {cmd.run_id!r} in {folder / zenoh_auth.ACL_FILE}", flush=True)
+
+
+def tls(argv: list[str]) -> None:
+    cmd = tyro.cli(AuthTls, args=argv, prog="nasa auth tls")
+    try:
+        out = zenoh_tls.init(cmd.folder, list(cmd.host), cmd.force)
+    except (ValueError, FileExistsError) as err:  # AuthError is a ValueError
+        print(f"nasa auth: error: {err}", file=sys.stderr)
+        sys.exit(2)
+    hosts = ", ".join((out / "hosts.txt").read_text().split())
+    print(f"nasa auth: a CA, the router's certificate (for {hosts}) and one client certificate per role "
+          f"in {out} (keys 0600)", flush=True)

@@ -5,7 +5,8 @@ tcp/127.0.0.1:7447); `nasa up` and `python -m services.router` run that
 router. Multicast scouting is off: a service talks only to the router it is
 told about, so runs on one host never find each other by accident.
 With an auth folder (NASA_ZENOH_AUTH, shared/zenoh_auth.py) clients log in as their role and the
-router checks logins and its access-control list; without one nothing changes.
+router checks logins and its access-control list; without one nothing changes. A tls/ endpoint
+also encrypts the link, with the folder's certificates (shared/zenoh_tls.py).
 Use the returned session as a context manager: a process holding a callback
 subscriber hangs at exit unless its session is closed.
 """
@@ -22,7 +23,7 @@ from typing import Annotated
 import tyro
 import zenoh
 
-from shared import zenoh_auth
+from shared import zenoh_auth, zenoh_tls
 from shared.config import DEFAULT_PRESET, TrainConfig
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -55,10 +56,16 @@ def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
     config = _base_config("client")
     config.insert_json5("connect/endpoints", json.dumps(endpoints))
     folder = auth or zenoh_auth.env_auth()
+    tls = zenoh_tls.is_tls(endpoints)
+    if tls and folder is None:
+        raise zenoh_auth.AuthError(f"{connect} is a TLS link: it needs the run's auth folder with its "
+                                   "certificates (NASA_ZENOH_AUTH; `nasa auth tls DIR --host HOST`)")
     if folder is not None:
         if role is None:
             raise zenoh_auth.AuthError(f"an auth folder ({folder}) is set, but this session has no role")
         zenoh_auth.apply_client(config, folder, role)
+        if tls:
+            zenoh_tls.apply_client(config, folder, role)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -71,9 +78,15 @@ def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
 
 def open_router(listen: str, auth: Path | None = None) -> zenoh.Session:
     """A session in router mode listening on `listen` (e.g. tcp/127.0.0.1:7447): the run's router.
-    With an auth folder it accepts only the logins of its users.txt and enforces its acl.json."""
+    With an auth folder it accepts only the logins of its users.txt and enforces its acl.json; on a
+    tls/ endpoint it also requires a client certificate from the folder's CA (shared/zenoh_tls.py)."""
     config = _base_config("router")
     config.insert_json5("listen/endpoints", json.dumps([listen]))
+    if zenoh_tls.is_tls([listen]):
+        if auth is None:
+            raise zenoh_auth.AuthError(f"{listen} is a TLS endpoint: it needs an auth folder with the "
+                                       "run's certificates (`nasa auth tls DIR --host HOST`)")
+        zenoh_tls.apply_router(config, auth)
     if auth is not None:
         zenoh_auth.apply_router(config, auth)
     return zenoh.open(config)
