@@ -56,11 +56,11 @@ def test_manifests_have_the_topology():
     by_name = {d["metadata"]["name"]: d for d in docs}
     for name in ("replay", "learner"):  # a volume of its own, mounted where --data points
         (claim,) = by_name[name]["spec"]["volumeClaimTemplates"]
-        (mount,) = by_name[name]["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
+        mount = by_name[name]["spec"]["template"]["spec"]["containers"][0]["volumeMounts"][0]
         assert mount == {"name": claim["metadata"]["name"], "mountPath": "/data"}
     evaluator = by_name["evaluator"]["spec"]["template"]["spec"]  # its pictures: a scratch volume
-    assert evaluator["containers"][0]["volumeMounts"] == [{"name": "media", "mountPath": "/data"}]
-    assert evaluator["volumes"] == [{"name": "media", "emptyDir": {}}]
+    assert evaluator["containers"][0]["volumeMounts"][0] == {"name": "media", "mountPath": "/data"}
+    assert {"name": "media", "emptyDir": {}} in evaluator["volumes"]
     assert by_name["actor"]["spec"]["replicas"] == int(load_env()["ACTORS"])
     # the GPU request is there for whoever turns it on
     assert "nvidia.com/gpu: 1" in (K8S / "learner.yaml").read_text()
@@ -115,3 +115,27 @@ def test_kubernetes_and_compose_share_image_settings_and_checks():
             assert command == compose[role]["healthcheck"]["test"][1:]
         if role == "learner":
             assert all(p["httpGet"]["path"] == "/healthz" for p in probes)
+
+
+def test_every_pod_can_log_in_from_the_auth_secret():
+    """Logins stay off by default, as in compose; a Secret turns them on for every pod at once,
+    mounted where compose mounts its auth folder, readable by the image's user only."""
+    docs = load_k8s()
+    assert k8s_config_map(docs)["NASA_ZENOH_AUTH"] == load_env()["NASA_ZENOH_AUTH"] == ""
+    compose_mount = load_compose()["services"]["actor"]["volumes"]
+    assert any(str(v).endswith(":/run/nasa-auth:ro") for v in compose_mount)
+    workloads = [d for d in docs if d["kind"] in ("Deployment", "StatefulSet")]
+    assert len(workloads) == 5
+    for doc in workloads:
+        pod = doc["spec"]["template"]["spec"]
+        (volume,) = [v for v in pod["volumes"] if v["name"] == "auth"]
+        assert volume["secret"] == {"secretName": "nasa-td3-auth", "optional": True, "defaultMode": 0o440}
+        assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"] == 1000
+        (container,) = pod["containers"]
+        assert {"name": "auth", "mountPath": "/run/nasa-auth", "readOnly": True} in container["volumeMounts"]
+        # the router reads NASA_ZENOH_AUTH too, as every client does
+        assert container["envFrom"] == [{"configMapRef": {"name": "nasa-td3-config"}}]
+    (learner,) = [d for d in workloads if d["metadata"]["name"] == "learner"]
+    env = {e["name"]: e for e in learner["spec"]["template"]["spec"]["containers"][0]["env"]}
+    assert env["NASA_API_TOKEN"]["valueFrom"]["secretKeyRef"] == {
+        "name": "nasa-td3-auth", "key": "api-token", "optional": True}

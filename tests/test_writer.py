@@ -70,8 +70,10 @@ def test_replay_gone_loses_the_in_flight_batches_and_breaks_the_episode():
     w.on_replay(False)
     assert w.in_flight == 0 and w.lost == 2 and w.broken and not w.alive
     assert any("gone" in m for m in messages)
+    assert not any("back" in m for m in messages)
     assert not w.acquire(stop)  # no batch of the broken episode is sent
     w.on_replay(True)
+    assert messages[-1].startswith("the replay is back")  # only after it had gone
     assert w.broken  # still: the episode under way stays abandoned
     w.begin_episode()  # a new episode starts from its reset frame: accepted whatever came before
     assert not w.broken and w.acquire(stop) and w.in_flight == 1

@@ -85,6 +85,7 @@ class SendWindow:
         self.clock = clock
         self.in_flight = 0
         self.alive = False  # the replay's liveliness token is present
+        self.was_lost = False  # the replay has gone away at least once
         self.broken = False  # the replay went away during the episode under way
         self.global_steps = 0  # newest replay count seen (acks, stats)
         self.replay_done = False
@@ -124,7 +125,10 @@ class SendWindow:
                 self.in_flight = 0
                 self.broken = True
                 if was_alive:
+                    self.was_lost = True
                     self.log("the replay is gone: pausing, and abandoning the episode under way")
+            elif not was_alive and self.was_lost:
+                self.log("the replay is back: acting again from a new episode")
             self._cv.notify_all()
 
     def observe(self, num_inserted: int, done: bool | None = None) -> None:
