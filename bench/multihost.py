@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps({"bench": "multihost", "error": f"no network namespaces: {reason}"}))
         sys.exit(1)
     via = args.via if args.via != "auto" else ("netem" if netem_available() else "relay")
-    print(f"bench.multihost: delay via {via}, {args.rounds} round(s) of {args.seconds:.0f} s windows", flush=True)
+    print(f"bench.multihost: delay via {via}, {args.rounds} round(s) of {args.seconds:.0f} s windows",
+          flush=True)
     runs: dict[float, list[dict]] = {0.0: [], args.delay_ms: []}
     for r in range(args.rounds):
         order = (0.0, args.delay_ms) if r % 2 == 0 else (args.delay_ms, 0.0)
