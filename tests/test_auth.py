@@ -271,6 +271,13 @@ def test_compose_passes_auth_to_every_service_and_keeps_it_off_by_default() -> N
         assert on[name]["environment"]["NASA_API_TOKEN"] == "t0ken"
         assert on[name]["environment"]["NASA_STATUS_HOST"] == "0.0.0.0"
     assert "NASA_API_TOKEN" not in on["actor"]["environment"]
+    # TLS links: the router listens and every client connects where deploy/.env says
+    tls = load_compose({"NASA_ZENOH_LISTEN": "tls/0.0.0.0:7447", "NASA_ZENOH_CONNECT": "tls/router:7447"})
+    assert tls["services"]["router"]["environment"]["NASA_ZENOH_LISTEN"] == "tls/0.0.0.0:7447"
+    assert off["router"]["environment"]["NASA_ZENOH_LISTEN"] == "tcp/0.0.0.0:7447"
+    for name, svc in tls["services"].items():
+        if name != "router":
+            assert svc["environment"]["NASA_ZENOH_CONNECT"] == "tls/router:7447", name
 
 
 def test_an_acl_for_another_run_or_an_older_wiring_is_refused(tmp_path: Path) -> None:

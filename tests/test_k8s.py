@@ -103,10 +103,8 @@ def test_kubernetes_and_compose_share_image_settings_and_checks():
     docs = load_k8s()
     values = k8s_config_map(docs)
     for key, value in values.items():
-        if key != "NASA_ZENOH_CONNECT":
-            assert value == env[key], key
+        assert value == env[key], key
     compose = load_compose()["services"]
-    assert values["NASA_ZENOH_CONNECT"] == compose["actor"]["environment"]["NASA_ZENOH_CONNECT"]
     for role, container in k8s_containers(docs).items():
         assert container["image"] == compose[role]["image"] == env["IMAGE"]
         probes = [container.get(p) for p in ("readinessProbe", "livenessProbe")]
