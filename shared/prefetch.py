@@ -112,6 +112,7 @@ class DevicePrefetcher:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="device-prefetch", daemon=True)
         self.produced = 0
+        self.consumed = 0
         self.waited_s = 0.0
 
     def start(self) -> DevicePrefetcher:
@@ -138,6 +139,7 @@ class DevicePrefetcher:
             raise PrefetchError(f"the prefetch thread failed: {item!r}") from item
         if item is None:
             return None
+        self.consumed += 1
         host, device_batch, event = item
         if self.cuda:
             current = torch.cuda.current_stream(self.device)
@@ -145,6 +147,10 @@ class DevicePrefetcher:
             for tensor in device_batch.values():
                 tensor.record_stream(current)
         return Prefetched(host, device_batch)
+
+    def queued(self) -> int:
+        """Batches sampled but not yet handed to the learner (staged or waiting in the queue)."""
+        return self.produced - self.consumed
 
     def close(self, timeout: float = 5.0) -> None:
         self._stop.set()

@@ -30,7 +30,7 @@ TINY = [
 class System:
     def __init__(self, data: Path, actors: int = 2, steps: int = 300, extra: list[str] | None = None,
                  restart_delay_s: float = 1.0, evaluator: bool = True,
-                 replay_extra: list[str] | None = None) -> None:
+                 replay_extra: list[str] | None = None, learner_extra: list[str] | None = None) -> None:
         self.data = data
         self.port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -50,6 +50,7 @@ class System:
         # robot bridges, for --bridge
         argv = with_bridges(cmd, service_argv(cmd, data, layout_of(cmd, gpu=False)), f"t{self.port}")
         argv["replay"] += ["--error-buffer", str(ERROR_BUFFER), *(replay_extra or [])]
+        argv["learner"] += learner_extra or []
         for name, args in argv.items():
             self.sup.add(name, name.split("-")[0], args)
         self.url = f"http://127.0.0.1:{self.port}"

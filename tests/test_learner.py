@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from services.learner.core import CHECKPOINT, LearnerCore
 from shared import wire
+from shared.config import ConfigError
 from shared.replay.client import LocalReplay
 from shared.runlog import read_rows
 from tests.test_scoring import filled_store
@@ -68,3 +70,33 @@ def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path):
     assert again.env_steps == 60 and again.counters.wall_s == 4.0
     for name, tensor in core.agent.policy_state_dict().items():
         assert torch.equal(tensor, again.agent.policy_state_dict()[name])
+
+
+def test_batches_staged_on_the_device_train_exactly_as_host_batches(tmp_path):
+    """The CUDA path's prefetcher (shared.prefetch) run on the CPU: its batches carry unscored
+    (NaN) intrinsic rewards to the device; the update must use the scores computed on the host."""
+    from services.learner.learner import use_device_prefetch
+    from shared.prefetch import DevicePrefetcher
+
+    torch.manual_seed(0)  # the same initial weights and update noise for both
+    host = core_on(tmp_path / "host")
+    for batch in [host.scorer.client.sample(16) for _ in range(3)]:
+        host.train_on(batch)
+    torch.manual_seed(0)
+    staged = core_on(tmp_path / "staged")
+    batches = [staged.scorer.client.sample(16) for _ in range(3)]
+    assert np.isnan(batches[0]["intrinsic"]).any()
+    queue = iter(batches)
+    with DevicePrefetcher(lambda: next(queue, None), torch.device("cpu")) as prefetcher:
+        for _ in range(3):
+            ready = prefetcher.get(timeout=10.0)
+            assert ready is not None
+            staged.train_on(ready.host, ready.device)
+    assert staged.agent.num_updates == host.agent.num_updates == 3
+    for name, tensor in host.agent.policy_state_dict().items():
+        assert torch.isfinite(tensor).all(), name
+        assert torch.equal(tensor, staged.agent.policy_state_dict()[name]), name
+    assert use_device_prefetch("auto", torch.device("cpu")) is False
+    assert use_device_prefetch("on", torch.device("cpu")) is True
+    with pytest.raises(ConfigError):
+        use_device_prefetch("yes", torch.device("cpu"))

@@ -16,8 +16,11 @@ EVAL_EVERY = 100
 
 @pytest.mark.timeout(300)
 def test_system_end_to_end(tmp_path):
+    # The learner stages its batches as on CUDA (shared.prefetch), so that path runs a whole run
+    # here too; the other system tests run the CPU default.
     system = System(tmp_path / "run", actors=2, steps=STEPS,
-                    extra=["--eval-every", str(EVAL_EVERY), "--eval-episodes", "1"])
+                    extra=["--eval-every", str(EVAL_EVERY), "--eval-episodes", "1"],
+                    learner_extra=["--device-prefetch", "on"])
     try:
         # Both actors appear and act with weights the learner published after learning started.
         s = system.wait_for(

@@ -60,8 +60,10 @@ class LearnerCore:
 
     # -- training -----------------------------------------------------------------
 
-    def train_on(self, batch: Batch) -> dict[str, float]:
+    def train_on(self, batch: Batch, on_device: dict[str, torch.Tensor] | None = None) -> dict[str, float]:
         """One update: score what the collect timing still owes, then update on the batch.
+        `on_device`: the batch already on the device (shared.prefetch); its intrinsic rewards are
+        the host batch's once scored, so only that column is copied again.
 
         A batch with a non-finite value is dropped (no update; its rows' indices logged); an
         update whose loss or gradient is non-finite skips that optimizer step (optimizer_step)
@@ -78,7 +80,11 @@ class LearnerCore:
             return {}
         self.board.record_lag(self.agent.num_updates, batch["policy_version"])
         skipped = nonfinite_skips(self.agent)
-        metrics = self.agent.update(batch_to_device(batch, self.device))
+        if on_device is None:
+            on_device = batch_to_device(batch, self.device)
+        else:
+            on_device["intrinsic"] = torch.from_numpy(batch["intrinsic"]).to(self.device)
+        metrics = self.agent.update(on_device)
         if nonfinite_skips(self.agent) > skipped or not all(np.isfinite(v) for v in metrics.values()):
             n = self.board.count_skipped_update()
             self.log.every("nonfinite-update", 5.0, f"skipped update ({n} so far): non-finite loss or "

@@ -32,6 +32,10 @@ class LearnerArgs(ServiceArgs):
     """K: publish weights every K updates."""
     prefetch: int = 2
     """Sample requests kept in flight."""
+    device_prefetch: str = "auto"
+    """Stage batches on the learner's device ahead of the update (pinned buffers, copies on a side
+    stream: shared/prefetch.py): `on`, `off`, or `auto` (on with CUDA, where the copy can overlap
+    the update; off on the CPU, where it would only add a copy)."""
     final_eval_wait_s: float = 300.0
     """At the end, how long to wait for the evaluation of the last eval step."""
     threads: int = 0

@@ -36,7 +36,9 @@ from services.learner.health import LearnerArgs, health_reasons
 from services.learner.history import History
 from services.learner.metrics import LearnerMetrics
 from shared import faults, run_config, wire
+from shared.config import ConfigError
 from shared.device import resolve_device
+from shared.prefetch import DevicePrefetcher, PrefetchError
 from shared.replay.client import Prefetcher, ZenohReplayClient
 from shared.service import Log, StopFlag
 
@@ -178,7 +180,13 @@ class Learner:
             self.stop.wait(0.5)
         wall_start, wall0 = time.monotonic(), self.wall_s
         finished, done_at, resynced = False, None, False
-        with Prefetcher(self.client, c.batch_size, self.args.prefetch, self.stop) as prefetcher:
+        with ExitStack() as stack:
+            prefetcher = Prefetcher(self.client, c.batch_size, self.args.prefetch, self.stop)
+            stack.enter_context(prefetcher)
+            staged = None
+            if use_device_prefetch(self.args.device_prefetch, core.device):
+                staged = DevicePrefetcher(lambda: prefetcher.get(timeout=0.2), core.device)
+                stack.enter_context(staged)
             while not self.stop:
                 self.wall_s = wall0 + time.monotonic() - wall_start
                 self._drain()
@@ -192,20 +200,29 @@ class Learner:
                 if starved and not core.done() and not resynced:
                     # Short of the target: samples were counted that no update used (a replay restart
                     # counts G per stored step; a dead learner's requests served after it died).
-                    resynced = self.client.sync_samples(core.agent.num_updates + prefetcher.queued())
+                    ahead = prefetcher.queued() + (staged.queued() if staged is not None else 0)
+                    resynced = self.client.sync_samples(core.agent.num_updates + ahead)
                     done_at = time.monotonic()
                     continue
                 if core.done() or starved:
                     finished = True
                     break
                 waited = time.perf_counter()
-                batch = prefetcher.get(timeout=0.2)
+                on_device = None
+                if staged is not None:
+                    try:
+                        ready = staged.get(timeout=0.2)
+                    except PrefetchError as err:  # a live learner that cannot train is never restarted
+                        raise faults.WorkerDied(f"the device prefetch thread died: {err}") from err
+                    batch, on_device = (ready.host, ready.device) if ready is not None else (None, None)
+                else:
+                    batch = prefetcher.get(timeout=0.2)
                 if dead := prefetcher.dead():  # a live learner that cannot train is never restarted
                     raise faults.WorkerDied(f"learner thread(s) {', '.join(dead)} died")
                 if batch is None:
                     continue
                 began = time.perf_counter()
-                core.train_on(batch)
+                core.train_on(batch, on_device)
                 self.metrics.batch_wait_seconds.observe(began - waited)
                 self.metrics.update_seconds.observe(time.perf_counter() - began)
                 core.board.seen_env_steps(self.client.num_inserted)
@@ -280,9 +297,17 @@ def main(argv: list[str] | None = None) -> None:
     from shared.service import run_service
 
     def run(args: LearnerArgs, session: zenoh.Session, stop: StopFlag) -> None:
+        use_device_prefetch(args.device_prefetch, torch.device("cpu"))  # a bad value fails first
         with faults.lock_service(Path(args.data), "learner"):
             faults.check_port_free(args.host, args.port, "the status API's")
             run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
             Learner(args, session, stop, run).run()
 
     run_service(LearnerArgs, argv, "python -m services.learner", run)
+
+
+def use_device_prefetch(setting: str, device: torch.device) -> bool:
+    """--device-prefetch: `on`, `off`, or `auto` (on with CUDA only)."""
+    if setting not in ("auto", "on", "off"):
+        raise ConfigError(f"--device-prefetch must be auto, on or off, got {setting!r}")
+    return setting == "on" or (setting == "auto" and device.type == "cuda")
