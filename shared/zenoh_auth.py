@@ -75,10 +75,13 @@ def acl(wiring: tuple[Route, ...] | None = None) -> dict:
     # Routers of several sites forward each other's traffic whatever it is.
     rules.append({"id": "router-all", "messages": list(ALL_MESSAGES), "flows": ["ingress", "egress"],
                   "permission": "allow", "key_exprs": ["nasa/**"]})
-    policies = [{"id": f"{role}-policy", "subjects": [role],
+    # A router that joins this one logs in; the one this router joins presents only its TLS
+    # certificate (common name `router`, shared/zenoh_tls.py), so routers are known by either.
+    subjects = [{"id": role, "usernames": [role]} for role in AUTH_ROLES]
+    subjects.append({"id": f"{ROUTER}-cert", "cert_common_names": [ROUTER]})
+    policies = [{"id": f"{role}-policy", "subjects": [role, f"{ROUTER}-cert"] if role == ROUTER else [role],
                  "rules": [r["id"] for r in rules if r["id"].startswith(f"{role}-")]} for role in AUTH_ROLES]
-    return {"enabled": True, "default_permission": "deny", "rules": rules,
-            "subjects": [{"id": role, "usernames": [role]} for role in AUTH_ROLES],
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": [p for p in policies if p["rules"]]}
 
 

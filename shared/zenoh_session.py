@@ -76,15 +76,21 @@ def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
             time.sleep(0.2)
 
 
-def open_router(listen: str, auth: Path | None = None) -> zenoh.Session:
+def open_router(listen: str, auth: Path | None = None, join: str = "") -> zenoh.Session:
     """A session in router mode listening on `listen` (e.g. tcp/127.0.0.1:7447): the run's router.
     With an auth folder it accepts only the logins of its users.txt and enforces its acl.json; on a
-    tls/ endpoint it also requires a client certificate from the folder's CA (shared/zenoh_tls.py)."""
+    tls/ endpoint it also requires a client certificate from the folder's CA (shared/zenoh_tls.py).
+    `join`: other routers' endpoints (comma-separated; a router per site), connected to and
+    reconnected to after a link loss, logged in as the `router` role."""
     config = _base_config("router")
     config.insert_json5("listen/endpoints", json.dumps([listen]))
-    if zenoh_tls.is_tls([listen]):
+    peers = [e.strip() for e in join.split(",") if e.strip()]
+    if peers:
+        config.insert_json5("connect/endpoints", json.dumps(peers))
+    # A site's router may listen in plain TCP for its own host and join the others over TLS.
+    if tls := [e for e in (listen, *peers) if zenoh_tls.is_tls([e])]:
         if auth is None:
-            raise zenoh_auth.AuthError(f"{listen} is a TLS endpoint: it needs an auth folder with the "
+            raise zenoh_auth.AuthError(f"{', '.join(tls)}: a TLS link needs an auth folder with the "
                                        "run's certificates (`nasa auth tls DIR --host HOST`)")
         zenoh_tls.apply_router(config, auth)
     if auth is not None:

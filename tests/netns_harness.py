@@ -90,9 +90,11 @@ class SplitSystem:
     per-role logins and the ACL (`secure`) or plain TCP. Tiny settings as tests/system_harness.py."""
 
     def __init__(self, hosts: TwoHosts, data: Path, actors: int = 2, secure: bool = True,
-                 extra: list[str] | None = None, actor_port: int = ROUTER_PORT) -> None:
+                 extra: list[str] | None = None, actor_port: int = ROUTER_PORT,
+                 site_router: bool = False) -> None:
         """`actor_port`: where the actors on B connect (a relay on B's own address, as
-        bench/delay_proxy.py, when not the router's port on A)."""
+        bench/delay_proxy.py, when not the router's port on A). `site_router`: B runs a router of
+        its own that joins A's (over TLS when `secure`), and B's actors connect to it on loopback."""
         from system_harness import REPO, TINY
 
         self.hosts, self.data = hosts, data
@@ -120,10 +122,13 @@ class SplitSystem:
         def on(side: str) -> Callable[[str], list[str]]:
             return lambda role: [*hosts.prefix(side), *service_command(role)]
 
-        envs = {"a": env, "b": {**env, "NASA_ZENOH_CONNECT": actor_endpoint}}
+        local = f"tcp/127.0.0.1:{ROUTER_PORT}"
+        envs = {"a": env, "b": {**env, "NASA_ZENOH_CONNECT": local if site_router else actor_endpoint}}
         self.sup = {side: Supervisor(envs[side], data / "logs", cwd=str(REPO), command=on(side))
                     for side in "ab"}
         self.sup["a"].add("router", "router", ["--listen", self.endpoint])
+        if site_router:
+            self.sup["b"].add("router-b", "router", ["--listen", local, "--join", actor_endpoint])
         for name, args in argv.items():
             self.sup["b" if name.startswith("actor") else "a"].add(name, name.split("-")[0], args)
 

@@ -132,8 +132,9 @@ def test_env_file_holds_every_setting_and_nothing_else():
     compose_own = {"COMPOSE_PROJECT_NAME", "COMPOSE_PROFILES"}
     assert set(env) - used - compose_own == set(), ".env sets variables compose does not use"
     # every variable must be set (${VAR:?}) but those whose empty value means something: TORCH_INDEX
-    # (the variant's own index), NASA_ZENOH_AUTH (no Zenoh logins), NASA_API_TOKEN (open controls)
-    for name in used - {"TORCH_INDEX", "NASA_ZENOH_AUTH", "NASA_API_TOKEN"}:
+    # (the variant's own index), NASA_ZENOH_AUTH (no Zenoh logins), NASA_API_TOKEN (open controls),
+    # NASA_ZENOH_JOIN (no other site's router)
+    for name in used - {"TORCH_INDEX", "NASA_ZENOH_AUTH", "NASA_API_TOKEN", "NASA_ZENOH_JOIN"}:
         assert re.search(rf"\$\{{{name}:\?", COMPOSE.read_text()), f"{name} has a default outside .env"
 
 

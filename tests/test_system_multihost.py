@@ -27,8 +27,11 @@ def hosts():
         two.close()
 
 
-def test_actors_on_another_host_join_over_tls_and_survive_a_cut_link(hosts: TwoHosts, tmp_path) -> None:
-    system = SplitSystem(hosts, tmp_path / "run", actors=2, secure=True)
+@pytest.mark.parametrize("site_router", [False, True], ids=["one-router", "router-per-site"])
+def test_actors_on_another_host_join_over_tls_and_survive_a_cut_link(hosts: TwoHosts, tmp_path,
+                                                                     site_router: bool) -> None:
+    """One router for both hosts, or a router per host joined to the other over TLS."""
+    system = SplitSystem(hosts, tmp_path / "run", actors=2, secure=True, site_router=site_router)
     sizes: list[int] = []
 
     def record(s: dict) -> None:

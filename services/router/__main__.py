@@ -24,6 +24,10 @@ class RouterArgs:
 
     listen: str = field(default_factory=lambda: os.environ.get("NASA_ZENOH_LISTEN", "tcp/127.0.0.1:7447"))
     """Endpoint to listen on (env NASA_ZENOH_LISTEN), e.g. tcp/0.0.0.0:7447 in a container."""
+    join: str = field(default_factory=lambda: os.environ.get("NASA_ZENOH_JOIN", ""))
+    """Other routers to join, comma-separated (env NASA_ZENOH_JOIN): a router per site, the sites'
+    routers joined. Each site's services connect to their own router; a lost link to another site
+    is retried until it is back."""
     auth: Path | None = field(default_factory=env_auth)
     """Auth folder (`nasa auth init DIR`; env NASA_ZENOH_AUTH): require each role's login and enforce
     its access-control list. None: no authentication."""
@@ -36,12 +40,13 @@ def main(argv: list[str] | None = None) -> None:
     stop.install_signal_handlers()
     log = Log("router")
     try:
-        router = open_router(args.listen, auth=args.auth)
+        router = open_router(args.listen, auth=args.auth, join=args.join)
     except AuthError as err:
         print(f"router: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
     with router:
-        log(f"listening on {args.listen}" + (f"; logins and ACL from {args.auth}" if args.auth else ""))
+        log(f"listening on {args.listen}" + (f", joining {args.join}" if args.join else "")
+            + (f"; logins and ACL from {args.auth}" if args.auth else ""))
         stop.wait()
         log(f"stopping ({stop.reason})")
 
