@@ -88,7 +88,7 @@ def acl(wiring: tuple[Route, ...] | None = None) -> dict:
 def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
     """Write new credentials (users.txt, 0600) and the ACL for run `run_id` (every run: ANY) to `folder`.
     An existing users.txt is kept unless `force` (rotation: write new ones, restart every process)."""
-    wiring = routes(run_id)  # first: a bad run id leaves no folder
+    routes(run_id)  # first: a bad run id leaves no folder
     folder.mkdir(parents=True, exist_ok=True)
     users = folder / USERS_FILE
     if users.exists() and not force:
@@ -99,8 +99,16 @@ def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
     with os.fdopen(fd, "w") as f:
         f.write(lines)
     os.replace(tmp, users)
-    (folder / ACL_FILE).write_text(json.dumps(acl(wiring), indent=1) + "\n")
+    write_acl(folder, run_id)
     return folder
+
+
+def write_acl(folder: Path, run_id: str = ANY) -> None:
+    """(Re)write `folder`/acl.json for run `run_id` from today's wiring; the credentials stay."""
+    path = folder / ACL_FILE
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(acl(routes(run_id)), indent=1) + "\n")
+    os.replace(tmp, path)
 
 
 def check_acl(folder: Path, run_id: str) -> None:

@@ -306,8 +306,10 @@ def test_nasa_up_turns_logins_on_by_default_with_the_run_folders_own(tmp_path: P
     assert folder == data / "auth" and env["NASA_ZENOH_AUTH"] == str(folder.resolve())
     assert stat.S_IMODE((folder / zenoh_auth.USERS_FILE).stat().st_mode) == 0o600
     creds = zenoh_auth.credentials(folder)
-    up_auth(default, data, RUN, {})  # a resumed run keeps its credentials
+    (folder / zenoh_auth.ACL_FILE).write_text("{}")  # made by an older version of the wiring
+    up_auth(default, data, RUN, {})  # a resumed run keeps its credentials, and gets today's ACL
     assert zenoh_auth.credentials(folder) == creds
+    zenoh_auth.check_acl(folder, RUN)
     off, _ = parse_up(["--zenoh-auth", "off"])
     env = {"NASA_ZENOH_AUTH": "/elsewhere"}
     assert up_auth(off, tmp_path / "other", RUN, env) is None and "NASA_ZENOH_AUTH" not in env
