@@ -159,10 +159,9 @@ class SplitSystem:
         raise AssertionError(f"timed out waiting for {what}; last status: {last}\n{self.logs()}")
 
     def logs(self) -> str:
-        out = []
-        for f in sorted((self.data / "logs").glob("*.log")):
-            out.append(f"== {f.name}\n" + "\n".join(f.read_text(errors="replace").splitlines()[-15:]))
-        return "\n".join(out)
+        from system_harness import tail_logs
+
+        return tail_logs(self.data / "logs")
 
     def restarts(self) -> dict[str, int]:
         return {c.name: c.restarts for sup in self.sup.values() for c in sup.children.values()}

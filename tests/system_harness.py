@@ -27,6 +27,14 @@ TINY = [
 ]
 
 
+def tail_logs(folder: Path, lines: int = 15) -> str:
+    """The last lines of every service log in `folder`, for an assertion's message."""
+    out = []
+    for f in sorted(folder.glob("*.log")):
+        out.append(f"== {f.name}\n" + "\n".join(f.read_text(errors="replace").splitlines()[-lines:]))
+    return "\n".join(out)
+
+
 class System:
     def __init__(self, data: Path, actors: int = 2, steps: int = 300, extra: list[str] | None = None,
                  restart_delay_s: float = 1.0, evaluator: bool = True,
@@ -92,10 +100,7 @@ class System:
         raise AssertionError(f"still running after {timeout} s: {names}\n{self.logs()}")
 
     def logs(self) -> str:
-        out = []
-        for f in sorted((self.data / "logs").glob("*.log")):
-            out.append(f"== {f.name}\n" + "\n".join(f.read_text(errors="replace").splitlines()[-15:]))
-        return "\n".join(out)
+        return tail_logs(self.data / "logs")
 
     def close(self) -> None:
         try:
