@@ -154,21 +154,28 @@ class Cluster:
         self.sup.add(name, role, [*self.common, *extra])
 
     def insert_rate(self, seconds: float, settle_s: float = 3.0, timeout: float = 120.0,
-                    pid: int | None = None) -> tuple[float, float | None]:
-        """Steps/s into the replay over `seconds`, after inserts start and `settle_s` more; and
-        steps per CPU-second of process `pid` (an actor) over the same window."""
+                    pids: dict[str, int] | None = None) -> tuple[float, dict[str, float]]:
+        """Steps/s into the replay over `seconds`, after inserts start and `settle_s` more; and the
+        CPU-seconds per step of each process in `pids` and of this one (`router`: it holds the
+        router, and otherwise sleeps) over the same window."""
+        pids = pids or {}
         deadline = time.monotonic() + timeout
         while not (self.inserted and self.inserted[-1][1] > 0):
             if time.monotonic() > deadline:
                 raise RuntimeError(f"no inserts; see {self.data / 'logs'}")
             time.sleep(0.2)
         time.sleep(settle_s)
+
+        def cpu() -> dict[str, float]:
+            return {"router": time.process_time(), **{name: cpu_seconds(pid) for name, pid in pids.items()}}
+
         t0, n0 = self.inserted[-1]
-        c0 = cpu_seconds(pid) if pid else 0.0
+        c0 = cpu()
         time.sleep(seconds)
         t1, n1 = self.inserted[-1]
-        c1 = cpu_seconds(pid) if pid else 0.0
-        return (n1 - n0) / (t1 - t0), ((n1 - n0) / (c1 - c0) if pid and c1 > c0 else None)
+        c1 = cpu()
+        steps = max(n1 - n0, 1)
+        return (n1 - n0) / (t1 - t0), {name: (c1[name] - c0[name]) / steps for name in c0}
 
     def close(self) -> None:
         self.sup.stop_all(timeout_s=15.0)
@@ -178,7 +185,9 @@ class Cluster:
 
 
 def service_actor_rate(args: argparse.Namespace, actors: int,
-                       auth: bool = False) -> tuple[float, float | None]:
+                       auth: bool = False) -> tuple[float, dict[str, float]]:
+    """Aggregate steps/s of `actors` actor processes; with one, CPU-seconds per step of the actor,
+    the replay and the router (Cluster.insert_rate)."""
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp), auth)
         try:
@@ -186,10 +195,51 @@ def service_actor_rate(args: argparse.Namespace, actors: int,
             cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", "--warmup-steps", "0"])
             for i in range(actors):
                 cluster.start(f"actor-{i}", "actor", ["--actor-id", str(i), "--warmup-steps", "0"])
-            pid = cluster.sup.children["actor-0"].proc.pid if actors == 1 else None
-            return cluster.insert_rate(args.seconds, pid=pid)
+            pids = ({name: cluster.sup.children[name].proc.pid for name in ("actor-0", "replay")}
+                    if actors == 1 else {})
+            return cluster.insert_rate(args.seconds, pids=pids)
         finally:
             cluster.close()
+
+
+def router_round_trip(auth: bool, seconds: float, payload_bytes: int) -> tuple[float, float]:
+    """Microseconds of wall and of CPU (this process: router and both clients) per round trip of
+    an actor-sized insert through a router and the replay's acknowledgement back, on the run's own
+    keys and roles: the router's per-message work, logins and ACL on or off, without the noise of
+    rendering and learning beside it."""
+    import threading
+
+    from nasa.up import free_port
+    from shared import wire, zenoh_auth
+    from shared.zenoh_session import open_client, open_router
+
+    with tempfile.TemporaryDirectory() as tmp:
+        endpoint, run_id = f"tcp/127.0.0.1:{free_port()}", "benchrouter"
+        folder = zenoh_auth.init(Path(tmp) / "auth", run_id) if auth else None
+        keys = wire.Keys(run_id)
+        router = open_router(endpoint, auth=folder)
+        actor = open_client(endpoint, role="actor", auth=folder)
+        replay = open_client(endpoint, role="replay", auth=folder)
+        got = threading.Event()
+        echo = replay.declare_subscriber(keys.insert(0), lambda s: replay.put(keys.ack(0), b"ack"))
+        back = actor.declare_subscriber(keys.ack(0), lambda s: got.set())
+        payload, n = os.urandom(payload_bytes), 0
+        try:
+            time.sleep(0.5)  # declarations propagated
+            start, cpu = time.perf_counter(), time.process_time()
+            while time.perf_counter() - start < seconds:
+                got.clear()
+                actor.put(keys.insert(0), payload)
+                if not got.wait(5.0):
+                    raise RuntimeError("no acknowledgement through the router in 5 s")
+                n += 1
+            wall, cpu = time.perf_counter() - start, time.process_time() - cpu
+        finally:
+            for x in (back, echo):
+                x.undeclare()
+            for session in (actor, replay, router):
+                session.close()
+    return wall / n * 1e6, cpu / n * 1e6
 
 
 def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
@@ -240,39 +290,19 @@ def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
             cluster.close()
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m bench.system", description=__doc__.split("\n\n")[0])
-    p.add_argument("--task", default="cartpole-balance")
-    p.add_argument("--algo", default="nasa_td3")
-    p.add_argument("--seconds", type=float, default=10.0, help="measuring window of each figure")
-    p.add_argument("--fill", type=int, default=600, help="transitions in the replay for the learner figures")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--learner-threads", type=int, default=1)
-    p.add_argument("--auth-rounds", type=int, default=0,
-                   help="also compare the actor and learner figures with Zenoh logins and the ACL on and off")
-    args = p.parse_args(argv)
-
-    def report(name: str, value: float) -> float:
-        print(f"{name}: {value:.2f}", file=sys.stderr, flush=True)
-        return value
-
-    load = [os.getloadavg()[0]]
+def service_figures(args: argparse.Namespace, report, load: list[float]) -> dict:  # noqa: ANN001
+    """Each service against the in-process loop it is built from, and 2 actors against 1."""
     inproc_actor, inproc_cpu = inprocess_actor_loop(args)
     report("in-process env+policy steps/s", inproc_actor)
-    one, one_cpu = service_actor_rate(args, 1)
+    one, one_cpu_per_step = service_actor_rate(args, 1)
+    one_cpu = 1.0 / one_cpu_per_step["actor-0"] if one_cpu_per_step.get("actor-0") else None
     report("1 actor process steps/s", one)
     two = report("2 actor processes steps/s (aggregate)", service_actor_rate(args, 2)[0])
     load.append(os.getloadavg()[0])
     inproc_learner = report("in-process trainer update loop updates/s", inprocess_update_loop(args))
     service_learner = report("learner service updates/s", service_learner_rate(args))
     load.append(os.getloadavg()[0])
-    result = {
-        "task": args.task,
-        "algo": args.algo,
-        "preset": "cpu-small",
-        "render_quality": "fast",
-        "device": args.device,
-        "learner_threads": args.learner_threads,
+    return {
         "inprocess_actor_steps_per_s": round(inproc_actor, 2),
         "actor_service_steps_per_s": round(one, 2),
         "actor_vs_inprocess": round(one / inproc_actor, 3),
@@ -285,35 +315,72 @@ def main(argv: list[str] | None = None) -> None:
         "inprocess_trainer_updates_per_s": round(inproc_learner, 3),
         "learner_service_updates_per_s": round(service_learner, 3),
         "learner_vs_inprocess": round(service_learner / inproc_learner, 3),
-        "cpu_count": os.cpu_count(),
-        "load_avg_1m": [round(x, 2) for x in load],
     }
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m bench.system", description=__doc__.split("\n\n")[0])
+    p.add_argument("--task", default="cartpole-balance")
+    p.add_argument("--algo", default="nasa_td3")
+    p.add_argument("--seconds", type=float, default=10.0, help="measuring window of each figure")
+    p.add_argument("--fill", type=int, default=600, help="transitions in the replay for the learner figures")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--learner-threads", type=int, default=1)
+    p.add_argument("--auth-rounds", type=int, default=0,
+                   help="also compare the actor and learner figures with Zenoh logins and the ACL on and off")
+    p.add_argument("--round-trip-seconds", type=float, default=5.0,
+                   help="with --auth-rounds: window of each router round-trip figure")
+    p.add_argument("--round-trip-bytes", type=int, default=16384,
+                   help="with --auth-rounds: size of the insert sent in the router round trip")
+    p.add_argument("--only-auth", action="store_true",
+                   help="with --auth-rounds: skip the in-process and scaling figures")
+    args = p.parse_args(argv)
+
+    def report(name: str, value: float) -> float:
+        print(f"{name}: {value:.2f}", file=sys.stderr, flush=True)
+        return value
+
+    if args.only_auth and not args.auth_rounds:
+        p.error("--only-auth needs --auth-rounds N")
+    load = [os.getloadavg()[0]]
+    result: dict = {"task": args.task, "algo": args.algo, "preset": "cpu-small", "render_quality": "fast",
+                    "device": args.device, "learner_threads": args.learner_threads}
+    if not args.only_auth:
+        result.update(service_figures(args, report, load))
     if args.auth_rounds:
         result.update(auth_comparison(args, report))
         load.append(os.getloadavg()[0])
-        result["load_avg_1m"] = [round(x, 2) for x in load]
+    result["cpu_count"] = os.cpu_count()
+    result["load_avg_1m"] = [round(x, 2) for x in load]
     result["goals_met"] = {k: result[k] >= v for k, v in GOALS.items() if k in result}
     print(json.dumps(result))
 
 
 def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
-    """One-actor steps/s and learner updates/s with the router's logins and ACL on and off,
-    alternating (off first in odd rounds) so a drift of the machine's load falls on both."""
+    """One-actor steps/s (and CPU-seconds per step of actor, replay and router), learner updates/s,
+    and the router's round trip, with the router's logins and ACL on and off, alternating (off
+    first in odd rounds) so a drift of the machine's load falls on both."""
     import statistics
 
-    runs: dict[bool, dict[str, list[float]]] = {on: {"actor": [], "learner": []} for on in (False, True)}
+    parts = ("actor", "learner", "cpu_per_step", "round_trip_us", "round_trip_cpu_us")
+    runs: dict[bool, dict[str, list[float]]] = {on: {k: [] for k in parts} for on in (False, True)}
     for i in range(args.auth_rounds):
         for on in (False, True) if i % 2 == 0 else (True, False):
             tag = "auth" if on else "open"
-            actor = service_actor_rate(args, 1, on)[0]
-            runs[on]["actor"].append(report(f"[{tag}] 1 actor process steps/s", actor))
-            learner = service_learner_rate(args, on)
-            runs[on]["learner"].append(report(f"[{tag}] learner service updates/s", learner))
+            r = runs[on]
+            actor, cpu = service_actor_rate(args, 1, on)
+            r["actor"].append(report(f"[{tag}] 1 actor process steps/s", actor))
+            r["cpu_per_step"].append(report(f"[{tag}] CPU ms per env step, actor+replay+router",
+                                            sum(cpu.values()) * 1e3) / 1e3)
+            r["learner"].append(report(f"[{tag}] learner service updates/s", service_learner_rate(args, on)))
+            wall_us, cpu_us = router_round_trip(on, args.round_trip_seconds, args.round_trip_bytes)
+            r["round_trip_us"].append(report(f"[{tag}] router round trip, us", wall_us))
+            r["round_trip_cpu_us"].append(report(f"[{tag}] router round trip, CPU us", cpu_us))
     med = {on: {k: statistics.median(v) for k, v in r.items()} for on, r in runs.items()}
     # Each round's on/off pair ran minutes apart at most: the median of their ratios is less
     # exposed to the machine's drift than the ratio of the two medians.
     paired = {k: statistics.median(on / off for on, off in zip(runs[True][k], runs[False][k], strict=True))
-              for k in ("actor", "learner")}
+              for k in parts}
     return {
         "auth_rounds": args.auth_rounds,
         "open_actor_steps_per_s": [round(x, 2) for x in runs[False]["actor"]],
@@ -324,6 +391,16 @@ def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
         "auth_vs_open_learner": round(med[True]["learner"] / med[False]["learner"], 3),
         "auth_vs_open_actor_paired": round(paired["actor"], 3),
         "auth_vs_open_learner_paired": round(paired["learner"], 3),
+        # CPU per env step of every process the actor's stream runs through: what logins and the
+        # ACL add to the work, whatever the machine's load does to wall-clock rates.
+        "open_cpu_ms_per_step": [round(x * 1e3, 3) for x in runs[False]["cpu_per_step"]],
+        "auth_cpu_ms_per_step": [round(x * 1e3, 3) for x in runs[True]["cpu_per_step"]],
+        "auth_vs_open_cpu_per_step_paired": round(paired["cpu_per_step"], 3),
+        "open_round_trip_us": [round(x, 1) for x in runs[False]["round_trip_us"]],
+        "auth_round_trip_us": [round(x, 1) for x in runs[True]["round_trip_us"]],
+        "auth_vs_open_round_trip_paired": round(paired["round_trip_us"], 3),
+        "auth_vs_open_round_trip_cpu_paired": round(paired["round_trip_cpu_us"], 3),
+        "round_trip_bytes": args.round_trip_bytes,
     }
 
 
