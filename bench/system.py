@@ -217,14 +217,15 @@ def router_round_trip(auth: bool, seconds: float, payload_bytes: int) -> tuple[f
         endpoint, run_id = f"tcp/127.0.0.1:{free_port()}", "benchrouter"
         folder = zenoh_auth.init(Path(tmp) / "auth", run_id) if auth else None
         keys = wire.Keys(run_id)
-        router = open_router(endpoint, auth=folder)
-        actor = open_client(endpoint, role="actor", auth=folder)
-        replay = open_client(endpoint, role="replay", auth=folder)
         got = threading.Event()
-        echo = replay.declare_subscriber(keys.insert(0), lambda s: replay.put(keys.ack(0), b"ack"))
-        back = actor.declare_subscriber(keys.ack(0), lambda s: got.set())
         payload, n = os.urandom(payload_bytes), 0
-        try:
+        with (
+            open_router(endpoint, auth=folder),
+            open_client(endpoint, role="actor", auth=folder) as actor,
+            open_client(endpoint, role="replay", auth=folder) as replay,
+            replay.declare_subscriber(keys.insert(0), lambda s: replay.put(keys.ack(0), b"ack")),
+            actor.declare_subscriber(keys.ack(0), lambda s: got.set()),
+        ):
             time.sleep(0.5)  # declarations propagated
             start, cpu = time.perf_counter(), time.process_time()
             while time.perf_counter() - start < seconds:
@@ -234,11 +235,6 @@ def router_round_trip(auth: bool, seconds: float, payload_bytes: int) -> tuple[f
                     raise RuntimeError("no acknowledgement through the router in 5 s")
                 n += 1
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu
-        finally:
-            for x in (back, echo):
-                x.undeclare()
-            for session in (actor, replay, router):
-                session.close()
     return wall / n * 1e6, cpu / n * 1e6
 
 
@@ -362,7 +358,7 @@ def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
     first in odd rounds) so a drift of the machine's load falls on both."""
     import statistics
 
-    parts = ("actor", "learner", "cpu_per_step", "round_trip_us", "round_trip_cpu_us")
+    parts = ("actor", "learner", "cpu_ms_per_step", "round_trip_us", "round_trip_cpu_us")
     runs: dict[bool, dict[str, list[float]]] = {on: {k: [] for k in parts} for on in (False, True)}
     for i in range(args.auth_rounds):
         for on in (False, True) if i % 2 == 0 else (True, False):
@@ -370,8 +366,8 @@ def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
             r = runs[on]
             actor, cpu = service_actor_rate(args, 1, on)
             r["actor"].append(report(f"[{tag}] 1 actor process steps/s", actor))
-            r["cpu_per_step"].append(report(f"[{tag}] CPU ms per env step, actor+replay+router",
-                                            sum(cpu.values()) * 1e3) / 1e3)
+            r["cpu_ms_per_step"].append(report(f"[{tag}] CPU ms per env step, actor+replay+router",
+                                               sum(cpu.values()) * 1e3))
             r["learner"].append(report(f"[{tag}] learner service updates/s", service_learner_rate(args, on)))
             wall_us, cpu_us = router_round_trip(on, args.round_trip_seconds, args.round_trip_bytes)
             r["round_trip_us"].append(report(f"[{tag}] router round trip, us", wall_us))
@@ -393,9 +389,9 @@ def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
         "auth_vs_open_learner_paired": round(paired["learner"], 3),
         # CPU per env step of every process the actor's stream runs through: what logins and the
         # ACL add to the work, whatever the machine's load does to wall-clock rates.
-        "open_cpu_ms_per_step": [round(x * 1e3, 3) for x in runs[False]["cpu_per_step"]],
-        "auth_cpu_ms_per_step": [round(x * 1e3, 3) for x in runs[True]["cpu_per_step"]],
-        "auth_vs_open_cpu_per_step_paired": round(paired["cpu_per_step"], 3),
+        "open_cpu_ms_per_step": [round(x, 3) for x in runs[False]["cpu_ms_per_step"]],
+        "auth_cpu_ms_per_step": [round(x, 3) for x in runs[True]["cpu_ms_per_step"]],
+        "auth_vs_open_cpu_per_step_paired": round(paired["cpu_ms_per_step"], 3),
         "open_round_trip_us": [round(x, 1) for x in runs[False]["round_trip_us"]],
         "auth_round_trip_us": [round(x, 1) for x in runs[True]["round_trip_us"]],
         "auth_vs_open_round_trip_paired": round(paired["round_trip_us"], 3),
