@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 # Below this many cores the evaluator would take its CPU time from the learner.
 SMALL_MACHINE_CORES = 4
+OMP_WAITS = ("auto", "passive", "active", "default")
 LOW_PRIORITY = 10
 MAX_GPU_ACTORS = 8
 
@@ -35,15 +36,29 @@ class Layout:
     omp_passive: bool = False
     """OpenMP threads sleep rather than spin while they wait: on a machine the learner's threads share
     with the other services, spinning threads take the cores the others need."""
+    learner_omp_wait: str = "default"
+    """How the learner's own OpenMP threads wait (OMP_WAITS): `passive` sleep, `active` spin,
+    `default` the OpenMP runtime's own (spin a while, then sleep)."""
+
+    def omp_env(self, role: str) -> dict[str, str | None]:
+        """OMP_WAIT_POLICY for one service's process (None: unset, the runtime's default); empty
+        where the layout leaves the environment as it is."""
+        if role == "learner" and self.learner_omp_wait != "default":
+            return {"OMP_WAIT_POLICY": self.learner_omp_wait.upper()}
+        if role == "learner" and self.omp_passive:
+            return {"OMP_WAIT_POLICY": None}
+        return {"OMP_WAIT_POLICY": "PASSIVE"} if self.omp_passive else {}
 
     def describe(self) -> str:
         evaluator = "off" if not self.evaluator else "own process" + (
             f" at nice {self.evaluator_nice}" if self.evaluator_nice else "")
         gpu = "a GPU" if self.gpu else "no GPU"
+        others = ", the other services' passive" if self.omp_passive else ""
+        omp = f" (OpenMP waits {self.learner_omp_wait}{others})"
         return (f"layout for {self.cores} core(s), {gpu}: {self.actors} actor(s), "
                 f"learner {self.learner_threads} torch thread(s)"
-                f"{' (OpenMP waits passive)' if self.omp_passive else ''}, evaluator {evaluator} "
-                "(--actors, --learner-threads, --evaluator-nice, --no-evaluator override)")
+                f"{omp}, evaluator {evaluator} (--actors, --learner-threads, --learner-omp-wait, "
+                "--evaluator-nice, --no-evaluator override)")
 
 
 def usable_cores() -> int:
@@ -55,7 +70,7 @@ def usable_cores() -> int:
 
 
 def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,
-           evaluator_nice: int | None = None) -> Layout:
+           evaluator_nice: int | None = None, learner_omp_wait: str = "auto") -> Layout:
     """The layout for `cores` and a GPU or not; a nonzero (or not None) argument is the user's choice
     and is kept as given."""
     small = cores < SMALL_MACHINE_CORES
@@ -67,5 +82,8 @@ def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, eva
         learner_threads = 2 if gpu else cores if small else max(1, cores - actors - 1)
     if evaluator_nice is None:
         evaluator_nice = LOW_PRIORITY if small else 0
+    shared = not gpu and learner_threads + actors + 1 > cores
+    if learner_omp_wait == "auto":
+        learner_omp_wait = "passive" if shared else "default"
     return Layout(actors, learner_threads, evaluator, evaluator_nice, cores, gpu,
-                  omp_passive=not gpu and learner_threads + actors + 1 > cores)
+                  omp_passive=shared, learner_omp_wait=learner_omp_wait)

@@ -80,6 +80,17 @@ class Child:
     exited: int | None = None  # exit code once it ended for good
     pids: list[int] = field(default_factory=list)
     nice: int = 0  # added to the child's CPU niceness (lower priority)
+    env: dict[str, str | None] = field(default_factory=dict)  # over the supervisor's; None: unset
+
+
+def child_env(base: dict[str, str], over: dict[str, str | None]) -> dict[str, str]:
+    env = {**base, "NASA_PARENT_PID": str(os.getpid())}
+    for key, value in over.items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
+    return env
 
 
 class Supervisor:
@@ -100,8 +111,9 @@ class Supervisor:
         if log_dir is not None:
             log_dir.mkdir(parents=True, exist_ok=True)
 
-    def add(self, name: str, role: str, argv: list[str], nice: int = 0) -> Child:
-        child = Child(name, role, argv, nice=nice)
+    def add(self, name: str, role: str, argv: list[str], nice: int = 0,
+            env: dict[str, str | None] | None = None) -> Child:
+        child = Child(name, role, argv, nice=nice, env=env or {})
         self.children[name] = child
         self._spawn(child)
         return child
@@ -118,7 +130,7 @@ class Supervisor:
                 [*prefix, *self.command(child.role), *child.argv],
                 # Each service asks for SIGTERM when this process dies (shared.service.die_with_parent):
                 # no preexec_fn, which is unsafe in a process with threads (Zenoh's).
-                env={**self.env, "NASA_PARENT_PID": str(os.getpid())}, stdout=out,
+                env=child_env(self.env, child.env), stdout=out,
                 stderr=subprocess.STDOUT if out else None, stdin=subprocess.DEVNULL,
                 start_new_session=True, cwd=self.cwd,
             )
@@ -218,6 +230,9 @@ class UpCommand:
     """Run the evaluator service (eval.csv every --eval-every env steps)."""
     learner_threads: int = 0
     """torch threads of the learner; 0: chosen from the machine (nasa.layout)."""
+    learner_omp_wait: Literal["auto", "passive", "active", "default"] = "auto"
+    """How the learner's OpenMP threads wait between parallel regions: `passive` sleep, `active`
+    spin, `default` the runtime's own; `auto`: chosen from the machine (nasa.layout)."""
     evaluator_nice: int | None = None
     """CPU priority (nice) of the evaluator process; default: low on a machine of under 4 cores."""
     logs: bool = False
@@ -313,7 +328,8 @@ def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Lay
     # One real gripper, whatever the machine: the actor's; no second one to evaluate on.
     hardware = cmd.bridge == "hardware"
     return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
-                         cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice)
+                         cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice,
+                         cmd.learner_omp_wait)
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:
@@ -355,8 +371,6 @@ def up(argv: list[str]) -> None:
     router_port = cmd.router_port or free_port()
     endpoint = f"tcp/127.0.0.1:{router_port}"
     env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": run_id}
-    if lay.omp_passive:
-        env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the user's own setting wins
     auth = up_auth(cmd, data, run_id, env)
     from shared.zenoh_session import open_router
 
@@ -373,7 +387,8 @@ def up(argv: list[str]) -> None:
         try:
             for name, args in with_bridges(cmd, service_argv(cmd, data, lay), run_id).items():
                 role = name.split("-")[0]
-                sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0)
+                sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0,
+                        env=omp_env(cmd, lay, role))
             print(f"nasa up: run {run_id} in {data}; router {endpoint}; "
                   f"status http://127.0.0.1:{cmd.port}/status", flush=True)
             while not stop["reason"]:
@@ -391,6 +406,14 @@ def up(argv: list[str]) -> None:
     lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
+
+
+def omp_env(cmd: UpCommand, lay: layout.Layout, role: str) -> dict[str, str | None]:
+    """A service's OpenMP wait policy from the layout; an OMP_WAIT_POLICY the user set wins, except
+    over the learner's own --learner-omp-wait."""
+    if "OMP_WAIT_POLICY" in os.environ and not (role == "learner" and cmd.learner_omp_wait != "auto"):
+        return {}
+    return lay.omp_env(role)
 
 
 def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Path | None:
