@@ -84,6 +84,8 @@ def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, eva
         evaluator_nice = LOW_PRIORITY if small else 0
     shared = not gpu and learner_threads + actors + 1 > cores
     if learner_omp_wait == "auto":
-        learner_omp_wait = "passive" if shared else "default"
+        # Where the cores are shared, the learner's threads spin between parallel regions (they are
+        # the bottleneck, and the rest need little CPU), and every other service's sleep.
+        learner_omp_wait = "active" if shared else "default"
     return Layout(actors, learner_threads, evaluator, evaluator_nice, cores, gpu,
                   omp_passive=shared, learner_omp_wait=learner_omp_wait)

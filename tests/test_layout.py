@@ -3,7 +3,7 @@
 import pytest
 
 from nasa.layout import LOW_PRIORITY, choose
-from nasa.up import layout_of, parse_up
+from nasa.up import layout_of, omp_env, parse_up
 from shared.config import ConfigError
 
 
@@ -43,3 +43,32 @@ def test_a_negative_count_is_refused_with_a_clear_error():
     for flag in ("--actors", "--learner-threads"):
         with pytest.raises(ConfigError, match="must be >= 0"):
             parse_up([flag, "-1"])
+
+
+def test_the_learners_openmp_wait_is_a_choice_of_its_own(monkeypatch):
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    # Cores shared: the learner's threads spin, the others' sleep.
+    small = choose(2, gpu=False)
+    assert small.omp_env("learner") == {"OMP_WAIT_POLICY": "ACTIVE"}
+    assert small.omp_env("actor") == small.omp_env("evaluator") == {"OMP_WAIT_POLICY": "PASSIVE"}
+    sleep = choose(2, gpu=False, learner_omp_wait="passive")
+    assert sleep.omp_env("learner") == sleep.omp_env("replay") == {"OMP_WAIT_POLICY": "PASSIVE"}
+    # `default`: the runtime's own policy, so the variable the others get is unset for the learner.
+    assert choose(2, gpu=False, learner_omp_wait="default").omp_env("learner") == {"OMP_WAIT_POLICY": None}
+    assert choose(16, gpu=False).omp_env("learner") == choose(16, gpu=False).omp_env("actor") == {}
+    cmd, _ = parse_up(["--learner-omp-wait", "passive"])
+    assert layout_of(cmd, gpu=False, cores=2).learner_omp_wait == "passive"
+    assert "OpenMP waits passive" in layout_of(cmd, gpu=False, cores=2).describe()
+
+
+def test_an_openmp_wait_policy_the_user_set_wins_except_over_the_learners_flag(monkeypatch):
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    auto, _ = parse_up([])
+    lay = layout_of(auto, gpu=False, cores=2)
+    assert omp_env(auto, lay, "learner") == omp_env(auto, lay, "actor") == {}
+    flag, _ = parse_up(["--learner-omp-wait", "passive"])
+    lay = layout_of(flag, gpu=False, cores=2)
+    assert omp_env(flag, lay, "learner") == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert omp_env(flag, lay, "replay") == {}
+    with pytest.raises(SystemExit):
+        parse_up(["--learner-omp-wait", "spin"])

@@ -117,3 +117,16 @@ def test_nothing_is_restarted_while_stopping(tmp_path, code):
     sup.stopping = True
     sup.poll(lambda msg: None)
     assert child.exited == code and child.restarts == 0
+
+
+def test_a_child_gets_its_own_environment_over_the_supervisors(tmp_path):
+    script = ("import os, pathlib, sys; pathlib.Path(sys.argv[2], sys.argv[1]).write_text("
+              "repr((os.environ.get('OMP_WAIT_POLICY'), os.environ.get('KEEP'))))")
+    sup = Supervisor({"OMP_WAIT_POLICY": "PASSIVE", "KEEP": "1"}, tmp_path / "logs", restart_delay_s=0.0,
+                     command=lambda role: [sys.executable, "-c", script, role])
+    children = [sup.add("learner", "learner", [str(tmp_path)], env={"OMP_WAIT_POLICY": "ACTIVE"}),
+                sup.add("evaluator", "evaluator", [str(tmp_path)], env={"OMP_WAIT_POLICY": None}),
+                sup.add("actor-0", "actor", [str(tmp_path)])]
+    poll_until(sup, lambda: all(c.exited is not None for c in children), [])
+    seen = {role: (tmp_path / role).read_text() for role in ("learner", "evaluator", "actor")}
+    assert seen == {"learner": "('ACTIVE', '1')", "evaluator": "(None, '1')", "actor": "('PASSIVE', '1')"}

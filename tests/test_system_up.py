@@ -32,6 +32,11 @@ def niceness(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[16])
 
 
+def environ_of(pid: int) -> dict[str, str]:
+    pairs = Path(f"/proc/{pid}/environ").read_bytes().decode().split("\0")
+    return dict(pair.split("=", 1) for pair in pairs if "=" in pair)
+
+
 @contextlib.contextmanager
 def nasa_up(data: Path) -> Iterator[tuple[subprocess.Popen, int]]:
     """`nasa up` on `data` as a user starts it; killed if still running, and nothing left after."""
@@ -73,6 +78,11 @@ def stop_with_ctrl_c(up: subprocess.Popen) -> None:
     expected = layout.choose(layout.usable_cores(), gpu=False).evaluator_nice
     nice = {name: niceness(p) for name, p in services.items()}
     assert nice == {"evaluator": expected, "replay": 0, "learner": 0, "actor": 0}, nice
+    # Each service's OpenMP wait policy as the layout chose it (none set by the user here).
+    lay = layout.choose(layout.usable_cores(), gpu=False, actors=1, learner_threads=1)
+    if "OMP_WAIT_POLICY" not in os.environ:
+        policy = {name: environ_of(p).get("OMP_WAIT_POLICY") for name, p in services.items()}
+        assert policy == {name: lay.omp_env(name).get("OMP_WAIT_POLICY") for name in services}, policy
     up.send_signal(signal.SIGINT)
     rest, _ = up.communicate(timeout=90)
     assert up.returncode == 0, rest
