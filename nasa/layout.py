@@ -8,8 +8,9 @@ process at a low CPU priority: it evaluates in the time the learner leaves, and
 an evaluation that starts late takes the newest weights at the newest eval step,
 so the learner never waits for it. Where the learner's threads share the
 cores, they spin while they wait for each other and every other service's
-threads sleep: the spinning takes only what the others leave. With a GPU the updates leave the CPU, env
-steps become the cost, and the spare cores go to actors.
+threads sleep: the spinning takes only what the others leave. With a GPU the
+updates leave the CPU, env steps become the cost, and the spare cores go to
+actors.
 
 The rate limiter keeps G faithful in every layout: the layout only moves where
 the CPU time goes.
