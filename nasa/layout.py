@@ -20,10 +20,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Literal
 
 # Below this many cores the evaluator would take its CPU time from the learner.
 SMALL_MACHINE_CORES = 4
-OMP_WAITS = ("auto", "passive", "active", "default")
+# How the learner's OpenMP threads wait: `auto` chosen here, `passive` sleep, `active` spin,
+# `default` the OpenMP runtime's own (spin a while, then sleep).
+OmpWait = Literal["auto", "passive", "active", "default"]
 LOW_PRIORITY = 10
 MAX_GPU_ACTORS = 8
 
@@ -39,17 +42,15 @@ class Layout:
     omp_passive: bool = False
     """OpenMP threads sleep rather than spin while they wait: on a machine the learner's threads share
     with the other services, spinning threads take the cores the others need."""
-    learner_omp_wait: str = "default"
-    """How the learner's own OpenMP threads wait (OMP_WAITS): `passive` sleep, `active` spin,
-    `default` the OpenMP runtime's own (spin a while, then sleep)."""
+    learner_omp_wait: OmpWait = "default"
+    """How the learner's own OpenMP threads wait (OmpWait, never `auto` here)."""
 
     def omp_env(self, role: str) -> dict[str, str | None]:
         """OMP_WAIT_POLICY for one service's process (None: unset, the runtime's default); empty
         where the layout leaves the environment as it is."""
-        if role == "learner" and self.learner_omp_wait != "default":
-            return {"OMP_WAIT_POLICY": self.learner_omp_wait.upper()}
-        if role == "learner" and self.omp_passive:
-            return {"OMP_WAIT_POLICY": None}
+        if role == "learner":
+            wait = self.learner_omp_wait
+            return {"OMP_WAIT_POLICY": None if wait == "default" else wait.upper()}
         return {"OMP_WAIT_POLICY": "PASSIVE"} if self.omp_passive else {}
 
     def describe(self) -> str:
@@ -73,7 +74,7 @@ def usable_cores() -> int:
 
 
 def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,
-           evaluator_nice: int | None = None, learner_omp_wait: str = "auto") -> Layout:
+           evaluator_nice: int | None = None, learner_omp_wait: OmpWait = "auto") -> Layout:
     """The layout for `cores` and a GPU or not; a nonzero (or not None) argument is the user's choice
     and is kept as given."""
     small = cores < SMALL_MACHINE_CORES

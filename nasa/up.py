@@ -230,7 +230,7 @@ class UpCommand:
     """Run the evaluator service (eval.csv every --eval-every env steps)."""
     learner_threads: int = 0
     """torch threads of the learner; 0: chosen from the machine (nasa.layout)."""
-    learner_omp_wait: Literal["auto", "passive", "active", "default"] = "auto"
+    learner_omp_wait: layout.OmpWait = "auto"
     """How the learner's OpenMP threads wait between parallel regions: `passive` sleep, `active`
     spin, `default` the runtime's own; `auto`: chosen from the machine (nasa.layout)."""
     evaluator_nice: int | None = None

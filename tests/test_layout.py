@@ -55,7 +55,9 @@ def test_the_learners_openmp_wait_is_a_choice_of_its_own(monkeypatch):
     assert sleep.omp_env("learner") == sleep.omp_env("replay") == {"OMP_WAIT_POLICY": "PASSIVE"}
     # `default`: the runtime's own policy, so the variable the others get is unset for the learner.
     assert choose(2, gpu=False, learner_omp_wait="default").omp_env("learner") == {"OMP_WAIT_POLICY": None}
-    assert choose(16, gpu=False).omp_env("learner") == choose(16, gpu=False).omp_env("actor") == {}
+    # Cores to spare: the others' environment as it is, the learner's threads wait the runtime's way.
+    assert choose(16, gpu=False).omp_env("actor") == {}
+    assert choose(16, gpu=False).omp_env("learner") == {"OMP_WAIT_POLICY": None}
     cmd, _ = parse_up(["--learner-omp-wait", "passive"])
     assert layout_of(cmd, gpu=False, cores=2).learner_omp_wait == "passive"
     assert "OpenMP waits passive" in layout_of(cmd, gpu=False, cores=2).describe()
@@ -70,5 +72,8 @@ def test_an_openmp_wait_policy_the_user_set_wins_except_over_the_learners_flag(m
     lay = layout_of(flag, gpu=False, cores=2)
     assert omp_env(flag, lay, "learner") == {"OMP_WAIT_POLICY": "PASSIVE"}
     assert omp_env(flag, lay, "replay") == {}
+    # An explicit `default` means the runtime's own policy, on any machine: the user's variable unset.
+    explicit, _ = parse_up(["--learner-omp-wait", "default"])
+    assert omp_env(explicit, layout_of(explicit, gpu=False, cores=16), "learner") == {"OMP_WAIT_POLICY": None}
     with pytest.raises(SystemExit):
         parse_up(["--learner-omp-wait", "spin"])
