@@ -6,8 +6,10 @@ learner's torch threads, and one actor is enough to keep it fed (the rate
 limiter holds any other back). On a small machine the evaluator runs in its own
 process at a low CPU priority: it evaluates in the time the learner leaves, and
 an evaluation that starts late takes the newest weights at the newest eval step,
-so the learner never waits for it. Where the learner's threads share the
-cores, they spin while they wait for each other and every other service's
+so the learner never waits for it. (The learner can instead evaluate between
+its updates, as `nasa train` does; then it stops learning while it plays the
+episodes, where the evaluator's process fills the time the learner leaves, so
+that is not the default.) Where the learner's threads share the cores, they spin while they wait for each other and every other service's
 threads sleep: the spinning takes only what the others leave. With a GPU the
 updates leave the CPU, env steps become the cost, and the spare cores go to
 actors.
@@ -27,6 +29,9 @@ SMALL_MACHINE_CORES = 4
 # How the learner's OpenMP threads wait: `auto` chosen here, `passive` sleep, `active` spin,
 # `default` the OpenMP runtime's own (spin a while, then sleep).
 OmpWait = Literal["auto", "passive", "active", "default"]
+# Where evaluations run: `process` the evaluator service, `learner` between the learner's updates
+# (as `nasa train` does); `auto` chosen here.
+EvalWhere = Literal["auto", "process", "learner"]
 LOW_PRIORITY = 10
 MAX_GPU_ACTORS = 8
 
@@ -44,6 +49,8 @@ class Layout:
     with the other services, spinning threads take the cores the others need."""
     learner_omp_wait: OmpWait = "default"
     """How the learner's own OpenMP threads wait (OmpWait, never `auto` here)."""
+    eval_in_learner: bool = False
+    """The learner evaluates between its updates, and no evaluator process runs."""
 
     def omp_env(self, role: str) -> dict[str, str | None]:
         """OMP_WAIT_POLICY for one service's process (None: unset, the runtime's default); empty
@@ -54,15 +61,15 @@ class Layout:
         return {"OMP_WAIT_POLICY": "PASSIVE"} if self.omp_passive else {}
 
     def describe(self) -> str:
-        evaluator = "off" if not self.evaluator else "own process" + (
-            f" at nice {self.evaluator_nice}" if self.evaluator_nice else "")
+        evaluator = "off" if not self.evaluator else "between the learner's updates" if self.eval_in_learner \
+            else "own process" + (f" at nice {self.evaluator_nice}" if self.evaluator_nice else "")
         gpu = "a GPU" if self.gpu else "no GPU"
         others = ", the other services' passive" if self.omp_passive else ""
         omp = f" (OpenMP waits {self.learner_omp_wait}{others})"
         return (f"layout for {self.cores} core(s), {gpu}: {self.actors} actor(s), "
                 f"learner {self.learner_threads} torch thread(s)"
                 f"{omp}, evaluator {evaluator} (--actors, --learner-threads, --learner-omp-wait, "
-                "--evaluator-nice, --no-evaluator override)")
+                "--evaluate-in, --evaluator-nice, --no-evaluator override)")
 
 
 def usable_cores() -> int:
@@ -74,7 +81,8 @@ def usable_cores() -> int:
 
 
 def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,
-           evaluator_nice: int | None = None, learner_omp_wait: OmpWait = "auto") -> Layout:
+           evaluator_nice: int | None = None, learner_omp_wait: OmpWait = "auto",
+           evaluate_in: EvalWhere = "auto") -> Layout:
     """The layout for `cores` and a GPU or not; a nonzero (or not None) argument is the user's choice
     and is kept as given."""
     small = cores < SMALL_MACHINE_CORES
@@ -92,4 +100,5 @@ def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, eva
         # the bottleneck, and the rest need little CPU), and every other service's sleep.
         learner_omp_wait = "active" if shared else "default"
     return Layout(actors, learner_threads, evaluator, evaluator_nice, cores, gpu,
-                  omp_passive=shared, learner_omp_wait=learner_omp_wait)
+                  omp_passive=shared, learner_omp_wait=learner_omp_wait,
+                  eval_in_learner=evaluator and evaluate_in == "learner")

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from shared import checkpoint, envs, run_config
 from shared.agents import Agent, batch_to_device, collect_action, make_agent
-from shared.config import TrainConfig, validate
+from shared.config import EVAL_SEED_OFFSET, TrainConfig, validate
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
 from shared.evaluation import evaluate
@@ -39,7 +39,7 @@ class Trainer:
         self.device = resolve_device(c.device)
         torch.manual_seed(c.seed)  # before any network is built
         self.env = envs.from_config(c.env, c.seed)
-        self.eval_env = envs.from_config(c.env, c.seed + 1_000_000)
+        self.eval_env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
         self.run_config = run_config.RunConfig(c, self.env.spec)
         spec = self.env.spec
         self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)

@@ -48,7 +48,7 @@ import tyro
 
 from nasa import layout
 from shared import envs, run_config
-from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
+from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
 from shared.zenoh_auth import USERS_FILE
@@ -235,6 +235,10 @@ class UpCommand:
     spin, `default` the runtime's own; `auto`: chosen from the machine (nasa.layout)."""
     evaluator_nice: int | None = None
     """CPU priority (nice) of the evaluator process; default: low on a machine of under 4 cores."""
+    evaluate_in: layout.EvalWhere = "auto"
+    """Where evaluations run: `process` the evaluator service (it also makes the autoencoder's view
+    and videos), `learner` between the learner's updates as `nasa train` does (no pictures);
+    `auto`: chosen from the machine (nasa.layout)."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
     bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
@@ -275,6 +279,9 @@ def check_bridge(cmd: UpCommand) -> None:
         envs.check_remote(cmd.config.env)
     except ConfigError as err:
         raise ConfigError(f"--bridge {cmd.bridge}: {err}") from None
+    if cmd.evaluate_in == "learner":
+        raise ConfigError(f"--bridge {cmd.bridge}: evaluations go through a bridge of their own, from the "
+                          "evaluator process: --evaluate-in process (or auto)")
     if cmd.bridge == "hardware" and cmd.bridge_config is None:
         raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
     if cmd.bridge == "hardware" and cmd.actors not in (0, 1):
@@ -302,7 +309,7 @@ def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dic
 
     bridges = {f"robot_bridge-{i}": bridge(i, c.seed + i) for i in range(len(actors))}
     if "evaluator" in argv:  # its own bridge, seeded as an in-process evaluator's environment
-        bridges["robot_bridge-eval"] = bridge("eval", c.seed + 1_000_000)
+        bridges["robot_bridge-eval"] = bridge("eval", c.seed + EVAL_SEED_OFFSET)
     out = {**bridges, **argv}
     for i, name in enumerate(actors):
         out[name] = [*argv[name], "--bridge", bridge_id(run_id, i)]
@@ -329,7 +336,7 @@ def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Lay
     hardware = cmd.bridge == "hardware"
     return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
                          cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice,
-                         cmd.learner_omp_wait)
+                         cmd.learner_omp_wait, "process" if cmd.bridge != "off" else cmd.evaluate_in)
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:
@@ -340,7 +347,9 @@ def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, li
         "learner": [*common, "--data", str(data), "--port", str(cmd.port),
                     "--threads", str(lay.learner_threads)],
     }
-    if lay.evaluator:
+    if lay.eval_in_learner:
+        out["learner"].append("--eval-between-updates")
+    elif lay.evaluator:
         out["evaluator"] = [*common, "--data", str(data)]  # the autoencoder's view and videos go there
     for i in range(lay.actors):
         out[f"actor-{i}"] = [*common, "--actor-id", str(i)]

@@ -24,6 +24,10 @@ class ConfigError(ValueError):
     """A configuration value that cannot work."""
 
 
+# The evaluation environment's seed is the run's seed plus this, in every process that evaluates.
+EVAL_SEED_OFFSET = 1_000_000
+
+
 @dataclass
 class EnvConfig:
     task: str = "cartpole-balance"

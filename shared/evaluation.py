@@ -1,10 +1,12 @@
-"""Deterministic evaluation episodes, shared by the trainer and the evaluator service."""
+"""Deterministic evaluation episodes, shared by the trainer, the evaluator service and the learner
+(which evaluates between its updates where `nasa up`'s layout says so)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from shared.agents import Agent
+from shared.config import TrainConfig
 from shared.env_loop import EnvLoop
 from shared.envs import PixelEnv
 
@@ -14,3 +16,16 @@ def evaluate(agent: Agent, env: PixelEnv, episodes: int) -> list[float]:
     unused = np.random.default_rng(0)  # explore=False draws nothing
     loop = EnvLoop(env)
     return [loop.run_episode(lambda obs: agent.act(obs, explore=False, rng=unused)) for _ in range(episodes)]
+
+
+def eval_due(env_steps: int, config: TrainConfig, done: int) -> int | None:
+    """The eval step to evaluate now: the newest multiple of eval_every reached (within the step
+    budget), if newer than `done` (-1: nothing evaluated yet, so step 0 is due). Steps between are
+    skipped when evaluating is slower than training."""
+    target = (min(env_steps, config.steps) // config.eval_every) * config.eval_every
+    return target if target > done else None
+
+
+def first_done(config: TrainConfig) -> int:
+    """`done` before any evaluation: -1 makes step 0 due (eval_at_start), 0 skips it."""
+    return -1 if config.eval_at_start else 0

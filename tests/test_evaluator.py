@@ -1,10 +1,12 @@
-"""The evaluator's schedule and results, without Zenoh: which step is due, and what it publishes."""
+"""The evaluator's schedule and results, without Zenoh: which step is due, and what it publishes; and
+the learner's evaluations between updates, which follow the same rules."""
 
 from __future__ import annotations
 
 import torch
 
 from services.evaluator.evaluator import EvaluatorArgs, EvaluatorService
+from services.learner.evaluation import BetweenUpdates
 from shared import wire
 from shared.service import StopFlag
 from tests.tiny import tiny_run
@@ -51,3 +53,26 @@ def test_without_eval_at_start_the_first_evaluation_is_at_eval_every():
     assert ev.due() is None
     ev.seen_env_steps(60)
     assert ev.due() == 50
+
+
+def test_between_updates_the_learner_evaluates_the_same_steps_and_episodes_as_the_evaluator():
+    """--eval-between-updates: the learner's own evaluations follow the evaluator's schedule, on an
+    environment seeded as the evaluator's (and nasa train's), with the weights it trains."""
+    torch.manual_seed(0)
+    ev = _service()
+    between = BetweenUpdates(ev.config, ev.agent, done_step=None)
+    assert between.due(0) == 0 and between.due(49) == 0
+    assert between.due(120) == 0  # before any update: the untrained policy, as step 0
+    ours = between.run(0)
+    _weights(ev, version=0)
+    ev.seen_env_steps(0)
+    theirs = ev.evaluate(0)
+    assert (ours.step, ours.policy_version) == (0, ev.agent.num_updates)
+    assert ours.returns == theirs.returns  # the same episodes, the same policy: the same returns
+    assert between.due(49) is None
+    assert between.due(130) == 100  # slower than training: 50 is skipped, as the evaluator does
+    assert between.due(10_000) == 500  # never past the run's budget
+    # A resumed learner does not evaluate again a step its eval.csv holds.
+    assert BetweenUpdates(ev.config, ev.agent, done_step=100).due(130) is None
+    off = tiny_run("td3_ae", steps=500, eval_at_start=False).config
+    assert BetweenUpdates(off, ev.agent, done_step=None).due(10) is None

@@ -1,9 +1,11 @@
 """nasa up's layout: chosen from the cores and the GPU, every choice overridable by a flag."""
 
+from pathlib import Path
+
 import pytest
 
 from nasa.layout import LOW_PRIORITY, choose
-from nasa.up import layout_of, omp_env, parse_up
+from nasa.up import layout_of, omp_env, parse_up, service_argv
 from shared.config import ConfigError
 
 
@@ -77,3 +79,20 @@ def test_an_openmp_wait_policy_the_user_set_wins_except_over_the_learners_flag(m
     assert omp_env(explicit, layout_of(explicit, gpu=False, cores=16), "learner") == {"OMP_WAIT_POLICY": None}
     with pytest.raises(SystemExit):
         parse_up(["--learner-omp-wait", "spin"])
+
+
+def test_evaluations_run_in_their_own_process_or_between_the_learners_updates():
+    assert not choose(2, gpu=False).eval_in_learner and not choose(16, gpu=False).eval_in_learner
+    inline = choose(2, gpu=False, evaluate_in="learner")
+    assert inline.eval_in_learner and "evaluator between the learner's updates" in inline.describe()
+    assert "--evaluate-in" in inline.describe()
+    assert not choose(2, gpu=False, evaluator=False, evaluate_in="learner").eval_in_learner  # off is off
+    cmd, _ = parse_up(["--evaluate-in", "learner"])
+    argv = service_argv(cmd, Path("run"), layout_of(cmd, gpu=False, cores=2))
+    assert "evaluator" not in argv and "--eval-between-updates" in argv["learner"]
+    cmd, _ = parse_up([])
+    argv = service_argv(cmd, Path("run"), layout_of(cmd, gpu=False, cores=2))
+    assert "evaluator" in argv and "--eval-between-updates" not in argv["learner"]
+    # A gripper behind a bridge is evaluated through a bridge of its own, by the evaluator process.
+    with pytest.raises(ConfigError, match="--evaluate-in process"):
+        parse_up(["--task", "gripper-valve", "--bridge", "stand-in", "--evaluate-in", "learner"])

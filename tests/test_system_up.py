@@ -182,3 +182,27 @@ def test_nasa_up_refuses_to_resume_a_run_with_other_settings_before_starting_any
     assert "Traceback" not in result.stderr and result.stdout == ""  # nothing started
     assert sorted(p.name for p in data.iterdir() if p.name != ".lock") == ["config.json"]  # .lock: its lock
     assert (data / "config.json").read_bytes() == before
+
+
+@pytest.mark.timeout(300)
+def test_nasa_up_can_evaluate_between_the_learners_updates_with_no_evaluator_process(tmp_path):
+    # A whole short run: the learner plays each evaluation itself (step 0 with its initial
+    # weights, then each multiple of --eval-every, the last one before the run ends).
+    data = tmp_path / "run"
+    result = subprocess.run(
+        [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--steps", "150",
+         "--device", "cpu", "--data", str(data), "--port", str(free_port()), "--router-port", "0",
+         "--logs", "--evaluate-in", "learner", "--eval-every", "50", "--eval-episodes", "2", *TINY],
+        cwd=REPO, capture_output=True, text=True, timeout=240, env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "evaluator between the learner's updates" in result.stdout
+    assert sorted(p.name for p in (data / "logs").iterdir()) == ["actor-0.log", "learner.log", "replay.log"]
+    rows = (data / "eval.csv").read_text().splitlines()
+    steps = [int(r.split(",")[0]) for r in rows[1:]]
+    # A step the actor passed while the learner was evaluating is skipped, as the evaluator skips it.
+    assert steps[0] == 0 and steps[-1] == 150 and steps == sorted(set(steps)), rows
+    assert set(steps) <= {0, 50, 100, 150}, rows
+    learner_log = (data / "logs" / "learner.log").read_text()
+    assert "eval step 0 (policy 0, between updates)" in learner_log
+    assert "eval step 150 (policy " in learner_log and "run done" in learner_log

@@ -36,8 +36,9 @@ from services.evaluator.media import AutoencoderTap, EvalMedia
 from services.robot_bridge.client import BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import make_agent
+from shared.config import EVAL_SEED_OFFSET
 from shared.env_loop import EnvLoop
-from shared.evaluation import evaluate
+from shared.evaluation import eval_due, evaluate, first_done
 from shared.service import Log, StopFlag
 from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
@@ -76,7 +77,7 @@ class EvaluatorService:
             envs.check_remote(c.env)
             self.bridge = BridgePresence(session, args.bridge)
         # A bridge's environment is made once the bridge is there (`_env_ready`).
-        self.env = None if args.bridge else envs.from_config(c.env, c.seed + 1_000_000)
+        self.env = None if args.bridge else envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
         spec = run.spec
         device = torch.device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
@@ -88,7 +89,7 @@ class EvaluatorService:
         self.evaluations = 0
         self.global_steps: int | None = None
         self.invalid = 0
-        self.done = -1 if c.eval_at_start else 0  # the newest step evaluated
+        self.done = first_done(c)  # the newest step evaluated
 
     def _invalid(self, what: str) -> None:
         self.invalid += 1
@@ -113,14 +114,11 @@ class EvaluatorService:
 
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every reached), or None."""
-        c = self.config
         if self.weights.maybe_load() and self.tap.fresh:
             self.tap.fresh, self.autoencoder_version = False, self.weights.version or 0
         if self.weights.version is None or self.global_steps is None:
             return None
-        steps = max(self.global_steps, self.weights.env_steps)
-        target = (min(steps, c.steps) // c.eval_every) * c.eval_every
-        return target if target > self.done else None
+        return eval_due(max(self.global_steps, self.weights.env_steps), self.config, self.done)
 
     def _env_ready(self) -> bool:
         """Whether there is an environment to evaluate on; through a bridge, waits for it."""

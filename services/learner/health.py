@@ -38,6 +38,9 @@ class LearnerArgs(ServiceArgs):
     the update; off on the CPU, where it would only add a copy)."""
     final_eval_wait_s: float = 300.0
     """At the end, how long to wait for the evaluation of the last eval step."""
+    eval_between_updates: bool = False
+    """Evaluate in this process between updates, as `nasa train` does, for a run without an
+    evaluator service (services/learner/evaluation.py)."""
     threads: int = 0
     """torch threads (0: torch's default)."""
     stall_s: float = 120.0

@@ -7,8 +7,9 @@
 - Weights: version = the update count; published every `publish_every`
   updates (latest wins) and served on `learner/weights/latest` for processes
   that just started.
-- Records: evaluations from the evaluator become eval.csv rows, episodes the
-  actors report become train.csv rows; a checkpoint every checkpoint_every env
+- Records: evaluations from the evaluator become eval.csv rows (or, with
+  --eval-between-updates, the learner plays them itself between updates),
+  episodes the actors report become train.csv rows; a checkpoint every checkpoint_every env
   steps, at the end and on SIGTERM/SIGINT; the last /status is left in
   <data>/learner/status.json.
 - The run ends when the replay's step budget is reached and the learner has
@@ -32,6 +33,7 @@ import torch
 import zenoh
 
 from services.learner.core import LearnerCore
+from services.learner.evaluation import BetweenUpdates
 from services.learner.health import LearnerArgs, health_reasons
 from services.learner.history import History
 from services.learner.metrics import LearnerMetrics
@@ -66,6 +68,8 @@ class Learner:
         self.history = History()  # read by its own thread, never the update loop
         self._scalars_at = 0.0
         self._checkpoint_asked = threading.Event()  # POST /control/checkpoint; the loop writes it
+        self.between = (BetweenUpdates(self.core.config, self.core.agent, self.core.eval["step"])
+                        if args.eval_between_updates else None)
         if self.core.resumed:
             self.log(f"resumed from checkpoint: {self.core.agent.num_updates} updates, "
                      f"env step {self.core.env_steps}")
@@ -193,6 +197,9 @@ class Learner:
                 if core.checkpoint_due() or self._checkpoint_asked.is_set():
                     self._checkpoint_asked.clear()
                     core.save_checkpoint(self.wall_s)
+                if self.between is not None and (target := self.between.due(core.env_steps)) is not None:
+                    self._evaluate(target)
+                    continue
                 if core.board.replay["done"] and done_at is None:
                     done_at = time.monotonic()
                 # Done: every update made, or the limiter refused a sample after the budget was reached.
@@ -236,7 +243,10 @@ class Learner:
             if core.scorer is not None:
                 core.scorer.catch_up()
             self.publish_weights(publisher)
-            self._wait_final_eval()
+            if self.between is None:
+                self._wait_final_eval()
+            elif (target := self.between.due(core.env_steps)) is not None:
+                self._evaluate(target)
         core.save_checkpoint(self.wall_s)
         self.write_final_status()
         self.history.add(self.status())
@@ -249,6 +259,14 @@ class Learner:
         else:
             self.log(f"stopping ({self.stop.reason}); checkpoint at {core.agent.num_updates} updates")
         self.stop.set("done")
+
+    def _evaluate(self, target: int) -> None:
+        """Step `target`'s evaluation, here and now (--eval-between-updates)."""
+        assert self.between is not None
+        r = self.between.run(target)
+        if (row := self.core.record_eval(r)) is not None:
+            self.log(f"eval step {r.step} (policy {r.policy_version}, between updates): "
+                     f"mean return {row['mean']:.1f}")
 
     def _wait_final_eval(self) -> None:
         c = self.core.config

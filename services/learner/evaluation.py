@@ -1,0 +1,40 @@
+"""Evaluation between updates, in the learner's process (`--eval-between-updates`).
+
+Where `nasa up`'s layout runs no evaluator service, the learner pauses its
+updates when the run's env steps reach a multiple of eval_every and plays the
+evaluation episodes itself with the weights it is training, as `nasa train`
+does; the actors meanwhile run on until the rate limiter holds them. The
+episodes, the eval environment's seed and the rule for which step is due are
+the evaluator service's (shared/evaluation.py), so eval.csv means the same
+either way. No pictures are made here (the evaluator service's media).
+"""
+
+from __future__ import annotations
+
+from shared import envs, wire
+from shared.agents import Agent
+from shared.config import EVAL_SEED_OFFSET, TrainConfig
+from shared.envs import PixelEnv
+from shared.evaluation import eval_due, evaluate, first_done
+
+
+class BetweenUpdates:
+    def __init__(self, config: TrainConfig, agent: Agent, done_step: int | None) -> None:
+        self.config, self.agent = config, agent
+        # A resumed run does not evaluate again the steps its eval.csv holds.
+        self.done = first_done(config) if done_step is None else done_step
+        self.env: PixelEnv | None = None  # made at the first evaluation
+
+    def due(self, env_steps: int) -> int | None:
+        if self.done < 0 and self.agent.num_updates == 0:
+            return 0  # the untrained policy is step 0's, however far the actors got meanwhile
+        return eval_due(env_steps, self.config, self.done)
+
+    def run(self, target: int) -> wire.EvalResult:
+        """The evaluation of step `target`, with the agent's weights of now."""
+        c = self.config
+        if self.env is None:
+            self.env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
+        returns = evaluate(self.agent, self.env, c.eval_episodes)
+        self.done = target
+        return wire.EvalResult(target, self.agent.num_updates, [float(r) for r in returns])
