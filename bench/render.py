@@ -5,14 +5,23 @@
 the same seed and actions, so they show the same states.
 
     python -m bench.render [--frames 200]
+    python -m bench.render --gl-threads [--frames 200] [--rounds 3] [--tasks T ...]
 
-The last line is one JSON object.
+`--gl-threads` instead compares Mesa's software rasterizer drawing in the
+calling thread (LP_NUM_THREADS=0, the project's default: shared/gl.py) with
+its own default of a thread per core, `fast` quality: alternating processes,
+each stepping every paper task, wall-clock and CPU (all threads) per env step,
+and whether the frames are the same. The last line is one JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import os
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -46,12 +55,66 @@ def measure(task: str, frames: int) -> dict:
     return result
 
 
+def step_cost(task: str, frames: int) -> dict:
+    """Wall-clock and CPU milliseconds per `fast` env step in this process, and the frames' digest."""
+    env = envs.make(task, seed=0, render_quality="fast")
+    actions = np.random.default_rng(0).uniform(-1, 1, (frames, env.action_dim))
+    env.reset()
+    for action in actions[: frames // 10]:  # the GL context and its shaders are made on the first frames
+        env.step(action)
+    ts, digest = env.reset(), hashlib.sha256()
+    wall, cpu = time.perf_counter(), time.process_time()
+    for action in actions:
+        ts = env.step(action)
+        digest.update(ts.frame.tobytes())
+        if ts.last:
+            ts = env.reset()
+    return {"wall_ms": 1e3 * (time.perf_counter() - wall) / frames,
+            "cpu_ms": 1e3 * (time.process_time() - cpu) / frames, "digest": digest.hexdigest()}
+
+
+def gl_threads(frames: int, rounds: int, tasks: list[str]) -> dict:
+    """Each paper task stepped with LP_NUM_THREADS=0 and with a rasterizer thread per core, in
+    alternating processes; medians over the rounds."""
+    settings = {"caller_thread": "0", "thread_per_core": str(os.cpu_count() or 1)}
+    runs: dict[str, list[dict]] = {name: [] for name in settings}
+    for r in range(rounds):
+        for name in (list(settings) if r % 2 == 0 else list(settings)[::-1]):
+            out = subprocess.run([sys.executable, "-m", "bench.render", "--child", "--frames", str(frames),
+                                  "--tasks", *tasks],
+                                 env={**os.environ, "LP_NUM_THREADS": settings[name]},
+                                 capture_output=True, text=True, check=True)
+            runs[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
+    result: dict = {}
+    for task in tasks:
+        row = {}
+        for name in settings:
+            row[f"{name}_wall_ms"] = round(float(np.median([run[task]["wall_ms"] for run in runs[name]])), 2)
+            row[f"{name}_cpu_ms"] = round(float(np.median([run[task]["cpu_ms"] for run in runs[name]])), 2)
+        row["same_frames"] = len({run[task]["digest"] for name in settings for run in runs[name]}) == 1
+        result[task] = row
+        one, per_core = (f"{row[f'{n}_wall_ms']:6.2f} ms ({row[f'{n}_cpu_ms']:.2f} CPU)" for n in settings)
+        print(f"{task:18s} caller thread {one}  thread per core {per_core}  same frames {row['same_frames']}",
+              flush=True)
+    return {"frames": frames, "rounds": rounds, "cores": os.cpu_count(), "tasks": result}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--gl-threads", action="store_true", help="compare the rasterizer's threads")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--tasks", nargs="+", default=list(envs.PAPER_TASKS), help="for --gl-threads")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.child:
+        print(json.dumps({task: step_cost(task, args.frames) for task in args.tasks}))
+        return
+    if args.gl_threads:
+        print(json.dumps(gl_threads(args.frames, args.rounds, args.tasks)))
+        return
     results = {}
     for task in envs.PAPER_TASKS:
         results[task] = measure(task, args.frames)

@@ -17,15 +17,15 @@ config instead of building one.
 
 from __future__ import annotations
 
-import os
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal, Protocol
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # must be set before dm_control loads a GL backend
+import numpy as np
 
-from collections import deque  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from typing import TYPE_CHECKING, Literal, Protocol  # noqa: E402
+from shared import gl
 
-import numpy as np  # noqa: E402
+gl.configure()  # before dm_control loads a GL backend
 
 if TYPE_CHECKING:
     from shared.config import EnvConfig
@@ -249,10 +249,19 @@ class DMCPixels:
         self.frame_shape = (3, image_size, image_size)
         self.camera_id = camera_id
         self.action_repeat = action_repeat
+        self._camera = None
+        self._camera_physics = None
 
     def render(self) -> np.ndarray:
-        pixels = self._env.physics.render(self.image_size, self.image_size, camera_id=self.camera_id)
-        return np.ascontiguousarray(pixels.transpose(2, 0, 1))
+        # One camera for the episode's frames: physics.render builds (and frees) a scene each time;
+        # reusing it draws the same pixels with less work. Rebuilt if the task swaps its physics.
+        physics = self._env.physics
+        if self._camera is None or self._camera_physics is not physics:
+            from dm_control.mujoco import Camera
+
+            self._camera = Camera(physics, self.image_size, self.image_size, self.camera_id)
+            self._camera_physics = physics
+        return np.ascontiguousarray(self._camera.render().transpose(2, 0, 1))
 
     def rng_state(self) -> dict:
         """The task's random state, which draws each episode's initial state."""

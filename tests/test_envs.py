@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -127,3 +131,41 @@ def test_a_dmc_task_name_of_another_source_is_not_a_suite_task(grey):
     with pytest.raises(envs.UnknownTaskError, match="not a DeepMind Control Suite task"):
         envs.parse_task("grey-one")
     assert envs.parse_task("ball_in_cup-catch") == ("ball_in_cup", "catch")
+
+
+RENDER_AND_REPORT = """
+import hashlib, os, numpy as np
+from shared.envs import DMCPixels
+env = DMCPixels("ball_in_cup-catch", 0, 64, 0, 2, "fast")
+env._env.reset()
+digest = hashlib.sha256()
+for action in np.linspace(-1, 1, 10):
+    env._env.step([action, -action])
+    digest.update(env.render().tobytes())
+threads = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+print(digest.hexdigest(), sum(name.startswith("llvmpipe") for name in threads), os.environ["LP_NUM_THREADS"])
+"""
+
+
+def test_software_gl_draws_in_the_calling_thread_by_default_and_the_same_pixels_as_with_threads():
+    def run(**env: str) -> list[str]:
+        base = {k: v for k, v in os.environ.items() if k != "LP_NUM_THREADS"}
+        out = subprocess.run([sys.executable, "-c", RENDER_AND_REPORT], env={**base, **env},
+                             cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()
+
+    default, threaded = run(), run(LP_NUM_THREADS="2")  # a value the user sets is kept
+    assert default[1:] == ["0", "0"]  # no rasterizer threads of Mesa's beside the caller
+    assert threaded[2] == "2"
+    assert default[0] == threaded[0]  # the same frames, drawn either way
+
+
+def test_a_suite_task_renders_with_one_camera_the_pixels_a_fresh_camera_draws():
+    env = envs.DMCPixels("cartpole-swingup", 0, 48, 0, 1, "fast")
+    env.reset()
+    for action in np.linspace(-1, 1, 5):
+        frame, *_ = env.step(np.array([action], dtype=np.float32))
+        fresh = env._env.physics.render(48, 48, camera_id=0).transpose(2, 0, 1)
+        assert np.array_equal(frame, fresh)

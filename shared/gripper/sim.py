@@ -21,11 +21,12 @@ left it.
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 from typing import Literal
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco picks a GL backend
+from shared import gl
+
+gl.configure()  # before mujoco picks a GL backend
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
