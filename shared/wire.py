@@ -98,6 +98,7 @@ class Keys:
         self.stop = f"{p}/control/stop"
         self.alive_all = f"{p}/alive/**"
         self.alive_actors = f"{p}/alive/actor/**"
+        self.alive_evaluators = f"{p}/alive/evaluator/**"
 
     def insert(self, actor_id: int | str) -> str:
         return f"{self.prefix}/replay/insert/{actor_id}"

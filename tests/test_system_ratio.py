@@ -39,5 +39,8 @@ def test_a_learner_killed_after_its_checkpoint_makes_up_the_updates_it_lost(tmp_
         final = json.loads((data / "learner" / "status.json").read_text())
         assert final["resumed"] and final["env_steps"] == steps
         assert final["updates"] == steps - WARMUP  # G = 1: every update the kill cost was made up
+        # With no evaluator in the run, the learner does not wait out the final evaluation's timeout.
+        learner_log = (data / "logs" / "learner.log").read_text()
+        assert "no evaluator is running: eval step 0 is left unevaluated" in learner_log, system.logs()
     finally:
         system.close()

@@ -37,7 +37,8 @@ class LearnerArgs(ServiceArgs):
     stream: shared/prefetch.py): `on`, `off`, or `auto` (on with CUDA, where the copy can overlap
     the update; off on the CPU, where it would only add a copy)."""
     final_eval_wait_s: float = 300.0
-    """At the end, how long to wait for the evaluation of the last eval step."""
+    """At the end, how long to wait for the evaluation of the last eval step (while no evaluator is
+    alive, only a short grace for one to come back)."""
     eval_between_updates: bool = False
     """Evaluate in this process between updates, as `nasa train` does, for a run without an
     evaluator service (services/learner/evaluation.py)."""

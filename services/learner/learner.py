@@ -46,6 +46,9 @@ from shared.service import Log, StopFlag
 
 BLOCK = zenoh.CongestionControl.BLOCK
 FINAL_STATUS = "learner/status.json"
+# At the end, how long the learner waits for an evaluator to (re)appear before it stops waiting for
+# the last evaluation: a restarted evaluator takes a while to join the run.
+EVALUATOR_GRACE_S = 30.0
 
 
 class Learner:
@@ -70,6 +73,7 @@ class Learner:
         self._checkpoint_asked = threading.Event()  # POST /control/checkpoint; the loop writes it
         self.between = (BetweenUpdates(self.core.config, self.core.agent, self.core.eval["step"])
                         if args.eval_between_updates else None)
+        self._evaluators: set[str] = set()  # liveliness keys of the run's evaluators
         if self.core.resumed:
             self.log(f"resumed from checkpoint: {self.core.agent.num_updates} updates, "
                      f"env step {self.core.env_steps}")
@@ -108,6 +112,13 @@ class Learner:
                 self.core.board.actor_alive(int(ident), inc, sample.kind == zenoh.SampleKind.PUT)
         except Exception as err:  # noqa: BLE001
             self._invalid("liveliness key", err)
+
+    def _on_evaluator_alive(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._evaluators.add(key)
+        else:
+            self._evaluators.discard(key)
 
     def _on_eval(self, sample: zenoh.Sample) -> None:
         if (r := self._decoded(sample, wire.EvalResult, "eval result")) is not None:
@@ -166,6 +177,9 @@ class Learner:
                     stack.enter_context(s.declare_subscriber(key, callback))
                 alive = s.liveliness().declare_subscriber(k.alive_actors, self._on_alive, history=True)
                 stack.enter_context(alive)
+                evaluators = s.liveliness().declare_subscriber(k.alive_evaluators, self._on_evaluator_alive,
+                                                               history=True)
+                stack.enter_context(evaluators)
                 stack.enter_context(s.declare_queryable(k.weights_latest, self._on_weights_query))
                 publisher = stack.enter_context(s.declare_publisher(k.weights))
                 stack.enter_context(s.liveliness().declare_token(k.alive("learner", 0)))
@@ -271,10 +285,13 @@ class Learner:
     def _wait_final_eval(self) -> None:
         c = self.core.config
         last = (min(self.core.env_steps, c.steps) // c.eval_every) * c.eval_every
-        deadline = time.monotonic() + self.args.final_eval_wait_s
-        while not self.stop and time.monotonic() < deadline:
+        start = time.monotonic()
+        while not self.stop and time.monotonic() < start + self.args.final_eval_wait_s:
             self._drain()
             if self.core.eval["step"] is not None and self.core.eval["step"] >= last:
+                return
+            if not self._evaluators and time.monotonic() > start + EVALUATOR_GRACE_S:
+                self.log(f"no evaluator is running: eval step {last} is left unevaluated")
                 return
             time.sleep(0.1)
 
