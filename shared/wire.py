@@ -21,7 +21,7 @@ services count and log it and carry on.
 | actor/status/<actor_id>      | ActorStatus      | actor (1 Hz)         | learner                       |
 | eval/result                  | EvalResult       | evaluator (BLOCK)    | learner (writes eval.csv)     |
 | control/stop                 | Stop             | learner (run done), operator | every service         |
-| alive/<role>/<id>[/<inc>]    | liveliness token | every service        | learner (actors' alive flag)  |
+| alive/<role>/<id>[/<inc>]    | liveliness token | every service        | learner (actors', evaluators') |
 
 `routes()` holds the same wiring as data (who puts, answers or declares on each key, and who
 listens): the router's access-control list (shared/zenoh_auth.py) is made from it.
@@ -739,7 +739,8 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         # The replay's own container healthcheck asks for its token, under the replay's credentials.
         Route(k.alive("replay", "**"), TOKEN, ("replay",), ("actor", "replay")),
         Route(k.alive("learner", "**"), TOKEN, ("learner",), ()),
-        Route(k.alive("evaluator", "**"), TOKEN, ("evaluator",), ()),
+        # The learner waits for the last evaluation only while an evaluator is alive.
+        Route(k.alive("evaluator", "**"), TOKEN, ("evaluator",), ("learner",)),
         Route(b.spec, QUERY, ("bridge",), ("actor",)),
         Route(b.reset, QUERY, ("bridge",), ("actor",)),
         Route(b.step, QUERY, ("bridge",), ("actor",)),

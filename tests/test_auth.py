@@ -8,6 +8,7 @@ import queue
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -195,6 +196,23 @@ def test_liveliness_tokens_follow_the_routes(router: str, auth_dir: Path) -> Non
         with login(router, auth_dir, "replay") as healthcheck:
             assert seen(healthcheck)
         assert not seen(evaluator)
+        token.undeclare()
+
+
+def test_the_learner_sees_the_evaluators_token_and_an_actor_does_not(router: str, auth_dir: Path) -> None:
+    """At the end of a run the learner waits for the last evaluation while an evaluator is alive."""
+    k = wire.Keys(RUN)
+
+    def seen(session: zenoh.Session) -> bool:
+        return any(r.ok is not None for r in session.liveliness().get(k.alive_evaluators, timeout=2.0))
+
+    with (login(router, auth_dir, "evaluator") as evaluator, login(router, auth_dir, "learner") as learner,
+          login(router, auth_dir, "actor") as actor):
+        token = evaluator.liveliness().declare_token(k.alive("evaluator", 0))
+        deadline = time.monotonic() + 10.0
+        while not seen(learner):
+            assert time.monotonic() < deadline, "the learner never saw the evaluator's token"
+        assert not seen(actor)
         token.undeclare()
 
 
