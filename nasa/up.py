@@ -336,7 +336,7 @@ def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Lay
     hardware = cmd.bridge == "hardware"
     return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
                          cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice,
-                         cmd.learner_omp_wait, "process" if cmd.bridge != "off" else cmd.evaluate_in)
+                         cmd.learner_omp_wait, cmd.evaluate_in)  # `learner` with a bridge: refused
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:

@@ -253,7 +253,7 @@ class DMCPixels:
         self._camera_physics = None
 
     def render(self) -> np.ndarray:
-        # One camera for the episode's frames: physics.render builds (and frees) a scene each time;
+        # One camera for every frame: physics.render builds (and frees) a scene each time;
         # reusing it draws the same pixels with less work. Rebuilt if the task swaps its physics.
         physics = self._env.physics
         if self._camera is None or self._camera_physics is not physics:

@@ -277,10 +277,12 @@ class Learner:
     def _evaluate(self, target: int) -> None:
         """Step `target`'s evaluation, here and now (--eval-between-updates)."""
         assert self.between is not None
-        r = self.between.run(target)
+        self._record_eval(self.between.run(target), ", between updates")
+
+    def _record_eval(self, r: wire.EvalResult, how: str = "") -> None:
+        """An evaluation's eval.csv row, logged; one sent again is recorded once."""
         if (row := self.core.record_eval(r)) is not None:
-            self.log(f"eval step {r.step} (policy {r.policy_version}, between updates): "
-                     f"mean return {row['mean']:.1f}")
+            self.log(f"eval step {r.step} (policy {r.policy_version}{how}): mean return {row['mean']:.1f}")
 
     def _wait_final_eval(self) -> None:
         c = self.core.config
@@ -302,9 +304,7 @@ class Learner:
             self._scalars_at = time.monotonic()
             self.core.scalars.status(self.status())
         while not self._evals.empty():
-            r = self._evals.get_nowait()
-            if (row := self.core.record_eval(r)) is not None:
-                self.log(f"eval step {r.step} (policy {r.policy_version}): mean return {row['mean']:.1f}")
+            self._record_eval(self._evals.get_nowait())
         while not self._episodes.empty():
             self.core.record_episode(*self._episodes.get_nowait(), wall_s=self.wall_s)
 
