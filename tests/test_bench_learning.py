@@ -1,6 +1,8 @@
 """bench.learning's command line: its own flags, and the settings it passes to both runs."""
 
-from bench.learning import split_settings
+import sys
+
+from bench.learning import run_bounded, split_settings, summarize
 
 
 def test_settings_after_a_double_dash_go_to_the_runs():
@@ -8,3 +10,25 @@ def test_settings_after_a_double_dash_go_to_the_runs():
     assert own == ["--task", "gripper-valve"] and settings == ["--action-repeat", "1"]
     assert split_settings(["--only", "train"]) == (["--only", "train"], [])
     assert split_settings(["--"]) == ([], [])
+
+
+def test_evaluation_rows_are_timed_from_the_launch_and_the_bound_stops_the_run(tmp_path):
+    # A stand-in run: writes two evaluation rows a while apart, half a third one, then hangs.
+    eval_csv = tmp_path / "run" / "eval.csv"
+    script = (
+        "import pathlib, sys, time\n"
+        f"p = pathlib.Path({str(eval_csv)!r}); p.parent.mkdir(parents=True)\n"
+        "f = open(p, 'w', buffering=1); f.write('step,mean\\n0,0\\n'); time.sleep(1.5)\n"
+        "f.write('1000,750\\n'); f.write('2000,12'); f.flush(); time.sleep(60)\n"
+    )
+    wall, seen = run_bounded([sys.executable, "-c", script], 4 / 60, tmp_path / "run.log",
+                             eval_csv, poll_s=0.1)
+    assert 4 <= wall < 30  # stopped at the bound, not after the run's own 60 s
+    assert set(seen) == {0, 1000}  # the half-written row is not a row
+    assert 1.4 <= seen[1000] - seen[0] <= 3.5
+    summary = summarize(eval_csv.parent, wall, 4.0, seen)
+    assert summary["untrained"] == 0 and summary["best_within_bound"] == 750
+    assert summary["first_goal_step"] == 1000 and summary["first_goal_launch_s"] == seen[1000]
+    # Past the bound, a row does not count.
+    late = summarize(eval_csv.parent, wall, seen[1000] - 0.05, seen)
+    assert not late["goal_met"] and late["best_within_bound"] == 0
