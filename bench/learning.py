@@ -162,6 +162,7 @@ def main() -> None:
                     "goal": GOAL, "cores": usable_cores(), "machine": platform.node(), "settings": settings}
     nasa = [sys.executable, "-m", "nasa.cli"]
     common = ["--task", args.task, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu", *settings]
+    tag = f"{args.task}-seed{args.seed}"  # one log per run: tasks and seeds may share --out
     if args.only in (None, "train"):
         out = args.out / args.task / ALGO / f"seed{args.seed}"
         argv = [
@@ -175,7 +176,7 @@ def main() -> None:
             "--out",
             str(out),
         ]
-        result["train"] = launch(argv, out, args.minutes, args.out / "train.log", args.report)
+        result["train"] = launch(argv, out, args.minutes, args.out / f"train-{tag}.log", args.report)
         print("nasa train:", json.dumps(result["train"]), flush=True)
     if args.only in (None, "up"):
         out = args.out / "up" / args.task / ALGO / f"seed{args.seed}"
@@ -185,7 +186,7 @@ def main() -> None:
             "--port", str(free_port()), "--router-port", str(free_port()), "--logs",
         ]  # fmt: skip
         minutes = args.up_minutes or args.minutes
-        result["up"] = launch(argv, out, minutes, args.out / "up.log", args.report)
+        result["up"] = launch(argv, out, minutes, args.out / f"up-{tag}.log", args.report)
         print("nasa up:", json.dumps(result["up"]), flush=True)
     if "train" in result and "up" in result and result["train"]["goal_met"] and result["up"]["goal_met"]:
         result["up_vs_train_time_to_goal"] = round(
