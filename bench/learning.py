@@ -121,15 +121,31 @@ def launch(argv: list[str], out: Path, minutes: float, log: Path, report_only: b
     the times its launch saved beside the log)."""
     times = log.with_suffix(".evals.json")
     if report_only:
-        saved = json.loads(times.read_text()) if times.exists() else {}
-        seen = {int(k): v for k, v in saved.get("seen", {}).items()}
-        return summarize(out, saved.get("wall_s", 0.0), minutes * 60, seen)
+        wall, seen = load_times(times)
+        return summarize(out, wall, minutes * 60, seen)
     shutil.rmtree(out, ignore_errors=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     print("running:", " ".join(argv[2:]), flush=True)
     wall, seen = run_bounded(argv, minutes, log, out / "eval.csv")
-    times.write_text(json.dumps({"wall_s": round(wall, 1), "seen": seen}))
+    try:
+        times.write_text(json.dumps({"wall_s": round(wall, 1), "seen": seen}))
+    except OSError as err:  # a full disk must not cost the run's summary
+        print(f"bench.learning: could not save {times} ({err}); --report will lack the launch times",
+              file=sys.stderr, flush=True)
     return summarize(out, wall, minutes * 60, seen)
+
+
+def load_times(path: Path) -> tuple[float, dict[int, float]]:
+    """The wall-clock and launch times a run saved (none if it saved none); a clear error if the
+    file is not what launch() writes."""
+    if not path.exists():
+        return 0.0, {}
+    try:
+        saved = json.loads(path.read_text())
+        return float(saved["wall_s"]), {int(k): float(v) for k, v in saved["seen"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        raise SystemExit(f"bench.learning: {path} is not a file of launch times ({err!r}); "
+                         "run the benchmark again without --report") from err
 
 
 def split_settings(argv: list[str]) -> tuple[list[str], list[str]]:

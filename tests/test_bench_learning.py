@@ -1,8 +1,11 @@
 """bench.learning's command line: its own flags, and the settings it passes to both runs."""
 
+import json
 import sys
 
-from bench.learning import run_bounded, split_settings, summarize
+import pytest
+
+from bench.learning import launch, load_times, run_bounded, split_settings, summarize
 
 
 def test_settings_after_a_double_dash_go_to_the_runs():
@@ -32,3 +35,21 @@ def test_evaluation_rows_are_timed_from_the_launch_and_the_bound_stops_the_run(t
     # Past the bound, a row does not count.
     late = summarize(eval_csv.parent, wall, seen[1000] - 0.05, seen)
     assert not late["goal_met"] and late["best_within_bound"] == 0
+
+
+def test_saved_launch_times_are_read_back_and_a_bad_file_is_a_clear_error(tmp_path):
+    log = tmp_path / "train-t-seed0.log"
+    # The times file cannot be written (a folder stands in its way, as a full disk would refuse it):
+    # the run is still summarized.
+    log.with_suffix(".evals.json").mkdir()
+    summary = launch([sys.executable, "-c", "pass"], tmp_path / "run", 1.0, log, report_only=False)
+    assert summary["untrained"] is None and summary["wall_s"] < 30
+    log.with_suffix(".evals.json").rmdir()
+    assert load_times(log.with_suffix(".evals.json")) == (0.0, {})  # nothing saved: no times
+    times = log.with_suffix(".evals.json")
+    times.write_text(json.dumps({"wall_s": 12.5, "seen": {"0": 3.0, "1000": 9.5}}))
+    assert load_times(times) == (12.5, {0: 3.0, 1000: 9.5})
+    for bad in ("{not json", json.dumps({"wall_s": 1.0}), json.dumps({"wall_s": 1, "seen": {"x": 1}}), "[]"):
+        times.write_text(bad)
+        with pytest.raises(SystemExit, match="not a file of launch times"):
+            load_times(times)

@@ -93,8 +93,8 @@ def test_evaluations_run_in_their_own_process_or_between_the_learners_updates():
     cmd, _ = parse_up([])
     argv = service_argv(cmd, Path("run"), layout_of(cmd, gpu=False, cores=2))
     assert "evaluator" in argv and "--eval-between-updates" not in argv["learner"]
-    # A gripper behind a bridge is evaluated through a bridge of its own, by the evaluator process.
     with pytest.raises(SystemExit):  # not a choice
         parse_up(["--evaluate-in", "elsewhere"])
+    # A gripper behind a bridge is evaluated through a bridge of its own, by the evaluator process.
     with pytest.raises(ConfigError, match="--evaluate-in process"):
         parse_up(["--task", "gripper-valve", "--bridge", "stand-in", "--evaluate-in", "learner"])
