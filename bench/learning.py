@@ -12,8 +12,13 @@ there. Goals on a 2-core CPU:
 `nasa up` reaches 700 within 30 minutes, in at most 1.1x the time `nasa train`
 takes (`up_vs_train_time_to_goal`).
 
-    python -m bench.learning [--task T] [--minutes 30] [--up-minutes M] [--out bench-results/learning]
-                             [--only train|up] [--report] [-- SETTINGS]
+One seed of a sparse task decides little: `--seed 0,1,2` runs both runners
+for each seed in turn (train, then up, so a slower hour costs both alike) and
+adds, per runner, how many seeds reached the goal, the median best and last
+returns, and the median time to the goal of the seeds that reached it.
+
+    python -m bench.learning [--task T] [--seed S[,S...]] [--minutes 30] [--up-minutes M]
+                             [--out bench-results/learning] [--only train|up] [--report] [-- SETTINGS]
 
 SETTINGS are `nasa train` flags passed to both runs after the preset's, for a documented
 per-task variant (the gripper's 50-step episodes take `-- --action-repeat 1`).
@@ -29,6 +34,7 @@ import os
 import platform
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -148,6 +154,34 @@ def load_times(path: Path) -> tuple[float, dict[int, float]]:
                          "run the benchmark again without --report") from err
 
 
+def seed_list(text: str) -> list[int]:
+    """`0` or `0,1,2`: the seeds to run, each once, in the given order."""
+    try:
+        seeds = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seeds such as 0 or 0,1,2, got {text!r}") from None
+    if len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise argparse.ArgumentTypeError(f"seeds must be distinct and >= 0, got {text!r}")
+    return seeds
+
+
+def median(values: list) -> float | None:
+    """The median of the values that are not None (None if there are none)."""
+    values = [v for v in values if v is not None]
+    return round(statistics.median(values), 3) if values else None
+
+
+def across_seeds(summaries: list[dict]) -> dict:
+    """One runner over its seeds: how many reached the goal, and medians of the rest."""
+    return {
+        "seeds": len(summaries),
+        "goal_reached": sum(s["goal_met"] for s in summaries),
+        "best_median": median([s["best_within_bound"] for s in summaries]),
+        "final_median": median([s["final_within_bound"] for s in summaries]),
+        "first_goal_launch_s_median": median([s["first_goal_launch_s"] for s in summaries]),
+    }
+
+
 def split_settings(argv: list[str]) -> tuple[list[str], list[str]]:
     """This benchmark's flags, and the `nasa train` settings after `--` (passed to both runs)."""
     if "--" not in argv:
@@ -169,45 +203,51 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("bench-results/learning"))
     parser.add_argument("--only", choices=("train", "up"), default=None)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed_list, default=[0], help="a seed, or several: 0,1,2")
     parser.add_argument("--task", default=TASK, help="the task (default: the headline task)")
     parser.add_argument("--report", action="store_true", help="only summarize the runs already in --out")
     own, settings = split_settings(sys.argv[1:])
     args = parser.parse_args(own)
     result: dict = {"task": args.task, "algo": ALGO, "preset": "cpu-small", "minutes": args.minutes,
-                    "goal": GOAL, "cores": usable_cores(), "machine": platform.node(), "settings": settings}
-    nasa = [sys.executable, "-m", "nasa.cli"]
-    common = ["--task", args.task, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu", *settings]
-    tag = f"{args.task}-seed{args.seed}"  # one log per run: tasks and seeds may share --out
-    if args.only in (None, "train"):
-        out = args.out / args.task / ALGO / f"seed{args.seed}"
-        argv = [
-            *nasa,
-            "train",
-            *common,
-            "--seed",
-            str(args.seed),
-            "--steps",
-            str(args.steps),
-            "--out",
-            str(out),
-        ]
-        result["train"] = launch(argv, out, args.minutes, args.out / f"train-{tag}.log", args.report)
-        print("nasa train:", json.dumps(result["train"]), flush=True)
-    if args.only in (None, "up"):
-        out = args.out / "up" / args.task / ALGO / f"seed{args.seed}"
-        # nasa up's default layout, as the README's main command runs it
-        argv = [
-            *nasa, "up", *common, "--steps", str(args.steps), "--data", str(out), "--seed", str(args.seed),
-            "--port", str(free_port()), "--router-port", str(free_port()), "--logs",
-        ]  # fmt: skip
-        minutes = args.up_minutes or args.minutes
-        result["up"] = launch(argv, out, minutes, args.out / f"up-{tag}.log", args.report)
-        print("nasa up:", json.dumps(result["up"]), flush=True)
-    if "train" in result and "up" in result and result["train"]["goal_met"] and result["up"]["goal_met"]:
-        result["up_vs_train_time_to_goal"] = round(
-            result["up"]["first_goal_launch_s"] / max(result["train"]["first_goal_launch_s"], 1e-9), 3)
+                    "goal": GOAL, "cores": usable_cores(), "machine": platform.node(), "settings": settings,
+                    "seeds": args.seed}
+    runners = ("train", "up") if args.only is None else (args.only,)
+    runs = [run_seed(args, seed, settings, runners) for seed in args.seed]
+    if len(runs) == 1:
+        result.update(runs[0])
+    else:
+        result["runs"] = runs
+        result["across_seeds"] = {name: across_seeds([run[name] for run in runs]) for name in runners}
+        ratios = [run["up_vs_train_time_to_goal"] for run in runs if "up_vs_train_time_to_goal" in run]
+        if ratios:  # only seeds where both runners reached the goal
+            result["across_seeds"]["up_vs_train_time_to_goal_median"] = median(ratios)
     print(json.dumps(result))
+
+
+def run_seed(args: argparse.Namespace, seed: int, settings: list[str], runners: tuple[str, ...]) -> dict:
+    """Both runners (or the one of --only) with one seed, each summarized."""
+    nasa = [sys.executable, "-m", "nasa.cli"]
+    common = ["--task", args.task, "--algo", ALGO, "--preset", "cpu-small", "--device", "cpu", *settings,
+              "--seed", str(seed), "--steps", str(args.steps)]
+    tag = f"{args.task}-seed{seed}"  # one log per run: tasks and seeds may share --out
+    run: dict = {"seed": seed}
+    if "train" in runners:
+        out = args.out / args.task / ALGO / f"seed{seed}"
+        argv = [*nasa, "train", *common, "--out", str(out)]
+        run["train"] = launch(argv, out, args.minutes, args.out / f"train-{tag}.log", args.report)
+        print(f"nasa train, seed {seed}:", json.dumps(run["train"]), flush=True)
+    if "up" in runners:
+        out = args.out / "up" / args.task / ALGO / f"seed{seed}"
+        # nasa up's default layout, as the README's main command runs it
+        argv = [*nasa, "up", *common, "--data", str(out), "--port", str(free_port()),
+                "--router-port", str(free_port()), "--logs"]
+        minutes = args.up_minutes or args.minutes
+        run["up"] = launch(argv, out, minutes, args.out / f"up-{tag}.log", args.report)
+        print(f"nasa up, seed {seed}:", json.dumps(run["up"]), flush=True)
+    if "train" in run and "up" in run and run["train"]["goal_met"] and run["up"]["goal_met"]:
+        run["up_vs_train_time_to_goal"] = round(
+            run["up"]["first_goal_launch_s"] / max(run["train"]["first_goal_launch_s"], 1e-9), 3)
+    return run
 
 
 if __name__ == "__main__":

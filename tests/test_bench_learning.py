@@ -1,11 +1,13 @@
 """bench.learning's command line: its own flags, and the settings it passes to both runs."""
 
+import argparse
 import json
+import subprocess
 import sys
 
 import pytest
 
-from bench.learning import launch, load_times, run_bounded, split_settings, summarize
+from bench.learning import launch, load_times, run_bounded, seed_list, split_settings, summarize
 
 
 def test_settings_after_a_double_dash_go_to_the_runs():
@@ -53,3 +55,36 @@ def test_saved_launch_times_are_read_back_and_a_bad_file_is_a_clear_error(tmp_pa
         times.write_text(bad)
         with pytest.raises(SystemExit, match="not a file of launch times"):
             load_times(times)
+
+
+def test_several_seeds_are_summarized_per_runner(tmp_path):
+    # Two seeds already run (as --report finds them): seed 0 reaches the goal with both runners,
+    # seed 1 with neither.
+    for seed, (train_means, up_means) in enumerate((((0, 720), (0, 300, 750)), ((0, 100), (0, 50, 10)))):
+        for runner, means in (("train", train_means), ("up", up_means)):
+            under = tmp_path / "up" if runner == "up" else tmp_path
+            run = under / "ball_in_cup-catch" / "nasa_td3" / f"seed{seed}"
+            run.mkdir(parents=True)
+            steps = [1000 * i for i in range(len(means))]
+            rows = "".join(f"{s},{m}\n" for s, m in zip(steps, means, strict=True))
+            run.joinpath("eval.csv").write_text("step,mean\n" + rows)
+            seen = {str(s): 100.0 * (i + 1) for i, s in enumerate(steps)}
+            tmp_path.joinpath(f"{runner}-ball_in_cup-catch-seed{seed}.evals.json").write_text(
+                json.dumps({"wall_s": 1800.0, "seen": seen}))
+    argv = [sys.executable, "-m", "bench.learning", "--report", "--seed", "0,1", "--out", str(tmp_path)]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    result = json.loads(out.strip().splitlines()[-1])
+    assert [run["seed"] for run in result["runs"]] == [0, 1]
+    assert result["runs"][0]["up_vs_train_time_to_goal"] == 1.5  # 300 s against 200 s
+    train, up = result["across_seeds"]["train"], result["across_seeds"]["up"]
+    assert (train["seeds"], train["goal_reached"], up["goal_reached"]) == (2, 1, 1)
+    assert train["best_median"] == 410 and up["final_median"] == 380  # (720+100)/2, (750+10)/2
+    assert train["first_goal_launch_s_median"] == 200 and up["first_goal_launch_s_median"] == 300
+    assert result["across_seeds"]["up_vs_train_time_to_goal_median"] == 1.5
+
+
+def test_seeds_are_read_as_a_list():
+    assert seed_list("0") == [0] and seed_list("2,0,1") == [2, 0, 1]
+    for bad in ("", "a", "0,0", "-1", "1,,2"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            seed_list(bad)
