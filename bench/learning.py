@@ -38,10 +38,12 @@ import statistics
 import subprocess
 import sys
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 from nasa.layout import usable_cores
 from nasa.up import free_port
+from shared.faults import RunFolderError, lock_run, owner
 from shared.runlog import eval_walls, read_rows
 
 TASK = "ball_in_cup-catch"
@@ -212,7 +214,15 @@ def main() -> None:
                     "goal": GOAL, "cores": usable_cores(), "machine": platform.node(), "settings": settings,
                     "seeds": args.seed}
     runners = ("train", "up") if args.only is None else (args.only,)
-    runs = [run_seed(args, seed, settings, runners) for seed in args.seed]
+    # Each launch clears its run folders first: a second launch on the same --out must not clear the
+    # runs of one under way. A report only reads.
+    try:
+        held = nullcontext() if args.report else lock_run(args.out, "python -m bench.learning")
+    except RunFolderError as err:
+        raise SystemExit(f"bench.learning: {args.out} is in use ({owner(args.out)}); wait for that "
+                         f"launch or use another --out ({err})") from None
+    with held:
+        runs = [run_seed(args, seed, settings, runners) for seed in args.seed]
     if len(runs) == 1:
         result.update(runs[0])
     else:

@@ -88,3 +88,18 @@ def test_seeds_are_read_as_a_list():
     for bad in ("", "a", "0,0", "-1", "1,,2"):
         with pytest.raises(argparse.ArgumentTypeError):
             seed_list(bad)
+
+
+def test_a_second_launch_on_the_same_out_is_refused_and_clears_nothing(tmp_path):
+    from shared.faults import lock_run
+
+    run = tmp_path / "ball_in_cup-catch" / "nasa_td3" / "seed0"
+    run.mkdir(parents=True)
+    (run / "eval.csv").write_text("step,mean\n0,0\n")
+    with lock_run(tmp_path, "a launch under way"):  # as a first `python -m bench.learning` holds it
+        argv = ["--only", "train", "--minutes", "0.01", "--out", str(tmp_path)]
+        second = subprocess.run([sys.executable, "-m", "bench.learning", *argv],
+                                capture_output=True, text=True, timeout=120)
+    assert second.returncode != 0
+    assert "in use" in second.stderr and "a launch under way" in second.stderr
+    assert (run / "eval.csv").read_text() == "step,mean\n0,0\n"  # the first launch's run is untouched
