@@ -89,6 +89,11 @@ def test_a_preset_has_per_task_variants_and_flags_still_win():
     assert default_config("nasa_td3", "cpu-small", "ball_in_cup-catch").env.action_repeat == 8
     assert default_config("nasa_td3", "cpu-small", "gripper-valve_reset").env.action_repeat == 1
     assert default_config("nasa_td3", "paper", "gripper-valve").env.action_repeat == 1
+    # its evaluations: more episodes (a random target each), half as often
+    gripper = default_config("nasa_td3", "cpu-small", "gripper-valve")
+    assert (gripper.eval_episodes, gripper.eval_every) == (20, 2_000)
+    suite = default_config("nasa_td3", "cpu-small", "ball_in_cup-catch")
+    assert (suite.eval_episodes, suite.eval_every) == (5, 1_000)
     cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve"])
     assert cmd.config.env.action_repeat == 1 and cmd.config.env.image_size == 64  # the rest is the preset's
     cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve", "--action-repeat", "2"])
