@@ -1,0 +1,28 @@
+"""bench.gripper_state: the stand-in's true state, and TD3 learning from it with the project's update."""
+
+import math
+
+import numpy as np
+
+from bench.gripper_state import STATE_DIM, StateValve, train
+
+
+def test_the_state_holds_the_valve_the_target_and_the_fingers():
+    env = StateValve("gripper-valve_reset", 3)
+    env.reset()
+    env.step(np.array([0.5, -0.5, 0.2, 0.0]))
+    s = env.state()
+    assert s.shape == (STATE_DIM,) and s.dtype == np.float32
+    assert np.allclose(s[:4], [math.cos(env.valve_angle), math.sin(env.valve_angle),
+                               math.cos(env.target_angle), math.sin(env.target_angle)], atol=1e-6)
+    difference = env.target_angle - env.valve_angle
+    assert np.allclose(s[4:6], [math.cos(difference), math.sin(difference)], atol=1e-6)
+    assert np.allclose(s[6:10], env.data.qpos[env._finger_qpos], atol=1e-6)
+    env.close()
+
+
+def test_a_short_run_updates_after_the_warm_up_and_evaluates_on_schedule():
+    result = train(steps=60, eval_every=30, seed=0, eval_episodes=1, warmup=20)
+    assert list(result["evals"]) == ["0", "30", "60"]
+    assert result["updates"] == 40  # one per step after the warm-up (G = 1)
+    assert all(-50.0 <= v <= 0.0 for v in result["evals"].values())
