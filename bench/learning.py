@@ -43,7 +43,7 @@ from pathlib import Path
 
 from nasa.layout import usable_cores
 from nasa.up import free_port
-from shared.faults import RunFolderError, lock_run, owner
+from shared.faults import RunFolderError, lock_run
 from shared.runlog import eval_walls, read_rows
 
 TASK = "ball_in_cup-catch"
@@ -217,10 +217,9 @@ def main() -> None:
     # Each launch clears its run folders first: a second launch on the same --out must not clear the
     # runs of one under way. A report only reads.
     try:
-        held = nullcontext() if args.report else lock_run(args.out, "python -m bench.learning")
-    except RunFolderError as err:
-        raise SystemExit(f"bench.learning: {args.out} is in use ({owner(args.out)}); wait for that "
-                         f"launch or use another --out ({err})") from None
+        held = nullcontext() if args.report else lock_run(args.out, "python -m bench.learning", "--out")
+    except RunFolderError as err:  # held by another launch, or not writable
+        raise SystemExit(f"bench.learning: {err}") from None
     with held:
         runs = [run_seed(args, seed, settings, runners) for seed in args.seed]
     if len(runs) == 1:

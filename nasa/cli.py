@@ -82,7 +82,7 @@ def train(argv: list[str]) -> None:
         f"preset {how}, device {device}, out {out}",
         flush=True,
     )
-    with lock_run(out, "nasa train"):
+    with lock_run(out, "nasa train", "--out"):
         Trainer.create(c, out).run()
 
 

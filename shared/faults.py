@@ -86,13 +86,14 @@ def owner(data: Path, role: str | None = None) -> str:
         return "another process"
 
 
-def lock_run(data: Path, what: str) -> RunLock:
-    """A launcher's exclusive lock on the run folder `data` (created if missing)."""
+def lock_run(data: Path, what: str, flag: str = "--data") -> RunLock:
+    """A launcher's exclusive lock on the run folder `data` (created if missing); `flag` is the
+    launcher's option that names the folder, for the error."""
     data = Path(data)
     _writable(data, what)
     lock = RunLock()
     if not lock._take(data / LOCK, True, what):
-        raise RunFolderError(f"{data} belongs to another run ({owner(data)}); stop it or use another --data")
+        raise RunFolderError(f"{data} belongs to another run ({owner(data)}); stop it or use another {flag}")
     return lock
 
 

@@ -101,5 +101,6 @@ def test_a_second_launch_on_the_same_out_is_refused_and_clears_nothing(tmp_path)
         second = subprocess.run([sys.executable, "-m", "bench.learning", *argv],
                                 capture_output=True, text=True, timeout=120)
     assert second.returncode != 0
-    assert "in use" in second.stderr and "a launch under way" in second.stderr
+    assert "belongs to another run (pid" in second.stderr and "a launch under way" in second.stderr
+    assert "use another --out" in second.stderr
     assert (run / "eval.csv").read_text() == "step,mean\n0,0\n"  # the first launch's run is untouched

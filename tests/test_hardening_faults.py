@@ -67,6 +67,7 @@ def test_a_second_launcher_on_a_run_folder_gets_one_line_naming_the_owner(tmp_pa
         assert done.returncode == 2, done.stderr
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and f"pid {first.pid}" in lines[0] and "another run" in lines[0]
+        assert lines[0].endswith("use another --out")  # the flag `nasa train` names its folder with
         assert first.poll() is None  # the first run is unaffected
         assert not (tmp_path / "config.json").exists()
     faults.lock_run(tmp_path, "after the first ended").close()  # kill -9 released it
