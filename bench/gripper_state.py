@@ -3,14 +3,14 @@
 The project's TD3 core (the critic, actor, TD target and update order of every TD3 agent here)
 learns `gripper-valve` from the simulator's true state instead of the camera: the valve's and the
 target's angles (cos, sin, and of their difference) and the four finger joints' angles and
-setpoints. Settings are cpu-small's (hidden 256, batch 64, G = 1, warm-up 500, exploration noise
-0.1), with the encoder replaced by the state itself. Every `--eval-every` steps it plays 20
-evaluation episodes on a separate stand-in (seed + 1,000,000).
+setpoints. Settings are cpu-small's for the gripper (hidden 256, batch 64, G = 1, warm-up 500,
+exploration noise 0.1, 20 evaluation episodes), with the encoder replaced by the state itself.
+Every `--eval-every` steps it evaluates on a separate stand-in (seed + 1,000,000).
 
 What to read it against: a policy that ignores the target (the untrained one, or one that turns
 the valve at random) scores -25 on average, since the target is uniform: a mean distance of pi/2,
-a reward of -1/2 a step over 50 steps. A pixel agent cannot learn faster than this one; where this
-one needs N steps, a 30-minute pixel run of fewer steps says little about the method.
+a reward of -1/2 a step over 50 steps. A pixel agent is not expected to learn faster than this
+one: where this one needs N steps, a 30-minute pixel run of fewer steps says little about the method.
 
     python -m bench.gripper_state [--steps 50000] [--eval-every 2500] [--seed 0]
 
@@ -29,12 +29,11 @@ import torch
 
 from shared.agents import PixelTD3
 from shared.agents.base import adam
-from shared.config import default_config
+from shared.config import TrainConfig, default_config
 from shared.gripper.sim import ValveSim
 
 TASK = "gripper-valve"
 STATE_DIM = 14
-EVAL_EPISODES = 20
 EVAL_SEED_OFFSET = 1_000_000
 
 
@@ -52,15 +51,15 @@ class StateValve(ValveSim):
         return np.concatenate([angles, fingers, self._setpoint]).astype(np.float32)
 
 
-def state_agent(seed: int) -> tuple[PixelTD3, int]:
-    """TD3 with cpu-small's settings whose 'encoder' passes the state through; and its batch size."""
+def state_agent(seed: int) -> tuple[PixelTD3, TrainConfig]:
+    """TD3 with cpu-small's settings whose 'encoder' passes the state through; and those settings."""
     torch.manual_seed(seed)
     config = default_config("pixel_td3", "cpu-small", TASK)
     config.agent.latent_dim = STATE_DIM
     agent = PixelTD3((3, 16, 16), 4, config.agent, torch.device("cpu"))
     agent.encoder = torch.nn.Identity()
     agent.critic_opt = adam(agent.critic.parameters(), config.agent.critic_lr)
-    return agent, config.batch_size
+    return agent, config
 
 
 @torch.no_grad()
@@ -82,10 +81,14 @@ def evaluate(agent: PixelTD3, env: StateValve, episodes: int) -> float:
     return float(np.mean(returns))
 
 
-def train(steps: int, eval_every: int, seed: int, eval_episodes: int = EVAL_EPISODES,
-          warmup: int = 500) -> dict:
-    """Learn from state for `steps` env steps; the evaluations' means by step."""
-    agent, batch_size = state_agent(seed)
+def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = None,
+          warmup: int | None = None) -> dict:
+    """Learn from state for `steps` env steps; the evaluations' means by step. Evaluation episodes
+    and warm-up default to cpu-small's gripper settings."""
+    agent, config = state_agent(seed)
+    batch_size = config.batch_size
+    eval_episodes = config.eval_episodes if eval_episodes is None else eval_episodes
+    warmup = config.warmup_steps if warmup is None else warmup
     noise = agent.config.exploration_noise
     env, eval_env = StateValve(TASK, seed), StateValve(TASK, seed + EVAL_SEED_OFFSET)
     rng = np.random.default_rng(seed)
@@ -117,7 +120,8 @@ def train(steps: int, eval_every: int, seed: int, eval_episodes: int = EVAL_EPIS
             print(f"step {i + 1}: {evals[i + 1]:.1f} ({time.perf_counter() - start:.0f} s)", flush=True)
     env.close()
     eval_env.close()
-    return {"evals": {str(k): round(v, 2) for k, v in evals.items()}, "updates": agent.num_updates,
+    return {"eval_episodes": eval_episodes, "warmup": warmup,
+            "evals": {str(k): round(v, 2) for k, v in evals.items()}, "updates": agent.num_updates,
             "seconds": round(time.perf_counter() - start, 1)}
 
 
@@ -132,7 +136,7 @@ def main() -> None:
     if args.steps < 1 or args.eval_every < 1:
         parser.error("--steps and --eval-every must be >= 1")
     result = {"task": TASK, "observation": "state", "steps": args.steps, "seed": args.seed,
-              "eval_episodes": EVAL_EPISODES, "ignores_target": -25.0}
+              "ignores_target": -25.0}
     result |= train(args.steps, args.eval_every, args.seed)
     evals = list(result["evals"].values())
     result["best"], result["last"] = max(evals), evals[-1]
