@@ -29,19 +29,19 @@ import torch
 
 from shared.agents import PixelTD3
 from shared.agents.base import adam
-from shared.config import TrainConfig, default_config
-from shared.gripper.sim import ValveSim
+from shared.config import EVAL_SEED_OFFSET, TrainConfig, default_config
+from shared.gripper.sim import EPISODE_STEPS, ValveSim
 
 TASK = "gripper-valve"
 STATE_DIM = 14
-EVAL_SEED_OFFSET = 1_000_000
+IGNORES_TARGET = -EPISODE_STEPS / 2  # a mean distance of pi/2 is a reward of -1/2 a step
 
 
 class StateValve(ValveSim):
-    """The stand-in without its camera: `state()` is what the policy sees."""
+    """The stand-in without its camera: reset and step return `state()` where a frame would be."""
 
     def render(self) -> np.ndarray:
-        return np.zeros(0, np.uint8)
+        return self.state()
 
     def state(self) -> np.ndarray:
         valve, target = self.valve_angle, self.target_angle
@@ -62,20 +62,15 @@ def state_agent(seed: int) -> tuple[PixelTD3, TrainConfig]:
     return agent, config
 
 
-@torch.no_grad()
-def act(agent: PixelTD3, state: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
-    action = agent.actor(torch.from_numpy(state)[None])[0].numpy()
-    return np.clip(action + rng.normal(0.0, noise, action.shape), -1.0, 1.0)
-
-
 def evaluate(agent: PixelTD3, env: StateValve, episodes: int) -> float:
-    rng = np.random.default_rng(0)
+    """The mean return of `episodes` episodes with the deterministic policy."""
+    unused = np.random.default_rng(0)  # explore=False draws nothing
     returns = []
     for _ in range(episodes):
-        env.reset()
-        total, last = 0.0, False
+        state, _, _, last = env.reset()
+        total = 0.0
         while not last:
-            _, reward, _, last = env.step(act(agent, env.state(), 0.0, rng).astype(np.float64))
+            state, reward, _, last = env.step(agent.act(state, explore=False, rng=unused).astype(np.float64))
             total += reward
         returns.append(total)
     return float(np.mean(returns))
@@ -89,7 +84,6 @@ def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = No
     batch_size = config.batch_size
     eval_episodes = config.eval_episodes if eval_episodes is None else eval_episodes
     warmup = config.warmup_steps if warmup is None else warmup
-    noise = agent.config.exploration_noise
     env, eval_env = StateValve(TASK, seed), StateValve(TASK, seed + EVAL_SEED_OFFSET)
     rng = np.random.default_rng(seed)
     obs = np.zeros((steps, STATE_DIM), np.float32)
@@ -99,15 +93,12 @@ def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = No
     evals = {0: evaluate(agent, eval_env, eval_episodes)}
     print(f"step 0: {evals[0]:.1f}", flush=True)
     start = time.perf_counter()
-    env.reset()
-    state = env.state()
+    state = env.reset()[0]
     for i in range(steps):
-        action = rng.uniform(-1, 1, 4) if i < warmup else act(agent, state, noise, rng)
-        _, reward, _, last = env.step(action.astype(np.float64))
-        obs[i], actions[i], rewards[i], next_obs[i] = state, action, reward, env.state()
-        if last:
-            env.reset()
-        state = env.state()
+        action = rng.uniform(-1, 1, 4) if i < warmup else agent.act(state, explore=True, rng=rng)
+        next_state, reward, _, last = env.step(action.astype(np.float64))
+        obs[i], actions[i], rewards[i], next_obs[i] = state, action, reward, next_state
+        state = env.reset()[0] if last else next_state
         if i >= warmup:
             rows = rng.integers(0, i + 1, batch_size)
             agent.update({  # the time limit is not an end: discount 1, as the pixel runs store it
@@ -133,10 +124,10 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, default=2_500)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    if args.steps < 1 or args.eval_every < 1:
-        parser.error("--steps and --eval-every must be >= 1")
+    if args.steps < 1 or args.eval_every < 1 or args.seed < 0:
+        parser.error("--steps and --eval-every must be >= 1, --seed >= 0")
     result = {"task": TASK, "observation": "state", "steps": args.steps, "seed": args.seed,
-              "ignores_target": -25.0}
+              "ignores_target": IGNORES_TARGET}
     result |= train(args.steps, args.eval_every, args.seed)
     evals = list(result["evals"].values())
     result["best"], result["last"] = max(evals), evals[-1]

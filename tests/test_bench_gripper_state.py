@@ -1,8 +1,11 @@
 """bench.gripper_state: the stand-in's true state, and TD3 learning from it with the project's update."""
 
 import math
+import subprocess
+import sys
 
 import numpy as np
+import pytest
 
 from bench.gripper_state import STATE_DIM, StateValve, train
 
@@ -26,3 +29,14 @@ def test_a_short_run_updates_after_the_warm_up_and_evaluates_on_schedule():
     assert list(result["evals"]) == ["0", "30", "60"]
     assert result["updates"] == 40  # one per step after the warm-up (G = 1)
     assert all(-50.0 <= v <= 0.0 for v in result["evals"].values())
+
+
+BAD = [["--steps", "0"], ["--eval-every", "-5"], ["--seed", "-1"], ["--steps", "nan"]]
+
+
+@pytest.mark.parametrize("bad", BAD)
+def test_bad_arguments_are_one_clear_error(bad):
+    done = subprocess.run([sys.executable, "-m", "bench.gripper_state", *bad], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "error:" in done.stderr
