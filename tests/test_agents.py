@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from shared.agents import SACAE, TD3, TD3AE, NaSATD3, PixelTD3, UnscoredBatchError, make_agent
+from shared.agents.base import float_pixels
 from shared.config import ALGOS, agent_defaults
+from shared.nets import float_channels_last
 
 OBS_SHAPE = (9, 48, 48)
 ACTION_DIM = 2
@@ -348,3 +350,34 @@ def test_fc_layers_are_the_references_up_to_a_fixed_relabelling_of_conv_features
         )).view(-1, c, h, w)
         ref_reconstruction = torch.sigmoid(decoder.deconvs(ref_h))
         assert torch.allclose(decoder(z), ref_reconstruction, atol=1e-5)
+
+
+def test_an_update_casts_each_stack_batch_once_and_the_encoder_reads_it_without_a_copy():
+    batch = random_batch()
+    cast = float_pixels(batch)
+    for key in ("obs", "next_obs"):
+        assert batch[key].dtype == torch.uint8  # the caller's batch is left as it was
+        assert cast[key].dtype == torch.float32
+        assert cast[key].is_contiguous(memory_format=torch.channels_last)
+        assert torch.equal(cast[key], batch[key].float())
+        assert float_channels_last(cast[key]) is cast[key]  # later passes read it as it is
+    for key in ("action", "reward", "discount", "intrinsic"):
+        assert cast[key] is batch[key]
+    agent = make("nasa_td3")
+    assert torch.equal(agent.encoder(batch["obs"]), agent.encoder(cast["obs"]))
+
+
+@pytest.mark.parametrize(
+    "algo, timing", [("nasa_td3", "collect"), ("nasa_td3", "fresh"), ("sac_ae", "collect")]
+)
+def test_an_update_on_a_cast_batch_equals_one_on_the_uint8_batch(algo, timing):
+    agent = make(algo, intrinsic_timing=timing) if algo == "nasa_td3" else make(algo)
+    twin = copy.deepcopy(agent)
+    batch = random_batch()
+    torch.manual_seed(1)  # the TD target's smoothing noise
+    metrics = agent.update(batch)
+    torch.manual_seed(1)
+    assert twin.update(float_pixels(batch)) == metrics
+    for (name, mine), (_, theirs) in zip(agent._modules().items(), twin._modules().items(), strict=True):
+        for p, q in zip(mine.parameters(), theirs.parameters(), strict=True):
+            assert torch.equal(p, q), name

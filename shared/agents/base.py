@@ -7,6 +7,8 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from shared.nets import float_channels_last
+
 
 class Agent(Protocol):
     """The learning core. No I/O inside: runners feed it batches and save its state."""
@@ -45,6 +47,17 @@ class Agent(Protocol):
 def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
     """A (C, H, W) uint8 observation as a (1, C, H, W) uint8 tensor on `device`; the cast happens there."""
     return torch.as_tensor(obs, device=device).unsqueeze(0)
+
+
+def float_pixels(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The batch with its frame stacks cast to float32, channels-last: the form every encoder
+    pass reads. An update encodes the same stacks several times (critic, target, autoencoder,
+    actor, ensemble), and casting the uint8 stacks once instead of at each pass is the same
+    arithmetic with less memory traffic."""
+    out = dict(batch)
+    for key in ("obs", "next_obs"):
+        out[key] = float_channels_last(batch[key])
+    return out
 
 
 def batch_to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:

@@ -19,6 +19,7 @@ from shared.agents.base import (
     ModuleStateMixin,
     adam,
     channels_last,
+    float_pixels,
     optimizer_step,
     soft_update,
     to_obs_tensor,
@@ -110,6 +111,7 @@ class SACAE(ModuleStateMixin):
         """One update in SAC-AE's order: critic, actor and alpha, targets, decoder."""
         c = self.config
         self.num_updates += 1
+        batch = float_pixels(batch)
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
         discount = batch["discount"].view(-1, 1)

@@ -27,6 +27,7 @@ from shared.agents.base import (
     ModuleStateMixin,
     adam,
     channels_last,
+    float_pixels,
     optimizer_step,
     soft_update,
     to_obs_tensor,
@@ -87,6 +88,7 @@ class TD3(ModuleStateMixin):
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """One update: reward, encoder losses (critic first), delayed actor and targets, auxiliaries."""
         c = self.config
+        batch = float_pixels(batch)
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward, latent, next_latent, metrics = self.reward(batch)  # first: it may refuse the batch
         self.num_updates += 1
