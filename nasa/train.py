@@ -21,7 +21,7 @@ from shared.agents import Agent, batch_to_device, collect_action, make_agent
 from shared.config import EVAL_SEED_OFFSET, TrainConfig, validate
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
-from shared.evaluation import evaluate
+from shared.evaluation import draws_restarter, evaluate
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
@@ -40,6 +40,7 @@ class Trainer:
         torch.manual_seed(c.seed)  # before any network is built
         self.env = envs.from_config(c.env, c.seed)
         self.eval_env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
+        self.restart_eval_draws = draws_restarter(self.eval_env, c.eval_same_episodes)
         self.run_config = run_config.RunConfig(c, self.env.spec)
         spec = self.env.spec
         self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)
@@ -158,6 +159,7 @@ class Trainer:
             self.save_checkpoint()
 
     def run_evaluation(self) -> None:
+        self.restart_eval_draws()
         returns = evaluate(self.agent, self.eval_env, self.config.eval_episodes)
         row = self.recorder.eval_row(self.counters.env_steps, returns)
         self.scalars.eval(self.counters.env_steps, row["mean"], row["std"])

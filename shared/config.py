@@ -134,6 +134,11 @@ class TrainConfig:
     eval_at_start: bool = True
     """Evaluate the untrained policy at step 0; False reproduces the reference, whose
     first evaluation comes after `eval_every` steps."""
+    eval_same_episodes: bool = False
+    """Every evaluation plays the same episodes: the evaluation environment's draws (initial
+    states; the gripper's targets and reset angles) start each evaluation where they stood when
+    it was made, so successive evaluations differ by the policy alone. False, the reference's
+    way: each evaluation goes on drawing where the last one stopped."""
     checkpoint_every: int = 10_000
     device: str = "auto"
     """`cpu`, `cuda`, `cuda:N` or `auto` (cuda when present)."""

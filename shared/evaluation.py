@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from shared.agents import Agent
@@ -16,6 +18,21 @@ def evaluate(agent: Agent, env: PixelEnv, episodes: int) -> list[float]:
     unused = np.random.default_rng(0)  # explore=False draws nothing
     loop = EnvLoop(env)
     return [loop.run_episode(lambda obs: agent.act(obs, explore=False, rng=unused)) for _ in range(episodes)]
+
+
+def draws_restarter(env: PixelEnv, same_episodes: bool) -> Callable[[], None]:
+    """What to call before each evaluation on `env` (just made): with `same_episodes`, it puts
+    the environment's draws back where they stand now, so every evaluation plays the same
+    episodes; without, nothing. A robot bridge's draws live in the bridge, which is asked to
+    rewind them to where they stood when it started."""
+    if not same_episodes:
+        return lambda: None
+    pixels = getattr(env, "pixels", env)
+    rewind = getattr(pixels, "rewind_draws", None)
+    if rewind is not None:
+        return rewind
+    start = env.rng_state()
+    return lambda: env.set_rng_state(start)
 
 
 def eval_due(env_steps: int, config: TrainConfig, done: int) -> int | None:

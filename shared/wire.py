@@ -645,8 +645,12 @@ class BridgeSpec(Message):
 
 @dataclass
 class BridgeReset(Message):
+    """`rewind`: before this reset, the bridge puts its draws (targets, reset angles) back where
+    they stood when it started, so an evaluation can play the same episodes each time."""
+
     TYPE: ClassVar[str] = "bridge_reset"
     client: str
+    rewind: bool = False
 
 
 @dataclass

@@ -3,13 +3,20 @@ the learner's evaluations between updates, which follow the same rules."""
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
 import torch
 
+from nasa.train import Trainer
 from services.evaluator.evaluator import EvaluatorArgs, EvaluatorService
 from services.learner.evaluation import BetweenUpdates
-from shared import wire
+from shared import envs, wire
+from shared.envs import EnvSpec
+from shared.evaluation import draws_restarter
+from shared.run_config import RunConfig
+from shared.runlog import read_rows
 from shared.service import StopFlag
-from tests.tiny import tiny_run
+from tests.tiny import tiny_config, tiny_run
 
 
 def _service(**overrides: object) -> EvaluatorService:
@@ -76,3 +83,47 @@ def test_between_updates_the_learner_evaluates_the_same_steps_and_episodes_as_th
     assert BetweenUpdates(ev.config, ev.agent, done_step=100).due(130) is None
     off = tiny_run("td3_ae", steps=500, eval_at_start=False).config
     assert BetweenUpdates(off, ev.agent, done_step=None).due(10) is None
+
+
+def _eval_twice_in_each_process(tmp_path, same: bool) -> dict[str, tuple[list[float], ...]]:
+    """Two evaluations of one fixed policy by the evaluator, the learner between updates and
+    nasa train, on gripper-valve (each episode draws its target)."""
+    config = tiny_config("td3_ae", steps=500, eval_episodes=3, eval_same_episodes=same)
+    config.env.task = "gripper-valve"
+    run = RunConfig(config, EnvSpec((3, 32, 32), 3, 4))
+    torch.manual_seed(0)
+    ev = EvaluatorService(EvaluatorArgs(config=config), None, StopFlag(), run)
+    between = BetweenUpdates(config, ev.agent, done_step=None)
+    trainer = Trainer.create(config, tmp_path / f"train-{same}")
+    trainer.agent.load_policy_state_dict(ev.agent.policy_state_dict())
+    out = {
+        "evaluator": (ev.evaluate(0).returns, ev.evaluate(100).returns),
+        "between_updates": (between.run(0).returns, between.run(100).returns),
+    }
+    trainer.run_evaluation()
+    trainer.run_evaluation()
+    rows = read_rows(tmp_path / f"train-{same}" / "eval.csv")
+    out["nasa_train"] = tuple([float(row[f"return_{i}"]) for i in range(3)] for row in rows)
+    return out
+
+
+def test_with_eval_same_episodes_every_evaluation_plays_the_same_episodes(tmp_path):
+    """The option in each process that evaluates: the same policy scores the same returns each
+    time; without it (the reference's way) the second evaluation plays new targets."""
+    same = _eval_twice_in_each_process(tmp_path, same=True)
+    for first, second in same.values():
+        assert first == second
+    assert same["evaluator"] == same["between_updates"]
+    assert same["nasa_train"][0] == pytest.approx(same["evaluator"][0], abs=1e-3)  # eval.csv rounds
+    for first, second in _eval_twice_in_each_process(tmp_path, same=False).values():
+        assert first != second
+
+
+def test_a_suite_tasks_draws_restart_where_they_stood():
+    env = envs.from_config(tiny_config(eval_same_episodes=True).env, seed=3)
+    restart = draws_restarter(env, same_episodes=True)
+    first = env.reset().obs
+    assert not np.array_equal(env.reset().obs, first)  # the next episode starts elsewhere
+    restart()
+    assert np.array_equal(env.reset().obs, first)
+    assert draws_restarter(env, same_episodes=False)() is None  # off: does nothing

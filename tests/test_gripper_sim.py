@@ -104,8 +104,9 @@ def test_deterministic_under_a_seed_and_resumable_from_its_state() -> None:
         b.set_rng_state(state)
         b.reset()
         assert b.target_angle == a.target_angle
-        # The checkpoint holds the valve angle, not the whole physics state: close, not bitwise.
-        assert angle_distance(b.valve_angle, a.valve_angle) < math.radians(0.5)
+        # The checkpoint holds the valve angle, not the whole physics state: close, not bitwise;
+        # the reset's valve servo stops anywhere within its tolerance of the drawn angle.
+        assert angle_distance(b.valve_angle, a.valve_angle) < 2 * sim.VALVE_TOLERANCE
     finally:
         a.close()
         b.close()
@@ -139,5 +140,25 @@ def test_action_repeat_shortens_the_episode() -> None:
         assert steps == sim.EPISODE_STEPS // 2
         with pytest.raises(ValueError, match="shape"):
             env.step(np.zeros(3))
+    finally:
+        env.close()
+
+
+def test_restoring_a_state_puts_the_valve_back_exactly_wherever_the_fingers_were() -> None:
+    """Evaluations of the same episodes restore the draws after an episode, with the fingers
+    anywhere: they go home first, so the valve is never put into a finger and kicked away."""
+    env = ValveSim("gripper-valve", seed=0, image_size=32, render_quality="fast")
+    rng = np.random.default_rng(0)
+    try:
+        start = env.rng_state()
+        for _ in range(8):
+            env.reset()
+            action = rng.uniform(-1, 1, 4)
+            for _ in range(10):
+                env.step(action)
+            state = dict(start, valve_angle=float(rng.uniform(0.0, 2.0 * math.pi)))
+            env.set_rng_state(state)
+            env.reset()
+            assert angle_distance(env.valve_angle, state["valve_angle"]) < math.radians(0.5)
     finally:
         env.close()

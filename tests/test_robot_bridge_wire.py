@@ -9,6 +9,7 @@ BRIDGE_MESSAGES = [
     wire.BridgeSpecRequest(),
     wire.BridgeSpec("gripper-valve", 4, [3, 84, 84]),
     wire.BridgeReset("actor-0"),
+    wire.BridgeReset("evaluator", rewind=True),
     wire.BridgeStep("actor-0", 2, 7, b"\0" * 16),
     wire.BridgeReply(True, "", 2, 8, [3, 2, 2], b"f" * 12, -0.25, 1.0, False, True,
                      {"valve_angle": 1.5, "positions": [512, 600], "safety": {"state": "ready"}}),
@@ -27,6 +28,11 @@ def test_bridge_messages_are_validated() -> None:
                           "step": 0, "action": b""})
     with pytest.raises(wire.WireError, match="episode"):
         wire.decode(body, wire.BridgeStep)
+    no_rewind = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a"})
+    assert wire.decode(no_rewind, wire.BridgeReset).rewind is False  # optional: a plain reset
+    bad_rewind = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a", "rewind": 1})
+    with pytest.raises(wire.WireError, match="rewind"):
+        wire.decode(bad_rewind, wire.BridgeReset)
     no_engage = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_estop", "reason": "x"})
     with pytest.raises(wire.WireError, match="missing field 'engage'"):
         wire.decode(no_engage, wire.BridgeEStop)

@@ -1,5 +1,6 @@
 """The bridge over real Zenoh on loopback: the stand-in behind it, BridgeEnv in front."""
 
+import math
 import os
 import signal
 import subprocess
@@ -16,7 +17,8 @@ from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
 from services.robot_bridge.server import BridgeServer
 from shared import wire
 from shared.envs import FrameStack
-from shared.gripper.sim import EPISODE_STEPS, ValveSim
+from shared.evaluation import draws_restarter
+from shared.gripper.sim import EPISODE_STEPS, ValveSim, angle_distance
 from shared.zenoh_session import open_client, open_router
 
 TASK = "gripper-valve_reset"
@@ -179,5 +181,38 @@ def test_a_failing_step_is_an_error_reply_and_the_bridge_serves_on(sessions) -> 
             env.reset()  # a new episode, as the actor starts after a bridge fault
             _, reward, _, last = env.step(np.zeros(4))
             assert not last and -1.0 <= reward <= 0.0
+    finally:
+        sim.close()
+
+
+def test_a_rewind_replays_the_bridges_draws_from_where_it_started(sessions) -> None:
+    """Evaluations of the same episodes through a bridge: the client cannot hold the bridge's draws,
+    so it asks the bridge to put them back; the stand-in's valve goes back to where it started."""
+    bridge_session, evaluator_session = sessions
+    sim = ValveSim("gripper-valve", seed=5, image_size=32, render_quality="fast")
+    actions = np.random.default_rng(1).uniform(-1, 1, size=(20, 4)).astype(np.float32)
+    try:
+        with BridgeServer(bridge_session, "g3", sim, "gripper-valve", log=lambda _: None).serve():
+            env = FrameStack(BridgeEnv(evaluator_session, "g3", client="evaluator", timeout_s=30.0), 3)
+            restart = draws_restarter(env, same_episodes=True)
+
+            def evaluation() -> list[tuple[float, float]]:
+                starts = []
+                for _ in range(3):
+                    env.reset()
+                    starts.append((env.pixels.info["target_angle"], env.pixels.info["valve_angle"]))
+                    for action in actions:  # the fingers push the valve round
+                        env.step(action)
+                return starts
+
+            restart()
+            first = evaluation()
+            restart()
+            again = evaluation()
+            assert [t for t, _ in again] == [t for t, _ in first]
+            for (_, valve), (_, valve_before) in zip(again, first, strict=True):
+                assert angle_distance(valve, valve_before) < math.radians(1.0)
+            assert angle_distance(first[0][1], 0.0) < math.radians(0.5)  # where the bridge started
+            assert [t for t, _ in evaluation()] != [t for t, _ in first]  # no rewind: new draws
     finally:
         sim.close()

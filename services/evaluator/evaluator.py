@@ -38,7 +38,7 @@ from shared import envs, run_config, wire
 from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
 from shared.env_loop import EnvLoop
-from shared.evaluation import eval_due, evaluate, first_done
+from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
 from shared.service import Log, StopFlag
 from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
@@ -78,6 +78,7 @@ class EvaluatorService:
             self.bridge = BridgePresence(session, args.bridge)
         # A bridge's environment is made once the bridge is there (`_env_ready`).
         self.env = None if args.bridge else envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
+        self.restart_draws = None if self.env is None else draws_restarter(self.env, c.eval_same_episodes)
         spec = run.spec
         device = torch.device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
@@ -130,6 +131,7 @@ class EvaluatorService:
         try:
             self.env = envs.source_for(self.config.env.task).make_remote(
                 self.config.env, self.session, self.args.bridge)
+            self.restart_draws = draws_restarter(self.env, self.config.eval_same_episodes)
         except envs.EnvUnavailable as err:
             self.log.every("bridge", 10.0, f"waiting for bridge {self.args.bridge}: {err}")
             return False
@@ -144,6 +146,8 @@ class EvaluatorService:
         video = self.media is not None and self.args.video_every > 0 \
             and self.evaluations % self.args.video_every == 0
         try:
+            assert self.restart_draws is not None  # made with the environment
+            self.restart_draws()
             first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
             returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1)]
         except envs.EnvUnavailable as err:  # a bridge gone or refusing: no partial result

@@ -11,11 +11,13 @@ either way. No pictures are made here (the evaluator service's media).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from shared import envs, wire
 from shared.agents import Agent
 from shared.config import EVAL_SEED_OFFSET, TrainConfig
 from shared.envs import PixelEnv
-from shared.evaluation import eval_due, evaluate, first_done
+from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
 
 
 class BetweenUpdates:
@@ -24,6 +26,7 @@ class BetweenUpdates:
         # A resumed run does not evaluate again the steps its eval.csv holds.
         self.done = first_done(config) if done_step is None else done_step
         self.env: PixelEnv | None = None  # made at the first evaluation
+        self.restart_draws: Callable[[], None] = lambda: None
 
     def due(self, env_steps: int) -> int | None:
         if self.done < 0 and self.agent.num_updates == 0:
@@ -35,6 +38,8 @@ class BetweenUpdates:
         c = self.config
         if self.env is None:
             self.env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
+            self.restart_draws = draws_restarter(self.env, c.eval_same_episodes)
+        self.restart_draws()
         returns = evaluate(self.agent, self.env, c.eval_episodes)
         self.done = target
         return wire.EvalResult(target, self.agent.num_updates, [float(r) for r in returns])

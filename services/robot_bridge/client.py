@@ -99,6 +99,7 @@ class BridgeEnv:
         self.image_size = self.frame_shape[1]
         self.episode = -1
         self._step = 0
+        self._rewind = False
         self.info: dict = {}
 
     def _wait_for_spec(self, deadline: float) -> wire.BridgeSpec:
@@ -131,15 +132,21 @@ class BridgeEnv:
     def set_rng_state(self, state: dict) -> None:
         pass  # the bridge owns the draws of targets and reset angles
 
+    def rewind_draws(self) -> None:
+        """The next reset asks the bridge to put its draws back where they stood when it started
+        (its own RNG state: the client cannot hold it), for evaluations of the same episodes."""
+        self._rewind = True
+
     def fault(self) -> str:
         """The bridge's safety state after its last reply (`fault_state`)."""
         return fault_state(self.info)
 
     def reset(self) -> tuple[np.ndarray, float, float, bool]:
-        r = self._ask(self.keys.reset, wire.BridgeReset(self.client), wire.BridgeReply)
+        r = self._ask(self.keys.reset, wire.BridgeReset(self.client, self._rewind), wire.BridgeReply)
         if not r.ok:
             self.info = r.info  # why: the safety state of a refusal (e-stop, waiting for an operator)
             raise BridgeUnavailable(f"bridge {self.keys.prefix} refused a reset: {r.reason}")
+        self._rewind = False
         self.episode, self._step = r.episode, 0
         return self._frame(r), 0.0, 1.0, False
 

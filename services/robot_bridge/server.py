@@ -35,6 +35,7 @@ class BridgeServer:
         self.task = task
         self.log = log
         self.frame_shape = (3, env.image_size, env.image_size)
+        self._start_draws = env.rng_state()  # where a `rewind` puts the draws back
         self.episode = -1
         self.step_index = 0
         self.estopped = False
@@ -68,6 +69,8 @@ class BridgeServer:
         if self.estopped:
             return self._refusal(f"e-stop: {self.estop_reason}")
         start = time.perf_counter()
+        if msg.rewind:
+            self.env.set_rng_state(self._start_draws)
         try:
             frame, _, _, _ = self.env.reset()
         except Refused as e:

@@ -181,8 +181,9 @@ class ValveSim:
     def set_rng_state(self, state: dict) -> None:
         keys = np.asarray(state["keys"], dtype=np.uint32)
         self._random.set_state((state["name"], keys, state["pos"], state["has_gauss"], state["cached"]))
-        # Restoring a checkpoint (not a reset): put the valve back where the run left it, since
-        # scenario 1 starts each episode from there.
+        # Put the valve back where the state left it, since scenario 1 starts each episode from
+        # there; the fingers go home first, as at a reset, so the valve is not put into one.
+        self._go_home()
         self.data.qpos[self._valve_qpos] = float(state["valve_angle"])
         self.data.qvel[self._valve_dof] = 0.0
         mujoco.mj_forward(self.model, self.data)
