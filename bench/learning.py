@@ -20,8 +20,9 @@ returns, and the median time to the goal of the seeds that reached it.
     python -m bench.learning [--task T] [--seed S[,S...]] [--minutes 30] [--up-minutes M]
                              [--out bench-results/learning] [--only train|up] [--report] [-- SETTINGS]
 
-SETTINGS are `nasa train` flags passed to both runs after the preset's, for a documented
-per-task variant (the gripper's 50-step episodes take `-- --action-repeat 1`).
+SETTINGS are `nasa train` flags passed to both runs after the preset's and its variant for
+the task (cpu-small's gripper variant: one action per step, 20 evaluation episodes every
+2,000 steps), e.g. `-- --eval-same-episodes`.
 
 The last line is one JSON object. `nasa plot <out>` draws the curves.
 """
