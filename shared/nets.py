@@ -41,7 +41,10 @@ def float_channels_last(obs: torch.Tensor) -> torch.Tensor:
     """Frame stacks as float32 in channels-last layout (nothing copied if they already are).
 
     Channels-last convolutions are faster on CPU (oneDNN) and on GPU (cuDNN). Reordering the
-    uint8 stacks first and then widening them moves less memory than doing both in one copy."""
+    uint8 stacks first and then widening them moves less memory than doing both in one copy.
+    Anything else (the state vectors bench.gripper_state feeds an identity encoder) is widened only."""
+    if obs.dim() != 4:
+        return obs.to(torch.float32)
     return obs.contiguous(memory_format=torch.channels_last).to(torch.float32)
 
 
