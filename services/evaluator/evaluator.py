@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,7 +79,8 @@ class EvaluatorService:
             self.bridge = BridgePresence(session, args.bridge)
         # A bridge's environment is made once the bridge is there (`_env_ready`).
         self.env = None if args.bridge else envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
-        self.restart_draws = None if self.env is None else draws_restarter(self.env, c.eval_same_episodes)
+        self.restart_draws: Callable[[], None] = (
+            (lambda: None) if self.env is None else draws_restarter(self.env, c.eval_same_episodes))
         spec = run.spec
         device = torch.device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
@@ -146,7 +148,6 @@ class EvaluatorService:
         video = self.media is not None and self.args.video_every > 0 \
             and self.evaluations % self.args.video_every == 0
         try:
-            assert self.restart_draws is not None  # made with the environment
             self.restart_draws()
             first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
             returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1)]
