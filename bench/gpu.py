@@ -42,7 +42,7 @@ STATUS_KEYS = ("updates_per_s", "env_steps_per_s", "updates_per_env_step")
 LEARNER_KEYS = (
     "updates_per_s", "score_ms_per_transition", "sgemm_peak_gflops", "matmul_peak_gflops", "update_gflop",
     "update_fraction_of_peak", "update_fraction_of_tf32_peak", "update_fraction_of_bf16_peak",
-    "part_fraction_of_peak", "score_fraction_of_peak", "machine",
+    "part_fraction_of_peak", "score_fraction_of_peak", "variant_updates_per_s", "machine",
 )  # fmt: skip
 
 
@@ -137,7 +137,8 @@ def step_tests(budget: Budget) -> dict:
 
 def step_learner(budget: Budget, rounds: int, updates: int) -> dict:
     cmd = [sys.executable, "-m", "bench.learner", "--device", "cuda", "--rounds", str(rounds),
-           "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5"]  # fmt: skip
+           "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5",
+           "--variants", "nasa_td3+bf16"]  # fmt: skip
     result = run_child(cmd, budget.step_timeout(150, reserve=220))
     summary = last_json(result["output"]) if result["rc"] == 0 else None
     if summary is None:

@@ -60,6 +60,7 @@ VARIANTS = {
     "nasa_td3+shared_encoder_pass": ("nasa_td3", {"shared_encoder_pass": True}),
     "td3_ae+shared_encoder_pass": ("td3_ae", {"shared_encoder_pass": True}),
     "nasa_td3+fresh": ("nasa_td3", {"intrinsic_timing": "fresh"}),
+    "nasa_td3+bf16": ("nasa_td3", {"pixel_precision": "bf16"}),
 }
 GOALS = {"update_ratio": 2.5, "update_fraction_of_peak": 0.7, "score_ratio_stored_order": 20.0}
 WORKER_TIMEOUT_S = 600
@@ -240,7 +241,11 @@ def reference_worker(data: dict, device: torch.device, updates: int, directory: 
 
 def peak_worker(device: torch.device, seconds: float) -> dict:
     if device.type == "cpu":
-        return {"fp32": hardware.matmul_peak_gflops(device, torch.float32, (1024, 2048), seconds)}
+        sizes = (1024, 2048)
+        return {
+            "fp32": hardware.matmul_peak_gflops(device, torch.float32, sizes, seconds),
+            "bf16": hardware.matmul_peak_gflops(device, torch.bfloat16, sizes, seconds),
+        }
     sizes = (4096, 8192)
     return {
         "fp32": hardware.matmul_peak_gflops(device, torch.float32, sizes, seconds, tf32=False),
@@ -325,9 +330,11 @@ def summarize(rounds: list[dict], device: str, batch: int) -> dict:
             k: _round(fraction(score_flops[k], score_ms[k] / 1000, peak)) for k in score_ms
         },
     }
-    if "tf32" in peaks:
+    if len(peaks) > 1:
         out["matmul_peak_gflops"] = {k: round(v, 1) for k, v in peaks.items()}
         for name in ("tf32", "bf16"):
+            if name not in peaks:
+                continue
             out[f"update_fraction_of_{name}_peak"] = _round(
                 fraction(project["update_flops"], 1.0 / project["updates_per_s"], peaks[name])
             )

@@ -18,6 +18,7 @@ from typing import Literal
 Algo = Literal["nasa_td3", "td3_ae", "pixel_td3", "sac_ae"]
 ALGOS: tuple[str, ...] = ("nasa_td3", "td3_ae", "pixel_td3", "sac_ae")
 DEFAULT_PRESET = "auto"
+PIXEL_PRECISIONS: tuple[str, ...] = ("fp32", "bf16")
 
 
 class ConfigError(ValueError):
@@ -82,6 +83,11 @@ class AgentConfig:
     shared_encoder_pass: bool = False
     """Faster, not the reference: encode each batch once for critic and autoencoder
     (the reference encodes again after the critic step)."""
+    pixel_precision: Literal["fp32", "bf16"] = "fp32"
+    """Number format of the encoder's and decoder's convolutions and linear layers:
+    `fp32` (the reference) or `bf16`, mixed precision (bfloat16 products, float32
+    sums, parameters, heads, losses and optimizer states); faster where the hardware
+    has bfloat16 units (recent x86 CPUs, GPUs from Ampere on), not the reference."""
     # SAC-AE only.
     encoder_tau: float = 0.05
     init_temperature: float = 0.1
@@ -203,6 +209,9 @@ def validate(config: TrainConfig) -> TrainConfig:
             raise ConfigError(f"agent.{name} must be a finite number >= 0, got {value}")
     if agent.intrinsic_timing not in ("collect", "fresh"):
         raise ConfigError(f"agent.intrinsic_timing must be collect or fresh, got {agent.intrinsic_timing!r}")
+    if agent.pixel_precision not in PIXEL_PRECISIONS:
+        choices = ", ".join(PIXEL_PRECISIONS)
+        raise ConfigError(f"agent.pixel_precision must be one of {choices}, got {agent.pixel_precision!r}")
     if config.env.render_quality not in ("paper", "fast"):
         raise ConfigError(f"env.render_quality must be paper or fast, got {config.env.render_quality!r}")
     if config.env.time_limit not in ("bootstrap", "terminal"):

@@ -11,8 +11,12 @@ activations pass between conv and fc without a copy.
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
+
+from shared.config import PIXEL_PRECISIONS
 
 
 def weight_init(module: nn.Module) -> None:
@@ -48,11 +52,27 @@ def float_channels_last(obs: torch.Tensor) -> torch.Tensor:
     return obs.contiguous(memory_format=torch.channels_last).to(torch.float32)
 
 
+def pixel_autocast(x: torch.Tensor, precision: str) -> contextlib.AbstractContextManager:
+    """The number format of the pixel networks' matmuls and convolutions.
+
+    `fp32`: float32 throughout (the reference). `bf16`: mixed precision, as torch's
+    autocast does it: convolutions and linear layers take bfloat16 inputs and weights
+    and accumulate in float32; parameters, gradients' updates and optimizer states stay
+    float32. Frame pixels (integers 0..255) are exact in bfloat16."""
+    if precision == "fp32":
+        return contextlib.nullcontext()
+    if precision == "bf16":
+        return torch.autocast(x.device.type, dtype=torch.bfloat16)
+    raise ValueError(f"unknown pixel precision {precision!r}; choose one of {', '.join(PIXEL_PRECISIONS)}")
+
+
 class Encoder(nn.Module):
     """Conv stack (3x3, stride 2 then 1) -> Linear -> LayerNorm -> tanh.
 
     `pixel_scale` divides the input: 1.0 for the NaSA-TD3 reference, which feeds
-    raw 0..255 floats, and 255.0 for SAC-AE.
+    raw 0..255 floats, and 255.0 for SAC-AE. `precision` (see `pixel_autocast`)
+    covers the convolutions and the linear layer; LayerNorm and tanh run in float32,
+    so the latent the heads read is float32 either way.
     """
 
     def __init__(
@@ -62,8 +82,10 @@ class Encoder(nn.Module):
         num_filters: int = 32,
         num_layers: int = 4,
         pixel_scale: float = 1.0,
+        precision: str = "fp32",
     ) -> None:
         super().__init__()
+        self.precision = precision
         layers: list[nn.Module] = [nn.Conv2d(obs_shape[0], num_filters, 3, stride=2), nn.ReLU(inplace=True)]
         for _ in range(num_layers - 1):
             layers += [nn.Conv2d(num_filters, num_filters, 3, stride=1), nn.ReLU(inplace=True)]
@@ -85,14 +107,13 @@ class Encoder(nn.Module):
             x = x / self.pixel_scale
         return self.convs(x).permute(0, 2, 3, 1).flatten(1)
 
-    def forward_head(self, h: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.ln(self.fc(h)))
-
     def forward(self, obs: torch.Tensor, detach_conv: bool = False) -> torch.Tensor:
-        h = self.forward_conv(obs)
-        if detach_conv:  # SAC-AE's actor: conv tied to the critic's, trained by the critic only
-            h = h.detach()
-        return self.forward_head(h)
+        with pixel_autocast(obs, self.precision):
+            h = self.forward_conv(obs)
+            if detach_conv:  # SAC-AE's actor: conv tied to the critic's, trained by the critic only
+                h = h.detach()
+            y = self.fc(h)
+        return torch.tanh(self.ln(y.float()))
 
     def copy_conv_weights_from(self, other: Encoder) -> None:
         """Tie conv weights (SAC-AE: the actor's encoder shares the critic's convolutions)."""
@@ -106,7 +127,9 @@ class Decoder(nn.Module):
     """Linear -> ReLU -> reshape -> transposed convs mirroring the encoder.
 
     `sigmoid_output`: the NaSA-TD3 reference squashes to [0, 1] (target obs/255);
-    SAC-AE leaves the output linear (target: 5-bit obs centred on 0).
+    SAC-AE leaves the output linear (target: 5-bit obs centred on 0). `precision`
+    (see `pixel_autocast`) covers the linear layer and the transposed convolutions;
+    the output is float32 either way.
     """
 
     def __init__(
@@ -117,8 +140,10 @@ class Decoder(nn.Module):
         num_filters: int = 32,
         num_layers: int = 4,
         sigmoid_output: bool = True,
+        precision: str = "fp32",
     ) -> None:
         super().__init__()
+        self.precision = precision
         self.conv_shape = conv_shape
         self.fc = nn.Linear(latent_dim, int(torch.Size(conv_shape).numel()))
         layers: list[nn.Module] = []
@@ -142,8 +167,9 @@ class Decoder(nn.Module):
         # fc's outputs are read in (h, w, c) order, so the view below is already the
         # channels-last layout the transposed convolutions want (no copy).
         channels, height, width = self.conv_shape
-        h = torch.relu_(self.fc(z)).view(-1, height, width, channels).permute(0, 3, 1, 2)
-        x = self.deconvs(h)
+        with pixel_autocast(z, self.precision):
+            h = torch.relu_(self.fc(z)).view(-1, height, width, channels).permute(0, 3, 1, 2)
+            x = self.deconvs(h).float()
         return torch.sigmoid_(x) if self.sigmoid_output else x
 
 

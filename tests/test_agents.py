@@ -381,3 +381,68 @@ def test_an_update_on_a_cast_batch_equals_one_on_the_uint8_batch(algo, timing):
     for (name, mine), (_, theirs) in zip(agent._modules().items(), twin._modules().items(), strict=True):
         for p, q in zip(mine.parameters(), theirs.parameters(), strict=True):
             assert torch.equal(p, q), name
+
+
+def conv_output_dtypes(agent) -> list[torch.dtype]:
+    """The dtypes the agent's convolutions compute in (their outputs'), recorded by hooks."""
+    seen: list[torch.dtype] = []
+    for module in agent._modules().values():
+        for layer in module.modules():
+            if isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
+                layer.register_forward_hook(lambda m, args, out: seen.append(out.dtype))
+    return seen
+
+
+@pytest.mark.parametrize("algo", ["nasa_td3", "td3_ae", "pixel_td3", "sac_ae"])
+def test_bf16_pixel_precision_runs_the_pixel_networks_in_bf16_and_keeps_the_rest_fp32(algo):
+    fp32, bf16 = make(algo), make(algo, pixel_precision="bf16")
+    bf16.load_state_dict(copy.deepcopy(fp32.state_dict()))
+    seen = conv_output_dtypes(bf16)
+    batch = random_batch(16)
+    bf16.update(batch)
+    assert seen and set(seen) == {torch.bfloat16}
+    # Parameters and optimizer states stay float32; the checkpoint loads into an fp32 agent.
+    state = bf16.state_dict()
+    tensors = [t for t in _tensors(state) if t.is_floating_point()]
+    assert tensors and all(t.dtype == torch.float32 for t in tensors)
+    make(algo).load_state_dict(copy.deepcopy(state))
+    # Same functions up to bf16 rounding: latents and reconstructions of the same weights agree.
+    obs = random_batch(16, seed=1)["obs"]
+    with torch.no_grad():
+        fp32.load_state_dict(copy.deepcopy(state))
+        encoder = "critic_encoder" if algo == "sac_ae" else "encoder"
+        z32, z16 = getattr(fp32, encoder)(obs), getattr(bf16, encoder)(obs)
+        assert z16.dtype == torch.float32
+        assert torch.allclose(z16, z32, atol=0.05) and not torch.equal(z16, z32)
+        if hasattr(bf16, "decoder"):
+            r32, r16 = fp32.decoder(z32), bf16.decoder(z32)
+            assert r16.dtype == torch.float32
+            assert torch.allclose(r16, r32, atol=0.05) and not torch.equal(r16, r32)
+
+
+def test_bf16_pixel_precision_learns_what_fp32_learns_on_a_fixed_batch():
+    """Updates on one batch of blocky images lower the autoencoder's loss alike in both formats."""
+    batch = random_batch(16)
+    g = torch.Generator().manual_seed(2)
+    coarse = torch.randint(0, 256, (16, OBS_SHAPE[0], 6, 6), dtype=torch.uint8, generator=g)
+    batch["obs"] = coarse.repeat_interleave(8, dim=2).repeat_interleave(8, dim=3)
+    losses = {}
+    for precision in ("fp32", "bf16"):
+        torch.manual_seed(0)
+        agent = make("td3_ae", pixel_precision=precision, encoder_lr=1e-3, decoder_lr=1e-3)
+        metrics = [agent.update(batch) for _ in range(60)]
+        losses[precision] = (metrics[0]["ae_loss"], metrics[-1]["ae_loss"])
+    for first, last in losses.values():
+        assert last < 0.8 * first
+    assert losses["bf16"][-1] == pytest.approx(losses["fp32"][-1], rel=0.05)
+
+
+def _tensors(tree):
+    if isinstance(tree, torch.Tensor):
+        yield tree
+    elif isinstance(tree, dict):
+        for value in tree.values():
+            yield from _tensors(value)
+    elif isinstance(tree, list | tuple):
+        for value in tree:
+            yield from _tensors(value)

@@ -138,6 +138,17 @@ def test_summary_takes_medians_and_ratios_to_the_reference():
     }
 
 
+def test_summary_reports_a_cpu_bf16_peak_beside_the_fp32_one():
+    both = rounds(with_reference=False)
+    for r, bf16 in zip(both, (800.0, 400.0, 1000.0), strict=True):
+        r["peak"]["bf16"] = bf16
+    s = learner.summarize(both, "cpu", 128)
+    assert s["matmul_peak_gflops"] == {"fp32": 200.0, "bf16": 800.0}
+    assert s["update_fraction_of_peak"] == 0.4 and s["update_fraction_of_bf16_peak"] == 0.1
+    assert "update_fraction_of_tf32_peak" not in s
+    assert "matmul_peak_gflops" not in learner.summarize(rounds(with_reference=False), "cpu", 128)
+
+
 def test_summary_warns_when_the_machine_was_busy():
     busy = rounds(with_reference=True)
     busy[1]["project"]["load_avg_1m"] = 4.0 * (os.cpu_count() or 1)

@@ -33,6 +33,7 @@ from shared.device import DeviceError, resolve_device
         ("agent.exploration_noise", -0.1, "exploration_noise must be a finite number >= 0"),
         ("agent.intrinsic_timing", "later", "intrinsic_timing must be collect or fresh"),
         ("env.render_quality", "ultra", "render_quality must be paper or fast"),
+        ("agent.pixel_precision", "fp16", "pixel_precision must be one of fp32, bf16"),
         ("replay_compression", "brotli", "replay_compression must be lz4 or zstd"),
         ("env.time_limit", "never", "time_limit must be bootstrap or terminal"),
         ("env.image_size", 8, "too small"),

@@ -96,6 +96,16 @@ def test_updates_on_cuda_match_the_cpu(algo):
     assert_same_state(cpu, gpu)
 
 
+def test_bf16_pixel_precision_on_cuda_updates_near_the_cpus_bf16():
+    cpu, gpu = pair("nasa_td3", pixel_precision="bf16")
+    m_cpu, m_gpu = cpu.update(batch(CPU)), gpu.update(batch(CUDA))
+    for key in m_cpu:
+        assert np.isfinite(m_gpu[key]) and m_gpu[key] == pytest.approx(m_cpu[key], rel=0.05, abs=1e-3), key
+    with torch.no_grad():
+        obs = batch(CPU, seed=3)["obs"]
+        torch.testing.assert_close(gpu.encoder(obs.to(CUDA)).cpu(), cpu.encoder(obs), rtol=0.0, atol=0.05)
+
+
 def test_scoring_on_cuda_matches_the_cpu():
     cpu, gpu = pair("nasa_td3")
     b = batch(CPU, 24)

@@ -51,7 +51,12 @@ class SACAE(ModuleStateMixin):
         self.device = device
         self.action_dim = action_dim
         make_encoder = lambda: Encoder(  # noqa: E731
-            obs_shape, c.latent_dim, c.num_filters, c.num_conv_layers, pixel_scale=255.0
+            obs_shape,
+            c.latent_dim,
+            c.num_filters,
+            c.num_conv_layers,
+            pixel_scale=255.0,
+            precision=c.pixel_precision,
         )
         self.critic_encoder = make_encoder().to(device)
         self.actor_encoder = make_encoder().to(device)
@@ -71,6 +76,7 @@ class SACAE(ModuleStateMixin):
             c.num_filters,
             c.num_conv_layers,
             sigmoid_output=False,
+            precision=c.pixel_precision,
         ).to(device)
         channels_last(self._modules().values())
         self.log_alpha = torch.tensor(math.log(c.init_temperature), device=device, requires_grad=True)

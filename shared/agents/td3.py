@@ -54,7 +54,9 @@ class TD3(ModuleStateMixin):
         self.obs_shape = obs_shape
         self.action_dim = action_dim
         c = config
-        self.encoder = Encoder(obs_shape, c.latent_dim, c.num_filters, c.num_conv_layers).to(device)
+        self.encoder = Encoder(
+            obs_shape, c.latent_dim, c.num_filters, c.num_conv_layers, precision=c.pixel_precision
+        ).to(device)
         self.actor = DeterministicActor(c.latent_dim, action_dim, c.hidden_dim).to(device)
         self.critic = TwinQ(c.latent_dim, action_dim, c.hidden_dim).to(device)
         # Targets hold the heads only: the online encoder serves both.

@@ -29,7 +29,12 @@ class TD3AE(TD3):
         super().__init__(obs_shape, action_dim, config, device)
         c = config
         self.decoder = Decoder(
-            obs_shape, self.encoder.conv_shape, c.latent_dim, c.num_filters, c.num_conv_layers
+            obs_shape,
+            self.encoder.conv_shape,
+            c.latent_dim,
+            c.num_filters,
+            c.num_conv_layers,
+            precision=c.pixel_precision,
         ).to(device)
         # The encoder's second optimizer, beside the critic's: the reference's choice.
         self.encoder_opt = adam(self.encoder.parameters(), c.encoder_lr)
