@@ -330,11 +330,10 @@ def summarize(rounds: list[dict], device: str, batch: int) -> dict:
             k: _round(fraction(score_flops[k], score_ms[k] / 1000, peak)) for k in score_ms
         },
     }
-    if len(peaks) > 1:
-        out["matmul_peak_gflops"] = {k: round(v, 1) for k, v in peaks.items()}
-        for name in ("tf32", "bf16"):
-            if name not in peaks:
-                continue
+    formats = [name for name in ("fp32", "tf32", "bf16") if name in peaks]
+    if len(formats) > 1:
+        out["matmul_peak_gflops"] = {k: round(peaks[k], 1) for k in formats}
+        for name in formats[1:]:
             out[f"update_fraction_of_{name}_peak"] = _round(
                 fraction(project["update_flops"], 1.0 / project["updates_per_s"], peaks[name])
             )

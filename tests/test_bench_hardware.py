@@ -141,7 +141,7 @@ def test_summary_takes_medians_and_ratios_to_the_reference():
 def test_summary_reports_a_cpu_bf16_peak_beside_the_fp32_one():
     both = rounds(with_reference=False)
     for r, bf16 in zip(both, (800.0, 400.0, 1000.0), strict=True):
-        r["peak"]["bf16"] = bf16
+        r["peak"] |= {"bf16": bf16, "torch_threads": 2, "load_avg_1m": 0.5}
     s = learner.summarize(both, "cpu", 128)
     assert s["matmul_peak_gflops"] == {"fp32": 200.0, "bf16": 800.0}
     assert s["update_fraction_of_peak"] == 0.4 and s["update_fraction_of_bf16_peak"] == 0.1
