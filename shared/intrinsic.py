@@ -125,4 +125,7 @@ def chained_rows(obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
 
 def _fingerprints(stacks: torch.Tensor) -> list[bytes]:
     """A short key per (C, H, W) stack: a few image rows of every channel."""
-    return [row.tobytes() for row in stacks[:, :, ::_FINGERPRINT_STRIDE].cpu().numpy()]
+    rows = stacks[:, :, ::_FINGERPRINT_STRIDE]
+    if rows.dtype == torch.bfloat16:  # numpy has no bfloat16: the same bits as int16
+        rows = rows.view(torch.int16)
+    return [row.tobytes() for row in rows.cpu().numpy()]

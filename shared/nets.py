@@ -41,15 +41,22 @@ def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
     )
 
 
-def float_channels_last(obs: torch.Tensor) -> torch.Tensor:
-    """Frame stacks as float32 in channels-last layout (nothing copied if they already are).
+def float_channels_last(obs: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Frame stacks as `dtype` (float32, or bfloat16: exact for pixels) in channels-last layout
+    (nothing copied if they already are).
 
     Channels-last convolutions are faster on CPU (oneDNN) and on GPU (cuDNN). Reordering the
     uint8 stacks first and then widening them moves less memory than doing both in one copy.
     Anything else (the state vectors bench.gripper_state feeds an identity encoder) is widened only."""
     if obs.dim() != 4:
-        return obs.to(torch.float32)
-    return obs.contiguous(memory_format=torch.channels_last).to(torch.float32)
+        return obs.to(dtype)
+    return obs.contiguous(memory_format=torch.channels_last).to(dtype)
+
+
+def pixel_dtype(precision: str) -> torch.dtype:
+    """What frame stacks are cast to for the pixel networks: bfloat16 under `bf16` (pixels,
+    integers 0..255, are exact in it, and autocast would round them to it anyway)."""
+    return torch.bfloat16 if precision == "bf16" else torch.float32
 
 
 def pixel_autocast(x: torch.Tensor, precision: str) -> contextlib.AbstractContextManager:
@@ -102,7 +109,7 @@ class Encoder(nn.Module):
     def forward_conv(self, obs: torch.Tensor) -> torch.Tensor:
         """Conv features flattened in (h, w, c) order: the channels-last output as it lies
         in memory, so no copy (the reference flattens (c, h, w); `fc` is indexed to match)."""
-        x = float_channels_last(obs)
+        x = float_channels_last(obs, pixel_dtype(self.precision))
         if self.pixel_scale != 1.0:
             x = x / self.pixel_scale
         return self.convs(x).permute(0, 2, 3, 1).flatten(1)
@@ -162,6 +169,11 @@ class Decoder(nn.Module):
         self.apply(weight_init)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
+        x = self.logits(z)
+        return torch.sigmoid_(x) if self.sigmoid_output else x
+
+    def logits(self, z: torch.Tensor) -> torch.Tensor:
+        """The output before the sigmoid (all of it without one), float32."""
         # Channels-last as in the encoder; in-place activations spare two image-sized
         # passes over memory (neither producer needs its output for its gradient).
         # fc's outputs are read in (h, w, c) order, so the view below is already the
@@ -169,8 +181,40 @@ class Decoder(nn.Module):
         channels, height, width = self.conv_shape
         with pixel_autocast(z, self.precision):
             h = torch.relu_(self.fc(z)).view(-1, height, width, channels).permute(0, 3, 1, 2)
-            x = self.deconvs(h).float()
-        return torch.sigmoid_(x) if self.sigmoid_output else x
+            return self.deconvs(h).float()
+
+
+class _SigmoidMSE(torch.autograd.Function):
+    """mean((sigmoid(logits) - target)^2) in fewer passes over image-sized memory than
+    sigmoid, then mse_loss, then their two backwards."""
+
+    @staticmethod
+    def forward(ctx, logits: torch.Tensor, pixels: torch.Tensor, scale: float) -> torch.Tensor:
+        s = torch.sigmoid(logits)
+        diff = torch.sub(s, pixels, alpha=scale)
+        ctx.save_for_backward(s, diff)
+        flat = _flat(diff)
+        return torch.dot(flat, flat) / diff.numel()
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        s, diff = ctx.saved_tensors
+        # d/dx of mean((sigmoid(x) - t)^2) = 2/N (s - t) s (1 - s); sigmoid_backward(g, s) = g s (1 - s).
+        grad_logits = torch.ops.aten.sigmoid_backward(diff, s).mul_(grad * (2.0 / diff.numel()))
+        return grad_logits, None, None
+
+
+def _flat(x: torch.Tensor) -> torch.Tensor:
+    """A 1-D view of a dense tensor, in whichever of the two layouts it lies."""
+    if x.is_contiguous():
+        return x.view(-1)
+    return x.permute(0, 2, 3, 1).reshape(-1)  # channels-last: a view too
+
+
+def sigmoid_mse(logits: torch.Tensor, pixels: torch.Tensor, scale: float = 1.0 / 255.0) -> torch.Tensor:
+    """The reconstruction loss of a sigmoid decoder: F.mse_loss(sigmoid(logits), pixels * scale),
+    fused. `pixels`: frame stacks of the logits' shape, of any dtype (read as float32)."""
+    return _SigmoidMSE.apply(logits, pixels, scale)
 
 
 class DeterministicActor(nn.Module):

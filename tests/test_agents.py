@@ -9,7 +9,7 @@ import torch
 from shared.agents import SACAE, TD3, TD3AE, NaSATD3, PixelTD3, UnscoredBatchError, make_agent
 from shared.agents.base import float_pixels
 from shared.config import ALGOS, agent_defaults
-from shared.nets import float_channels_last
+from shared.nets import float_channels_last, sigmoid_mse
 
 OBS_SHAPE = (9, 48, 48)
 ACTION_DIM = 2
@@ -352,32 +352,39 @@ def test_fc_layers_are_the_references_up_to_a_fixed_relabelling_of_conv_features
         assert torch.allclose(decoder(z), ref_reconstruction, atol=1e-5)
 
 
-def test_an_update_casts_each_stack_batch_once_and_the_encoder_reads_it_without_a_copy():
+@pytest.mark.parametrize("precision, dtype", [("fp32", torch.float32), ("bf16", torch.bfloat16)])
+def test_an_update_casts_each_stack_batch_once_and_the_encoder_reads_it_without_a_copy(precision, dtype):
     batch = random_batch()
-    cast = float_pixels(batch)
+    cast = float_pixels(batch, precision)
     for key in ("obs", "next_obs"):
         assert batch[key].dtype == torch.uint8  # the caller's batch is left as it was
-        assert cast[key].dtype == torch.float32
+        assert cast[key].dtype == dtype
         assert cast[key].is_contiguous(memory_format=torch.channels_last)
-        assert torch.equal(cast[key], batch[key].float())
-        assert float_channels_last(cast[key]) is cast[key]  # later passes read it as it is
+        assert torch.equal(cast[key].float(), batch[key].float())  # pixels are exact in bfloat16 too
+        assert float_channels_last(cast[key], dtype) is cast[key]  # later passes read it as it is
     for key in ("action", "reward", "discount", "intrinsic"):
         assert cast[key] is batch[key]
-    agent = make("nasa_td3")
+    agent = make("nasa_td3", pixel_precision=precision)
     assert torch.equal(agent.encoder(batch["obs"]), agent.encoder(cast["obs"]))
 
 
 @pytest.mark.parametrize(
-    "algo, timing", [("nasa_td3", "collect"), ("nasa_td3", "fresh"), ("sac_ae", "collect")]
+    "algo, timing, precision",
+    [
+        ("nasa_td3", "collect", "fp32"),
+        ("nasa_td3", "fresh", "fp32"),
+        ("sac_ae", "collect", "fp32"),
+        ("nasa_td3", "fresh", "bf16"),
+    ],
 )
-def test_an_update_on_a_cast_batch_equals_one_on_the_uint8_batch(algo, timing):
-    agent = make(algo, intrinsic_timing=timing) if algo == "nasa_td3" else make(algo)
+def test_an_update_on_a_cast_batch_equals_one_on_the_uint8_batch(algo, timing, precision):
+    agent = make(algo, intrinsic_timing=timing, pixel_precision=precision)
     twin = copy.deepcopy(agent)
     batch = random_batch()
     torch.manual_seed(1)  # the TD target's smoothing noise
     metrics = agent.update(batch)
     torch.manual_seed(1)
-    assert twin.update(float_pixels(batch)) == metrics
+    assert twin.update(float_pixels(batch, precision)) == metrics
     for (name, mine), (_, theirs) in zip(agent._modules().items(), twin._modules().items(), strict=True):
         for p, q in zip(mine.parameters(), theirs.parameters(), strict=True):
             assert torch.equal(p, q), name
@@ -446,3 +453,20 @@ def _tensors(tree):
     elif isinstance(tree, list | tuple):
         for value in tree:
             yield from _tensors(value)
+
+
+@pytest.mark.parametrize("channels_last_layout", [False, True])
+def test_the_fused_reconstruction_loss_is_sigmoid_then_mse(channels_last_layout):
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(4, 9, 20, 20, generator=g) * 3
+    pixels = torch.randint(0, 256, (4, 9, 20, 20), generator=g).float()
+    if channels_last_layout:
+        logits = logits.contiguous(memory_format=torch.channels_last)
+        pixels = pixels.contiguous(memory_format=torch.channels_last)
+    a, b = logits.clone().requires_grad_(), logits.clone().requires_grad_()
+    expected = torch.nn.functional.mse_loss(torch.sigmoid(a), pixels / 255.0)
+    got = sigmoid_mse(b, pixels)
+    expected.backward(torch.tensor(3.0))
+    got.backward(torch.tensor(3.0))
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=0.0)
+    torch.testing.assert_close(b.grad, a.grad, rtol=1e-5, atol=1e-9)  # grads up to ~1e-4

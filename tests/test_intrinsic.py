@@ -172,6 +172,12 @@ def test_chained_rows_pairs_each_next_stack_with_its_successors_obs_only():
     assert (intrinsic.chained_rows(obs, next_obs.flip(-1)) == -1).all()  # an i.i.d.-like batch: no chain
 
 
+def test_chained_rows_reads_stacks_cast_to_bfloat16_as_the_uint8_ones():
+    obs, next_obs, successor = stored_rows()
+    bf16 = intrinsic.chained_rows(obs.to(torch.bfloat16), next_obs.to(torch.bfloat16))
+    assert bf16.tolist() == successor
+
+
 def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
     agent = small_nasa_td3()
     obs, next_obs, successor = stored_rows()

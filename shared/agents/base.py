@@ -7,7 +7,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from shared.nets import float_channels_last
+from shared.nets import float_channels_last, pixel_dtype
 
 
 class Agent(Protocol):
@@ -49,14 +49,14 @@ def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
     return torch.as_tensor(obs, device=device).unsqueeze(0)
 
 
-def float_pixels(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The batch with its frame stacks cast to float32, channels-last: the form every encoder
-    pass reads. An update encodes the same stacks several times (critic, target, autoencoder,
-    actor, ensemble), and casting the uint8 stacks once instead of at each pass is the same
-    arithmetic with less memory traffic."""
+def float_pixels(batch: dict[str, torch.Tensor], precision: str = "fp32") -> dict[str, torch.Tensor]:
+    """The batch with its frame stacks cast to the pixel networks' dtype (`shared.nets.pixel_dtype`),
+    channels-last: the form every encoder pass reads. An update encodes the same stacks several
+    times (critic, target, autoencoder, actor, ensemble), and casting the uint8 stacks once instead
+    of at each pass is the same arithmetic with less memory traffic."""
     out = dict(batch)
     for key in ("obs", "next_obs"):
-        out[key] = float_channels_last(batch[key])
+        out[key] = float_channels_last(batch[key], pixel_dtype(precision))
     return out
 
 

@@ -117,7 +117,7 @@ class SACAE(ModuleStateMixin):
         """One update in SAC-AE's order: critic, actor and alpha, targets, decoder."""
         c = self.config
         self.num_updates += 1
-        batch = float_pixels(batch)
+        batch = float_pixels(batch, self.config.pixel_precision)
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
         discount = batch["discount"].view(-1, 1)

@@ -90,7 +90,7 @@ class TD3(ModuleStateMixin):
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """One update: reward, encoder losses (critic first), delayed actor and targets, auxiliaries."""
         c = self.config
-        batch = float_pixels(batch)
+        batch = float_pixels(batch, self.config.pixel_precision)
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward, latent, next_latent, metrics = self.reward(batch)  # first: it may refuse the batch
         self.num_updates += 1

@@ -8,12 +8,11 @@ observation plus a latent penalty, after the critic step, on a fresh encoding).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from shared.agents.base import adam, channels_last, optimizer_step
 from shared.agents.td3 import TD3
 from shared.config import AgentConfig
-from shared.nets import Decoder
+from shared.nets import Decoder, sigmoid_mse
 
 
 class TD3AE(TD3):
@@ -75,8 +74,7 @@ class TD3AE(TD3):
         return {"critic_loss": critic_loss.item(), "ae_loss": ae_loss.item()}
 
     def _ae_loss(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        reconstruction = self.decoder(z)
-        rec_loss = F.mse_loss(reconstruction, obs.float() / 255.0)
+        rec_loss = sigmoid_mse(self.decoder.logits(z), obs)
         latent_loss = (0.5 * z.pow(2).sum(dim=1)).mean()
         return rec_loss + self.config.decoder_latent_lambda * latent_loss
 
