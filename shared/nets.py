@@ -66,11 +66,16 @@ def pixel_autocast(x: torch.Tensor, precision: str) -> contextlib.AbstractContex
     autocast does it: convolutions and linear layers take bfloat16 inputs and weights
     and accumulate in float32; parameters, gradients' updates and optimizer states stay
     float32. Frame pixels (integers 0..255) are exact in bfloat16."""
-    if precision == "fp32":
-        return contextlib.nullcontext()
+    check_precision(precision)
     if precision == "bf16":
         return torch.autocast(x.device.type, dtype=torch.bfloat16)
-    raise ValueError(f"unknown pixel precision {precision!r}; choose one of {', '.join(PIXEL_PRECISIONS)}")
+    return contextlib.nullcontext()
+
+
+def check_precision(precision: str) -> None:
+    if precision not in PIXEL_PRECISIONS:
+        choices = ", ".join(PIXEL_PRECISIONS)
+        raise ValueError(f"unknown pixel precision {precision!r}; choose one of {choices}")
 
 
 class Encoder(nn.Module):
@@ -92,6 +97,7 @@ class Encoder(nn.Module):
         precision: str = "fp32",
     ) -> None:
         super().__init__()
+        check_precision(precision)
         self.precision = precision
         layers: list[nn.Module] = [nn.Conv2d(obs_shape[0], num_filters, 3, stride=2), nn.ReLU(inplace=True)]
         for _ in range(num_layers - 1):
@@ -150,6 +156,7 @@ class Decoder(nn.Module):
         precision: str = "fp32",
     ) -> None:
         super().__init__()
+        check_precision(precision)
         self.precision = precision
         self.conv_shape = conv_shape
         self.fc = nn.Linear(latent_dim, int(torch.Size(conv_shape).numel()))

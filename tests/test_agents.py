@@ -427,6 +427,11 @@ def test_bf16_pixel_precision_runs_the_pixel_networks_in_bf16_and_keeps_the_rest
             assert torch.allclose(r16, r32, atol=0.05) and not torch.equal(r16, r32)
 
 
+def test_an_unknown_pixel_precision_fails_when_the_agent_is_made():
+    with pytest.raises(ValueError, match="unknown pixel precision 'fp16'"):
+        make("nasa_td3", pixel_precision="fp16")
+
+
 def test_bf16_pixel_precision_learns_what_fp32_learns_on_a_fixed_batch():
     """Updates on one batch of blocky images lower the autoencoder's loss alike in both formats."""
     batch = random_batch(16)
