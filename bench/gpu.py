@@ -42,7 +42,8 @@ STATUS_KEYS = ("updates_per_s", "env_steps_per_s", "updates_per_env_step")
 LEARNER_KEYS = (
     "updates_per_s", "score_ms_per_transition", "sgemm_peak_gflops", "matmul_peak_gflops", "update_gflop",
     "update_fraction_of_peak", "update_fraction_of_tf32_peak", "update_fraction_of_bf16_peak",
-    "part_fraction_of_peak", "score_fraction_of_peak", "variant_updates_per_s", "machine",
+    "part_fraction_of_peak", "score_fraction_of_peak", "variant_updates_per_s",
+    "variant_score_ms_stored_order", "machine",
 )  # fmt: skip
 
 

@@ -147,14 +147,27 @@ def device_batch(data: dict, device: torch.device) -> dict[str, torch.Tensor]:
     return batch
 
 
-def variant_rates(data: dict, device: torch.device, updates: int, names: list[str]) -> dict[str, float]:
-    """Updates/s of other agents and settings on the same batch (two warm-up updates each)."""
-    batch, rates = device_batch(data, device), {}
+def variant_figures(data: dict, device: torch.device, updates: int, repeats: int, names: list[str]) -> dict:
+    """Updates/s of other agents and settings on the same batch (two warm-up updates each), and
+    for those with intrinsic rewards, scoring in stored order (ms per transition)."""
+    batch, rates, score_ms = device_batch(data, device), {}, {}
+    stored = stored_order(data, device)
+    size = len(stored[1])
     for name in names:
         algo, overrides = VARIANTS[name]
         agent = make_project_agent(algo, tuple(data["obs"].shape[1:]), device, **overrides)
         rates[name] = 1.0 / seconds_per_call(lambda a=agent: a.update(batch), even(updates), device, warmup=2)
-    return rates
+        if agent.uses_intrinsic:
+            score_ms[name] = seconds_per_call(lambda a=agent: a.score(*stored), repeats, device) * 1000 / size
+    return {"variant_updates_per_s": rates, "variant_score_ms_stored_order": score_ms}
+
+
+def stored_order(data: dict, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The batch's consecutive transitions (obs, action, next_obs): row i's next stack is row i+1's
+    stack, as collect timing scores the oldest unscored rows."""
+    stacks = torch.from_numpy(data["stacks"]).to(device)
+    action = torch.from_numpy(data["action"]).to(device)
+    return stacks[: len(action)], action, stacks[1 : len(action) + 1]
 
 
 def project_worker(
@@ -183,10 +196,9 @@ def project_worker(
 def project_scoring(agent, data: dict, device: torch.device, repeats: int, count: bool) -> dict:
     """Stored order: the batch's consecutive transitions (row i's next stack is row i+1's stack),
     as collect timing scores the oldest unscored rows; batch_1: one transition per call."""
-    stacks = torch.from_numpy(data["stacks"]).to(device)
-    action = torch.from_numpy(data["action"]).to(device)
+    stored = stored_order(data, device)
+    stacks, action = torch.from_numpy(data["stacks"]).to(device), stored[1]
     size = len(action)
-    stored = (stacks[:size], action, stacks[1 : size + 1])
     # Every other transition: no next stack is another row's, as in an i.i.d. batch (fresh timing).
     unchained = (stacks[0 : 2 * size : 2], action, stacks[1 : 2 * size + 1 : 2])
     n_singles = min(SINGLES, size)
@@ -269,7 +281,7 @@ def run_worker(args: argparse.Namespace) -> None:
                 data, device, args.updates, args.score_repeats, args.algo, args.count_flops
             )
             if args.variants:
-                result["variant_updates_per_s"] = variant_rates(data, device, args.updates, args.variants)
+                result |= variant_figures(data, device, args.updates, args.score_repeats, args.variants)
         else:
             result = reference_worker(data, device, args.updates, args.reference, args.count_flops)
     result["torch_threads"] = torch.get_num_threads()
@@ -339,6 +351,10 @@ def summarize(rounds: list[dict], device: str, batch: int) -> dict:
             )
     if "variant_updates_per_s" in project:
         out["variant_updates_per_s"] = {k: round(v, 4) for k, v in project["variant_updates_per_s"].items()}
+    if project.get("variant_score_ms_stored_order"):
+        out["variant_score_ms_stored_order"] = {
+            k: round(v, 3) for k, v in project["variant_score_ms_stored_order"].items()
+        }
     if all("reference" in r for r in rounds):
         out |= reference_figures([r["reference"] for r in rounds], project, peak)
     loads = [r["project"].get("load_avg_1m", 0.0) for r in rounds]
@@ -384,6 +400,15 @@ def reference_figures(references: list[dict], project: dict, peak: float) -> dic
         ),  # fmt: skip
         "score_ratio_stored_order": round(ref_score_ms / score_ms["stored_order"], 2),
         "score_ratio_batch_1": round(ref_score_ms / score_ms["batch_1"], 2),
+        **(
+            {
+                "variant_score_ratio_stored_order": {
+                    k: round(ref_score_ms / v, 2) for k, v in project["variant_score_ms_stored_order"].items()
+                }
+            }
+            if project.get("variant_score_ms_stored_order")
+            else {}
+        ),  # fmt: skip
     }
 
 

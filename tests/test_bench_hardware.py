@@ -91,7 +91,8 @@ def project_result(rate: float, count: bool) -> dict:
         "updates_per_s": rate,
         "part_seconds_per_update": {"critic": 0.5, "actor": 0.1},
         "score_ms_per_transition": {"stored_order": 2.0, "batch_1": 10.0},
-        "variant_updates_per_s": {"pixel_td3": 3 * rate},
+        "variant_updates_per_s": {"pixel_td3": 3 * rate, "nasa_td3+bf16": 2 * rate},
+        "variant_score_ms_stored_order": {"nasa_td3+bf16": 1.25},
         "load_avg_1m": 0.0,
     }
     if count:
@@ -133,9 +134,11 @@ def test_summary_takes_medians_and_ratios_to_the_reference():
         "score_ratio_stored_order": False,
     }
     assert s["per_round"]["reference_updates_per_s"] == [0.4, 0.2, 0.5]
-    assert s["variant_updates_per_s"] == {"pixel_td3": 2.4} and s["variant_update_ratio"] == {
-        "pixel_td3": 6.0
-    }
+    assert s["variant_updates_per_s"] == {"pixel_td3": 2.4, "nasa_td3+bf16": 1.6}
+    assert s["variant_update_ratio"] == {"pixel_td3": 6.0, "nasa_td3+bf16": 4.0}
+    # Only a variant with intrinsic rewards scores: 25 ms against 1.25 ms per transition.
+    assert s["variant_score_ms_stored_order"] == {"nasa_td3+bf16": 1.25}
+    assert s["variant_score_ratio_stored_order"] == {"nasa_td3+bf16": 20.0}
 
 
 def test_summary_reports_a_cpu_bf16_peak_beside_the_fp32_one():
