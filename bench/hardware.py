@@ -68,28 +68,48 @@ def matmul_peak_gflops(
     seconds: float = 1.0,
     tf32: bool = False,
 ) -> float:
-    """The best GFLOP/s of n x n @ n x n over `sizes`, each timed for about `seconds`
-    after one untimed call. 2 n^3 FLOPs per product (n^3 multiply-adds)."""
+    """The best GFLOP/s of n x n @ n x n over `sizes` and the device's GEMM libraries (`gemm_calls`),
+    each timed for about `seconds` after one untimed call. 2 n^3 FLOPs per product (n^3
+    multiply-adds)."""
     best = 0.0
     gen = torch.Generator(device="cpu").manual_seed(0)
     with matmul_precision(dtype, tf32):
         for n in sizes:
             a = torch.randn(n, n, generator=gen).to(device=device, dtype=dtype)
             b = torch.randn(n, n, generator=gen).to(device=device, dtype=dtype)
-            out = torch.empty(n, n, device=device, dtype=dtype)
-            torch.mm(a, b, out=out)
-            sync(device)
-            calls, start = 0, time.perf_counter()
-            while True:
-                torch.mm(a, b, out=out)
-                calls += 1
-                if calls % 4 == 0 or device.type == "cpu":
-                    sync(device)
-                    elapsed = time.perf_counter() - start
-                    if elapsed >= seconds and calls >= 2:
-                        break
-            best = max(best, 2.0 * n**3 * calls / elapsed / 1e9)
+            for product in gemm_calls(a, b).values():
+                product()
+                sync(device)
+                calls, start = 0, time.perf_counter()
+                while True:
+                    product()
+                    calls += 1
+                    if calls % 4 == 0 or device.type == "cpu":
+                        sync(device)
+                        elapsed = time.perf_counter() - start
+                        if elapsed >= seconds and calls >= 2:
+                            break
+                best = max(best, 2.0 * n**3 * calls / elapsed / 1e9)
     return best
+
+
+def gemm_calls(a: torch.Tensor, b: torch.Tensor) -> dict[str, Callable[[], torch.Tensor]]:
+    """Ways this device computes a @ b. On a CPU, torch.mm (BLAS: MKL, which on some CPUs takes
+    a slower path than the hardware allows) and the same product as a 1x1 convolution through
+    oneDNN, which the update's convolutions use: the peak is the faster of the two."""
+    out = torch.empty(a.shape[0], b.shape[1], device=a.device, dtype=a.dtype)
+    calls: dict[str, Callable[[], torch.Tensor]] = {"mm": lambda: torch.mm(a, b, out=out)}
+    if a.device.type == "cpu":
+        # Channels-last (1, k, m, 1) input and (n, k, 1, 1) weight: out[0, :, i, 0] = a[i] @ b.
+        x = a.t().reshape(1, a.shape[1], a.shape[0], 1).contiguous(memory_format=torch.channels_last)
+        w = b.t().reshape(b.shape[1], b.shape[0], 1, 1).contiguous(memory_format=torch.channels_last)
+
+        def conv() -> torch.Tensor:
+            with torch.no_grad():
+                return torch.nn.functional.conv2d(x, w)
+
+        calls["onednn_conv1x1"] = conv
+    return calls
 
 
 def count_flops(fn: Callable[[], object]) -> int:

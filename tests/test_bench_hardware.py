@@ -37,6 +37,18 @@ def test_linear_layer_flops_match_a_hand_count():
     assert hardware.count_flops(lambda: linear(torch.randn(128, 200))) == 2 * 128 * 200 * 1024
 
 
+def test_every_gemm_the_peak_times_computes_the_same_product():
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.randn(64, 48, generator=gen), torch.randn(48, 32, generator=gen)
+    calls = hardware.gemm_calls(a, b)
+    assert set(calls) == {"mm", "onednn_conv1x1"}  # on a CPU: BLAS and oneDNN
+    for name, product in calls.items():
+        out = product()
+        if out.dim() == 4:  # the 1x1 convolution's (1, n, m, 1) output
+            out = out[0, :, :, 0].t()
+        torch.testing.assert_close(out, a @ b, msg=name)
+
+
 def test_matmul_peak_is_a_positive_rate():
     peak = hardware.matmul_peak_gflops(torch.device("cpu"), sizes=(128,), seconds=0.05)
     assert peak > 0.0
