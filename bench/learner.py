@@ -151,7 +151,7 @@ def variant_figures(data: dict, device: torch.device, updates: int, repeats: int
     """Updates/s of other agents and settings on the same batch (two warm-up updates each), and
     for those with intrinsic rewards, scoring in stored order (ms per transition)."""
     batch, rates, score_ms = device_batch(data, device), {}, {}
-    stored = stored_order(data, device)
+    stored = stored_order(*scoring_tensors(data, device))
     size = len(stored[1])
     for name in names:
         algo, overrides = VARIANTS[name]
@@ -162,11 +162,14 @@ def variant_figures(data: dict, device: torch.device, updates: int, repeats: int
     return {"variant_updates_per_s": rates, "variant_score_ms_stored_order": score_ms}
 
 
-def stored_order(data: dict, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def scoring_tensors(data: dict, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The batch's consecutive frame stacks (one more than actions) and its actions, on `device`."""
+    return torch.from_numpy(data["stacks"]).to(device), torch.from_numpy(data["action"]).to(device)
+
+
+def stored_order(stacks: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """The batch's consecutive transitions (obs, action, next_obs): row i's next stack is row i+1's
     stack, as collect timing scores the oldest unscored rows."""
-    stacks = torch.from_numpy(data["stacks"]).to(device)
-    action = torch.from_numpy(data["action"]).to(device)
     return stacks[: len(action)], action, stacks[1 : len(action) + 1]
 
 
@@ -196,8 +199,8 @@ def project_worker(
 def project_scoring(agent, data: dict, device: torch.device, repeats: int, count: bool) -> dict:
     """Stored order: the batch's consecutive transitions (row i's next stack is row i+1's stack),
     as collect timing scores the oldest unscored rows; batch_1: one transition per call."""
-    stored = stored_order(data, device)
-    stacks, action = torch.from_numpy(data["stacks"]).to(device), stored[1]
+    stacks, action = scoring_tensors(data, device)
+    stored = stored_order(stacks, action)
     size = len(action)
     # Every other transition: no next stack is another row's, as in an i.i.d. batch (fresh timing).
     unchained = (stacks[0 : 2 * size : 2], action, stacks[1 : 2 * size + 1 : 2])
