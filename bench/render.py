@@ -1,10 +1,12 @@
-"""Render cost and pixel difference of the two render qualities on the six paper tasks.
+"""Render cost and pixel difference of the render qualities on the six paper tasks.
 
 `paper` renders the suite's scene as is (2048 shadow map, 4x multisampling);
-`fast` uses a 512 shadow map and no multisampling. Both envs are stepped with
-the same seed and actions, so they show the same states.
+`fast` uses a 512 shadow map and no multisampling; `plain` is `fast` without
+shadows or floor reflections (shared/gl.py). The envs are stepped with the same
+seed and actions, so they show the same states; each quality's frames are
+compared with `paper`'s.
 
-    python -m bench.render [--frames 200]
+    python -m bench.render [--frames 200] [--tasks T ...]
     python -m bench.render --gl-threads [--frames 200] [--rounds 3] [--tasks T ...]
 
 `--gl-threads` instead compares Mesa's software rasterizer drawing in the
@@ -26,32 +28,36 @@ import time
 
 import numpy as np
 
-from shared import envs
+from shared import envs, gl
+
+QUALITIES = gl.RENDER_QUALITIES  # paper first: the others are compared with it
 
 
 def measure(task: str, frames: int) -> dict:
-    paper = envs.make(task, seed=0, render_quality="paper")
-    fast = envs.make(task, seed=0, render_quality="fast")
-    rng = np.random.default_rng(0)
-    actions = rng.uniform(-1, 1, (frames, paper.action_dim))
+    """Per quality: env steps/s and CPU ms per step (physics and render, after a few untimed
+    frames that make the GL context), and how far its frames are from `paper`'s."""
+    made = {q: envs.make(task, seed=0, render_quality=q) for q in QUALITIES}
+    actions = np.random.default_rng(0).uniform(-1, 1, (frames, made["paper"].action_dim))
     result: dict = {}
-    stacks: dict[str, list[np.ndarray]] = {}
-    for name, env in (("paper", paper), ("fast", fast)):
+    stacks: dict[str, np.ndarray] = {}
+    for name, env in made.items():
+        for _ in range(3):
+            env.reset()
         ts = env.reset()
         got = [ts.frame]
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         for action in actions:
             ts = env.step(action)
             got.append(ts.frame)
             if ts.last:
                 ts = env.reset()
         result[f"{name}_steps_per_s"] = round(frames / (time.perf_counter() - start), 1)
-        stacks[name] = got
-    a = np.stack(stacks["paper"]).astype(np.int16)
-    b = np.stack(stacks["fast"]).astype(np.int16)
-    diff = np.abs(a - b)
-    result["mean_abs_diff"] = round(float(diff.mean()), 3)  # on the 0..255 scale
-    result["pixels_differing_pct"] = round(float((diff.max(axis=1) > 8).mean() * 100), 2)
+        result[f"{name}_cpu_ms_per_step"] = round(1e3 * (time.process_time() - cpu) / frames, 2)
+        stacks[name] = np.stack(got).astype(np.int16)
+    for name in QUALITIES[1:]:
+        diff = np.abs(stacks["paper"] - stacks[name])
+        result[f"{name}_mean_abs_diff"] = round(float(diff.mean()), 3)  # on the 0..255 scale
+        result[f"{name}_pixels_differing_pct"] = round(float((diff.max(axis=1) > 8).mean() * 100), 2)
     return result
 
 
@@ -106,7 +112,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--gl-threads", action="store_true", help="compare the rasterizer's threads")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--tasks", nargs="+", default=list(envs.PAPER_TASKS), help="for --gl-threads")
+    parser.add_argument("--tasks", nargs="+", default=list(envs.PAPER_TASKS))
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -116,13 +122,13 @@ def main() -> None:
         print(json.dumps(gl_threads(args.frames, args.rounds, args.tasks)))
         return
     results = {}
-    for task in envs.PAPER_TASKS:
-        results[task] = measure(task, args.frames)
-        r = results[task]
-        print(
-            f"{task:18s} paper {r['paper_steps_per_s']:6.1f}/s  fast {r['fast_steps_per_s']:6.1f}/s  "
-            f"mean |diff| {r['mean_abs_diff']:.2f}/255  pixels >8 apart {r['pixels_differing_pct']:.1f}%"
-        )
+    for task in args.tasks:
+        results[task] = r = measure(task, args.frames)
+        rates = "  ".join(f"{q} {r[f'{q}_steps_per_s']:6.1f}/s ({r[f'{q}_cpu_ms_per_step']:.2f} ms CPU)"
+                          for q in QUALITIES)
+        diffs = "  ".join(f"{q} |diff| {r[f'{q}_mean_abs_diff']:.2f}/255, "
+                          f">8 apart {r[f'{q}_pixels_differing_pct']:.1f}%" for q in QUALITIES[1:])
+        print(f"{task:18s} {rates}  vs paper: {diffs}", flush=True)
     print(json.dumps({"frames": args.frames, "image_size": 84, "tasks": results}))
 
 

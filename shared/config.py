@@ -15,6 +15,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from shared.gl import RENDER_QUALITIES, RenderQuality
+
 Algo = Literal["nasa_td3", "td3_ae", "pixel_td3", "sac_ae"]
 ALGOS: tuple[str, ...] = ("nasa_td3", "td3_ae", "pixel_td3", "sac_ae")
 DEFAULT_PRESET = "auto"
@@ -38,8 +40,9 @@ class EnvConfig:
     frame_stack: int = 3
     action_repeat: int = 1
     camera_id: int = 0
-    render_quality: Literal["paper", "fast"] = "paper"
-    """`paper`: the suite's scene as is; `fast`: 512 shadow map, no multisampling."""
+    render_quality: RenderQuality = "paper"
+    """`paper`: the suite's scene as is; `fast`: 512 shadow map, no multisampling; `plain`:
+    `fast` without shadows or floor reflections (`shared.gl.apply_render_quality`)."""
     time_limit: Literal["bootstrap", "terminal"] = "bootstrap"
     """`bootstrap` (default): bootstrap through the suite's time-limit ending;
     `terminal`: treat it as terminal, as the NaSA-TD3 reference does."""
@@ -212,8 +215,9 @@ def validate(config: TrainConfig) -> TrainConfig:
     if agent.pixel_precision not in PIXEL_PRECISIONS:
         choices = ", ".join(PIXEL_PRECISIONS)
         raise ConfigError(f"agent.pixel_precision must be one of {choices}, got {agent.pixel_precision!r}")
-    if config.env.render_quality not in ("paper", "fast"):
-        raise ConfigError(f"env.render_quality must be paper or fast, got {config.env.render_quality!r}")
+    if config.env.render_quality not in RENDER_QUALITIES:
+        choices = ", ".join(RENDER_QUALITIES)
+        raise ConfigError(f"env.render_quality must be one of {choices}, got {config.env.render_quality!r}")
     if config.env.time_limit not in ("bootstrap", "terminal"):
         raise ConfigError(f"env.time_limit must be bootstrap or terminal, got {config.env.time_limit!r}")
     if config.replay_compression not in ("lz4", "zstd"):

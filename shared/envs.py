@@ -30,7 +30,6 @@ gl.configure()  # before dm_control loads a GL backend
 if TYPE_CHECKING:
     from shared.config import EnvConfig
 
-RenderQuality = Literal["paper", "fast"]
 PAPER_TASKS = (
     "ball_in_cup-catch",
     "cartpole-balance",
@@ -231,19 +230,13 @@ class DMCPixels:
         image_size: int = 84,
         camera_id: int = 0,
         action_repeat: int = 1,
-        render_quality: RenderQuality = "paper",
+        render_quality: gl.RenderQuality = "paper",
     ) -> None:
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
-        if render_quality not in ("paper", "fast"):
-            raise ValueError(f"render_quality must be 'paper' or 'fast', got {render_quality!r}")
+        gl.check_render_quality(render_quality)
         self._env = _load_suite_task(task, seed)
-        if render_quality == "fast":
-            # Shadows and multisampling are most of the software-GL render cost;
-            # the quality struct is read when the GL context is first made.
-            quality = self._env.physics.model.vis.quality
-            quality.shadowsize = 512
-            quality.offsamples = 0
+        gl.apply_render_quality(self._env.physics.model, render_quality)
         self.action_dim = int(self._env.action_spec().shape[0])
         self.image_size = image_size
         self.frame_shape = (3, image_size, image_size)
@@ -344,7 +337,7 @@ def make(
     action_repeat: int = 1,
     image_size: int = 84,
     camera_id: int = 0,
-    render_quality: RenderQuality = "paper",
+    render_quality: gl.RenderQuality = "paper",
 ) -> FrameStack:
     """A suite task as a PixelEnv (what the `dmc` source builds)."""
     pixels = DMCPixels(task, seed, image_size, camera_id, action_repeat, render_quality)

@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING, Literal
+
+if TYPE_CHECKING:
+    import mujoco
+
+RenderQuality = Literal["paper", "fast", "plain"]
+RENDER_QUALITIES: tuple[str, ...] = ("paper", "fast", "plain")
 
 
 def configure() -> None:
@@ -18,3 +25,29 @@ def configure() -> None:
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("LP_NUM_THREADS", "0")
+
+
+def check_render_quality(quality: str) -> None:
+    if quality not in RENDER_QUALITIES:
+        raise ValueError(f"render_quality must be one of {', '.join(RENDER_QUALITIES)}, got {quality!r}")
+
+
+def apply_render_quality(model: mujoco.MjModel, quality: RenderQuality) -> None:
+    """Set how `model`'s scene is drawn, before its GL context is made (MuJoCo reads the quality
+    struct then).
+
+    - `paper`: the model as it is (the suite's 2048 shadow map, 4x multisampling).
+    - `fast`: a 512 shadow map and no multisampling: most of the software renderer's cost,
+      for a nearly identical image.
+    - `plain`: `fast` without shadows or floor reflections. Each of those is a whole extra
+      pass of the scene, and on a software renderer they cost several times the rest of
+      the frame; the bodies, their colours and their shading stay as they are.
+    """
+    check_render_quality(quality)
+    if quality == "paper":
+        return
+    model.vis.quality.shadowsize = 512
+    model.vis.quality.offsamples = 0
+    if quality == "plain":
+        model.light_castshadow[:] = 0
+        model.mat_reflectance[:] = 0

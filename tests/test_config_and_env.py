@@ -32,7 +32,7 @@ from shared.device import DeviceError, resolve_device
         ("agent.critic_lr", float("nan"), "agent.critic_lr must be a finite number > 0"),
         ("agent.exploration_noise", -0.1, "exploration_noise must be a finite number >= 0"),
         ("agent.intrinsic_timing", "later", "intrinsic_timing must be collect or fresh"),
-        ("env.render_quality", "ultra", "render_quality must be paper or fast"),
+        ("env.render_quality", "ultra", "render_quality must be one of paper, fast, plain"),
         ("agent.pixel_precision", "fp16", "pixel_precision must be one of fp32, bf16"),
         ("replay_compression", "brotli", "replay_compression must be lz4 or zstd"),
         ("env.time_limit", "never", "time_limit must be bootstrap or terminal"),
@@ -231,11 +231,22 @@ def test_action_repeat_sums_rewards():
 
 
 def test_render_qualities_differ_but_show_the_same_scene():
-    paper = envs.make("cartpole-balance", seed=0, render_quality="paper")
-    fast = envs.make("cartpole-balance", seed=0, render_quality="fast")
-    a, b = paper.reset().frame.astype(int), fast.reset().frame.astype(int)
-    diff = np.abs(a - b).mean()
-    assert 0 < diff < 20
+    frames = {q: envs.make("cartpole-balance", seed=0, render_quality=q).reset().frame.astype(int)
+              for q in ("paper", "fast", "plain")}
+    for other in ("fast", "plain"):
+        assert 0 < np.abs(frames["paper"] - frames[other]).mean() < 20
+    assert 0 < np.abs(frames["fast"] - frames["plain"]).mean() < 20
+
+
+def test_plain_quality_draws_no_shadows_or_reflections():
+    env = envs.DMCPixels("ball_in_cup-catch", 0, 32, 0, 1, "plain")
+    model = env._env.physics.model
+    assert not model.light_castshadow.any() and not model.mat_reflectance.any()
+    assert (model.vis.quality.shadowsize, model.vis.quality.offsamples) == (512, 0)
+    paper = envs.DMCPixels("ball_in_cup-catch", 0, 32, 0, 1, "paper")._env.physics.model
+    assert paper.light_castshadow.any() and paper.mat_reflectance.any()  # what plain turned off
+    with pytest.raises(ValueError, match="render_quality must be one of paper, fast, plain"):
+        envs.DMCPixels("ball_in_cup-catch", 0, 32, 0, 1, "nice")  # type: ignore[arg-type]
 
 
 def test_env_rng_state_round_trip_repeats_the_episode_start():

@@ -112,8 +112,8 @@ def test_deterministic_under_a_seed_and_resumable_from_its_state() -> None:
         b.close()
 
 
-def test_frames_are_uint8_chw_at_the_image_size_in_both_qualities() -> None:
-    for quality, size in (("fast", 84), ("paper", 48)):
+def test_frames_are_uint8_chw_at_the_image_size_in_every_quality() -> None:
+    for quality, size in (("fast", 84), ("paper", 48), ("plain", 64)):
         env = ValveSim("gripper-valve", seed=0, image_size=size, render_quality=quality)
         try:
             frame, reward, discount, last = env.reset()

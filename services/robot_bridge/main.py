@@ -17,6 +17,7 @@ from typing import Literal
 import tyro
 
 from services.robot_bridge.config import GripperConfigError
+from shared.gl import RenderQuality
 from shared.gripper.sim import UnknownGripperTask
 from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
 from shared.zenoh_session import env_connect
@@ -36,7 +37,7 @@ class BridgeArgs:
     seed: int = 0
     """Draws targets and reset angles."""
     image_size: int = 84
-    render_quality: Literal["paper", "fast"] = "fast"
+    render_quality: RenderQuality = "fast"
     """The stand-in's render quality."""
     connect: str = field(default_factory=env_connect)
     """Zenoh router endpoint(s) (env NASA_ZENOH_CONNECT)."""

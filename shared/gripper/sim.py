@@ -106,21 +106,17 @@ class ValveSim:
         image_size: int = 84,
         camera_id: int = 0,
         action_repeat: int = 1,
-        render_quality: Literal["paper", "fast"] = "paper",
+        render_quality: gl.RenderQuality = "paper",
     ) -> None:
         if task not in TASKS:
             raise UnknownGripperTask(f"unknown gripper task {task!r}; valid: {', '.join(TASKS)}")
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
+        gl.check_render_quality(render_quality)
         self.task = task
         self.scenario = TASKS[task]
         self.model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
-        if render_quality == "fast":
-            # Read when the GL context is made: shadows and multisampling are most of the render cost.
-            self.model.vis.quality.shadowsize = 512
-            self.model.vis.quality.offsamples = 0
-        elif render_quality != "paper":
-            raise ValueError(f"render_quality must be 'paper' or 'fast', got {render_quality!r}")
+        gl.apply_render_quality(self.model, render_quality)
         if not 0 <= camera_id < self.model.ncam:
             raise ValueError(f"camera_id {camera_id} out of range: the model has {self.model.ncam} camera(s)")
         self.data = mujoco.MjData(self.model)
