@@ -251,7 +251,7 @@ PRESETS: dict[str, dict[str, object]] = {
         "replay_capacity": 100_000,
         "env.image_size": 64,
         "env.action_repeat": 8,
-        "env.render_quality": "fast",
+        "env.render_quality": "plain",
         "agent.latent_dim": 50,
         "agent.hidden_dim": 256,
         "agent.ensemble_hidden_dim": 128,
