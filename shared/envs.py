@@ -234,7 +234,6 @@ class DMCPixels:
     ) -> None:
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
-        gl.check_render_quality(render_quality)
         self._env = _load_suite_task(task, seed)
         gl.apply_render_quality(self._env.physics.model, render_quality)
         self.action_dim = int(self._env.action_spec().shape[0])

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, get_args
 
 if TYPE_CHECKING:
     import mujoco
 
 RenderQuality = Literal["paper", "fast", "plain"]
-RENDER_QUALITIES: tuple[str, ...] = ("paper", "fast", "plain")
+RENDER_QUALITIES: tuple[str, ...] = get_args(RenderQuality)
 
 
 def configure() -> None:

@@ -112,7 +112,6 @@ class ValveSim:
             raise UnknownGripperTask(f"unknown gripper task {task!r}; valid: {', '.join(TASKS)}")
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
-        gl.check_render_quality(render_quality)
         self.task = task
         self.scenario = TASKS[task]
         self.model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
