@@ -90,6 +90,10 @@ def test_a_preset_has_per_task_variants_and_flags_still_win():
     assert default_config("nasa_td3", "cpu-small", "ball_in_cup-catch").env.action_repeat == 8
     assert default_config("nasa_td3", "cpu-small", "gripper-valve_reset").env.action_repeat == 1
     assert default_config("nasa_td3", "paper", "gripper-valve").env.action_repeat == 1
+    # the gaits repeat as the field's pixel agents do; the paper's settings repeat nothing
+    assert default_config("nasa_td3", "cpu-small", "walker-walk").env.action_repeat == 2
+    assert default_config("nasa_td3", "cpu-small", "cheetah-run").env.action_repeat == 4
+    assert default_config("nasa_td3", "paper", "walker-walk").env.action_repeat == 1
     # its evaluations: more episodes (a random target each), half as often
     gripper = default_config("nasa_td3", "cpu-small", "gripper-valve")
     assert (gripper.eval_episodes, gripper.eval_every) == (20, 2_000)

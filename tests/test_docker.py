@@ -124,7 +124,7 @@ def _check_inside_the_learner(compose: Compose, port: int) -> None:
     # the learner's own container: a non-root user, and `nasa status` works there
     assert compose("exec", "-T", "learner", "id", "-u").strip() == "1000"
     status = json.loads(compose("exec", "-T", "learner", "nasa", "status"))
-    assert status["updates"] > 0 and status["task"] == "cartpole-balance"
+    assert status["updates"] > 0 and status["task"] == "ball_in_cup-catch"
     # only one learner (the cpu profile's), and the actors have no fixed names
     assert compose("ps", "-q", "learner-gpu", check=False).strip() == ""
     assert _status(port) is not None

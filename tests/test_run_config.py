@@ -20,7 +20,8 @@ SPEC = envs.EnvSpec((3, 32, 32), 3, 1)
 
 
 def small(**changes) -> TrainConfig:
-    config = default_config("nasa_td3", "cpu-small")
+    config = default_config("nasa_td3", "cpu-small", "cartpole-balance")
+    config.env.task = "cartpole-balance"  # SPEC's one action dimension
     config.env.image_size = 32
     for name, value in changes.items():
         *parents, leaf = name.split("__")

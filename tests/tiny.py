@@ -10,7 +10,8 @@ WARMUP = 20
 
 
 def tiny_config(algo: str = "nasa_td3", **overrides: object) -> TrainConfig:
-    c = default_config(algo, "cpu-small")
+    c = default_config(algo, "cpu-small", "cartpole-balance")
+    c.env.task = "cartpole-balance"  # one action dimension, the cheapest suite task to render
     c.device = "cpu"
     c.warmup_steps = WARMUP
     c.batch_size = 16
