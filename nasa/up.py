@@ -239,6 +239,9 @@ class UpCommand:
     """Where evaluations run: `process` the evaluator service (it also makes the autoencoder's view
     and videos), `learner` between the learner's updates as `nasa train` does (no pictures);
     `auto`: chosen from the machine (nasa.layout)."""
+    publish_every: int = 0
+    """K: the learner publishes weights every K updates, so actors act with weights up to K
+    updates old (1: the latest after every update, as `nasa train` acts); 0: the learner's default."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
     bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
@@ -265,6 +268,8 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
     if cmd.actors < 0 or cmd.learner_threads < 0:
         raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
                           f"got {cmd.actors} and {cmd.learner_threads}")
+    if cmd.publish_every < 0:
+        raise ConfigError(f"--publish-every must be >= 0 (0: the learner's default), got {cmd.publish_every}")
     check_bridge(cmd)
     return cmd, preset
 
@@ -347,6 +352,8 @@ def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, li
         "learner": [*common, "--data", str(data), "--port", str(cmd.port),
                     "--threads", str(lay.learner_threads)],
     }
+    if cmd.publish_every:
+        out["learner"] += ["--publish-every", str(cmd.publish_every)]
     if lay.eval_in_learner:
         out["learner"].append("--eval-between-updates")
     elif lay.evaluator:

@@ -12,7 +12,7 @@ import pytest
 import nasa.train
 from nasa import cli
 from nasa.up import UpCommand, layout_of, parse_up, prepare, service_argv
-from shared.config import TrainConfig, default_config, to_dict
+from shared.config import ConfigError, TrainConfig, default_config, to_dict
 
 
 @pytest.fixture
@@ -95,6 +95,16 @@ def test_every_service_of_nasa_up_gets_the_run_config(tmp_path):
     assert argv["learner"][2:] == ["--data", str(tmp_path), "--port", "9", "--threads", "1"]
     cmd.evaluator = False
     assert "evaluator" not in service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))
+
+
+def test_nasa_up_passes_publish_every_to_the_learner_and_refuses_a_negative_one(tmp_path):
+    cmd, _ = parse_up(["--preset", "cpu-small", "--publish-every", "1"])
+    learner = service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))["learner"]
+    assert learner[learner.index("--publish-every") + 1] == "1"
+    default, _ = parse_up(["--preset", "cpu-small"])  # 0: the learner's own default
+    assert "--publish-every" not in service_argv(default, tmp_path, layout_of(default, gpu=False))["learner"]
+    with pytest.raises(ConfigError, match="publish-every"):
+        parse_up(["--publish-every", "-1"])
 
 
 def up_in_process(argv: list[str], capsys) -> tuple[int, str]:  # noqa: ANN001

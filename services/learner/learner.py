@@ -333,6 +333,8 @@ def main(argv: list[str] | None = None) -> None:
 
     def run(args: LearnerArgs, session: zenoh.Session, stop: StopFlag) -> None:
         use_device_prefetch(args.device_prefetch, torch.device("cpu"))  # a bad value fails first
+        if args.publish_every < 1:
+            raise ConfigError(f"--publish-every must be >= 1, got {args.publish_every}")
         with faults.lock_service(Path(args.data), "learner"):
             faults.check_port_free(args.host, args.port, "the status API's")
             run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
