@@ -100,3 +100,21 @@ def test_batches_staged_on_the_device_train_exactly_as_host_batches(tmp_path):
     assert use_device_prefetch("on", torch.device("cpu")) is True
     with pytest.raises(ConfigError):
         use_device_prefetch("yes", torch.device("cpu"))
+
+
+def test_the_learners_initial_weights_are_the_seeds_and_nasa_trains(tmp_path):
+    from nasa.train import Trainer
+    from tests.tiny import tiny_config
+
+    torch.rand(7)  # whatever ran before in the process does not change them
+    first = core_on(tmp_path / "a").agent.policy_state_dict()
+    torch.rand(3)
+    again = core_on(tmp_path / "b").agent.policy_state_dict()
+    trainer = Trainer(tiny_config(steps=200), tmp_path / "train").agent.policy_state_dict()
+    other = LearnerCore(tiny_run(steps=200, seed=1), tmp_path / "c",
+                        LocalReplay(filled_store(60), np.random.default_rng(0)),
+                        torch.device("cpu")).agent.policy_state_dict()
+    assert first.keys() == trainer.keys()
+    for name, tensor in first.items():
+        assert torch.equal(tensor, again[name]) and torch.equal(tensor, trainer[name]), name
+    assert any(not torch.equal(tensor, other[name]) for name, tensor in first.items())

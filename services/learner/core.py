@@ -36,9 +36,11 @@ class LearnerCore:
         c = self.config = run.config
         self.run, self.device, self.out = run, device, Path(out)
         spec = run.spec
+        # Seeded before any network is built, as `nasa train` does: a seed's initial weights are
+        # the same in both runners and from one launch to the next.
+        torch.manual_seed(c.seed)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
         self.rng = np.random.default_rng(c.seed)
-        torch.manual_seed(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
         self.scorer = (IntrinsicScorer(self.agent, client, c.warmup_steps, c.batch_size)
                        if collect_scoring(self.agent, c) else None)
