@@ -11,9 +11,12 @@ between its updates, as `nasa train` does; then it stops learning while it
 plays the episodes, where the evaluator's process fills the time the learner
 leaves, so that is not the default.) Where the learner's threads share the
 cores, they spin while they wait for each other and every other service's
-threads sleep: the spinning takes only what the others leave. With a GPU the
-updates leave the CPU, env steps become the cost, and the spare cores go to
-actors.
+threads sleep: the spinning takes only what the others leave. On a CPU the
+learner also publishes its weights after every update, so the actor acts with
+the newest policy as `nasa train` (and the reference) does: an update is slow
+next to publishing, so that costs little. With a GPU the updates leave the
+CPU, env steps become the cost, the spare cores go to actors, and the weights
+go out every few updates (the learner's default), not at the GPU's update rate.
 
 The rate limiter keeps G faithful in every layout: the layout only moves where
 the CPU time goes.
@@ -52,6 +55,8 @@ class Layout:
     """How the learner's own OpenMP threads wait (OmpWait, never `auto` here)."""
     eval_in_learner: bool = False
     """The learner evaluates between its updates, and no evaluator process runs."""
+    publish_every: int = 0
+    """The learner publishes weights every this many updates; 0: the learner's default."""
 
     def omp_env(self, role: str) -> dict[str, str | None]:
         """OMP_WAIT_POLICY for one service's process (None: unset, the runtime's default); empty
@@ -67,10 +72,13 @@ class Layout:
         gpu = "a GPU" if self.gpu else "no GPU"
         others = ", the other services' passive" if self.omp_passive else ""
         omp = f" (OpenMP waits {self.learner_omp_wait}{others})"
+        weights = "the learner's default" if not self.publish_every else "every update" \
+            if self.publish_every == 1 else f"every {self.publish_every} updates"
         return (f"layout for {self.cores} core(s), {gpu}: {self.actors} actor(s), "
                 f"learner {self.learner_threads} torch thread(s)"
-                f"{omp}, evaluator {evaluator} (--actors, --learner-threads, --learner-omp-wait, "
-                "--evaluate-in, --evaluator-nice, --no-evaluator override)")
+                f"{omp}, weights published {weights}, evaluator {evaluator} (--actors, "
+                "--learner-threads, --learner-omp-wait, --publish-every, --evaluate-in, --evaluator-nice, "
+                "--no-evaluator override)")
 
 
 def usable_cores() -> int:
@@ -83,7 +91,7 @@ def usable_cores() -> int:
 
 def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,
            evaluator_nice: int | None = None, learner_omp_wait: OmpWait = "auto",
-           evaluate_in: EvalWhere = "auto") -> Layout:
+           evaluate_in: EvalWhere = "auto", publish_every: int = 0) -> Layout:
     """The layout for `cores` and a GPU or not; a nonzero (or not None) argument is the user's choice
     and is kept as given."""
     small = cores < SMALL_MACHINE_CORES
@@ -100,6 +108,8 @@ def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, eva
         # Where the cores are shared, the learner's threads spin between parallel regions (they are
         # the bottleneck, and the rest need little CPU), and every other service's sleep.
         learner_omp_wait = "active" if shared else "default"
+    if not publish_every and not gpu:
+        publish_every = 1  # act with the newest policy, as nasa train does
     return Layout(actors, learner_threads, evaluator, evaluator_nice, cores, gpu,
                   omp_passive=shared, learner_omp_wait=learner_omp_wait,
-                  eval_in_learner=evaluator and evaluate_in == "learner")
+                  eval_in_learner=evaluator and evaluate_in == "learner", publish_every=publish_every)

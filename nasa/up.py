@@ -241,7 +241,8 @@ class UpCommand:
     `auto`: chosen from the machine (nasa.layout)."""
     publish_every: int = 0
     """K: the learner publishes weights every K updates, so actors act with weights up to K
-    updates old (1: the latest after every update, as `nasa train` acts); 0: the learner's default."""
+    updates old (1: the latest after every update, as `nasa train` acts); 0: chosen from the
+    machine (nasa.layout: 1 on a CPU, the learner's default with a GPU)."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
     bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
@@ -269,7 +270,8 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
         raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
                           f"got {cmd.actors} and {cmd.learner_threads}")
     if cmd.publish_every < 0:
-        raise ConfigError(f"--publish-every must be >= 0 (0: the learner's default), got {cmd.publish_every}")
+        raise ConfigError(f"--publish-every must be >= 0 (0: chosen from the machine), "
+                          f"got {cmd.publish_every}")
     check_bridge(cmd)
     return cmd, preset
 
@@ -341,7 +343,8 @@ def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Lay
     hardware = cmd.bridge == "hardware"
     return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
                          cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice,
-                         cmd.learner_omp_wait, cmd.evaluate_in)  # `learner` with a bridge: refused
+                         cmd.learner_omp_wait, cmd.evaluate_in,  # `learner` with a bridge: refused
+                         cmd.publish_every)
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:
@@ -352,8 +355,8 @@ def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, li
         "learner": [*common, "--data", str(data), "--port", str(cmd.port),
                     "--threads", str(lay.learner_threads)],
     }
-    if cmd.publish_every:
-        out["learner"] += ["--publish-every", str(cmd.publish_every)]
+    if lay.publish_every:
+        out["learner"] += ["--publish-every", str(lay.publish_every)]
     if lay.eval_in_learner:
         out["learner"].append("--eval-between-updates")
     elif lay.evaluator:

@@ -92,17 +92,23 @@ def test_every_service_of_nasa_up_gets_the_run_config(tmp_path):
     assert sorted(argv) == ["actor-0", "actor-1", "evaluator", "learner", "replay"]
     for args in argv.values():
         assert args[:2] == ["--run-config", str(tmp_path / "config.json")]
-    assert argv["learner"][2:] == ["--data", str(tmp_path), "--port", "9", "--threads", "1"]
+    assert argv["learner"][2:] == ["--data", str(tmp_path), "--port", "9", "--threads", "1",
+                                   "--publish-every", "1"]
     cmd.evaluator = False
     assert "evaluator" not in service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))
 
 
 def test_nasa_up_passes_publish_every_to_the_learner_and_refuses_a_negative_one(tmp_path):
-    cmd, _ = parse_up(["--preset", "cpu-small", "--publish-every", "1"])
-    learner = service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))["learner"]
-    assert learner[learner.index("--publish-every") + 1] == "1"
-    default, _ = parse_up(["--preset", "cpu-small"])  # 0: the learner's own default
-    assert "--publish-every" not in service_argv(default, tmp_path, layout_of(default, gpu=False))["learner"]
+    def learner_flag(argv: list[str], gpu: bool) -> str | None:
+        cmd, _ = parse_up(argv)
+        learner = service_argv(cmd, tmp_path, layout_of(cmd, gpu=gpu))["learner"]
+        return learner[learner.index("--publish-every") + 1] if "--publish-every" in learner else None
+
+    assert learner_flag(["--preset", "cpu-small", "--publish-every", "7"], gpu=False) == "7"
+    assert learner_flag(["--publish-every", "7"], gpu=True) == "7"
+    # Chosen from the machine: every update on a CPU, the learner's own default with a GPU.
+    assert learner_flag(["--preset", "cpu-small"], gpu=False) == "1"
+    assert learner_flag([], gpu=True) is None
     with pytest.raises(ConfigError, match="publish-every"):
         parse_up(["--publish-every", "-1"])
 

@@ -39,6 +39,9 @@ def test_the_layout_says_what_it_chose_and_how_to_change_it():
     text = choose(2, gpu=False).describe()
     assert "1 actor(s)" in text and "learner 2 torch thread(s)" in text and f"nice {LOW_PRIORITY}" in text
     assert "--actors" in text and "--learner-threads" in text
+    assert "weights published every update" in text and "--publish-every" in text
+    assert "weights published the learner's default" in choose(8, gpu=True).describe()
+    assert "every 5 updates" in choose(2, gpu=False, publish_every=5).describe()
 
 
 def test_a_negative_count_is_refused_with_a_clear_error():
