@@ -211,13 +211,18 @@ class Log:
 
 
 def run_service(
-    cls: type[T], argv: list[str] | None, prog: str, run: Callable[[T, object, StopFlag], None]
+    cls: type[T], argv: list[str] | None, prog: str, run: Callable[[T, object, StopFlag], None],
+    check: Callable[[T], None] | None = None,
 ) -> None:
-    """A service's main: parse its flags, stop on SIGINT/SIGTERM, run it on a client session."""
+    """A service's main: parse its flags, `check` them (a bad value is refused before the service
+    connects, so it is the first error even with no router), stop on SIGINT/SIGTERM, run it on a
+    client session."""
     from shared.zenoh_session import open_client  # zenoh only for services, not `nasa train`
 
     try:
         args, _ = parse(cls, argv, prog)
+        if check is not None:
+            check(args)
         stop = StopFlag()
         stop.install_signal_handlers()
         role = prog.rsplit(".", 1)[-1]  # "python -m services.<role>": its Zenoh login under auth

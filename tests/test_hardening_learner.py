@@ -103,21 +103,20 @@ def test_a_failed_checkpoint_write_keeps_the_previous_and_is_retried_later(tmp_p
     assert core.counters.env_steps == 60  # the counters describe the checkpoint on disk
 
 
-@pytest.mark.system  # a service process on a real router
-def test_a_learner_told_to_publish_every_0_updates_exits_2_before_it_learns(tmp_path):
+def test_a_learner_with_a_bad_flag_exits_2_with_the_reason_before_it_connects(tmp_path):
     import os
     import subprocess
     import sys
 
     from nasa.up import free_port
-    from shared.zenoh_session import open_router
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with open_router(endpoint):
-        env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": "publish0"}
-        proc = subprocess.run([sys.executable, "-m", "services.learner", "--publish-every", "0",
+    # No router listens there: the flag, not the connection, must be the error.
+    env = {**os.environ, "NASA_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}", "NASA_RUN_ID": "bad"}
+    for flag, value, reason in (("--publish-every", "0", "--publish-every must be >= 1"),
+                                ("--device-prefetch", "sometimes", "--device-prefetch must be auto")):
+        proc = subprocess.run([sys.executable, "-m", "services.learner", flag, value,
                                "--data", str(tmp_path), "--port", str(free_port())],
                               env=env, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2, proc.stderr
-    assert "--publish-every must be >= 1" in proc.stderr and "Traceback" not in proc.stderr
-    assert not list(tmp_path.iterdir())  # refused before it locked or wrote the run folder
+        assert proc.returncode == 2, proc.stderr
+        assert reason in proc.stderr and "Traceback" not in proc.stderr
+        assert not list(tmp_path.iterdir())  # refused before it locked or wrote the run folder

@@ -332,15 +332,19 @@ def main(argv: list[str] | None = None) -> None:
     from shared.service import run_service
 
     def run(args: LearnerArgs, session: zenoh.Session, stop: StopFlag) -> None:
-        use_device_prefetch(args.device_prefetch, torch.device("cpu"))  # a bad value fails first
-        if args.publish_every < 1:
-            raise ConfigError(f"--publish-every must be >= 1, got {args.publish_every}")
         with faults.lock_service(Path(args.data), "learner"):
             faults.check_port_free(args.host, args.port, "the status API's")
             run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
             Learner(args, session, stop, run).run()
 
-    run_service(LearnerArgs, argv, "python -m services.learner", run)
+    run_service(LearnerArgs, argv, "python -m services.learner", run, check_args)
+
+
+def check_args(args: LearnerArgs) -> None:
+    """The learner's flags that its parser cannot check (ConfigError: exit 2 before it connects)."""
+    use_device_prefetch(args.device_prefetch, torch.device("cpu"))
+    if args.publish_every < 1:
+        raise ConfigError(f"--publish-every must be >= 1, got {args.publish_every}")
 
 
 def use_device_prefetch(setting: str, device: torch.device) -> bool:
