@@ -19,7 +19,14 @@ CPU, env steps become the cost, the spare cores go to actors, and the weights
 go out every few updates (the learner's default), not at the GPU's update rate.
 
 The rate limiter keeps G faithful in every layout: the layout only moves where
-the CPU time goes.
+the CPU time goes. How far the actors may run ahead of the learner is the
+limiter's slack plus what each actor has sent and the replay not yet taken.
+With one actor on a CPU that lead is one env step (the limiter's slack one
+step, each transition sent alone, one unacknowledged): the learner is the
+bottleneck either way, so a longer lead only makes the actor act with older
+weights, where `nasa train` acts with the policy of the update just made.
+Elsewhere the services' defaults (a slack of two 16-step batches), so several
+actors never wait on each other.
 """
 
 from __future__ import annotations
@@ -27,6 +34,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from typing import Literal
+
+from shared.replay.adder import SEND_BATCH
 
 # Below this many cores the evaluator would take its CPU time from the learner.
 SMALL_MACHINE_CORES = 4
@@ -57,6 +66,8 @@ class Layout:
     """The learner evaluates between its updates, and no evaluator process runs."""
     publish_every: int = 0
     """The learner publishes weights every this many updates; 0: the learner's default."""
+    actor_lead: int = 0
+    """Env steps the actors may run ahead of the learner's schedule; 0: the services' defaults."""
 
     def omp_env(self, role: str) -> dict[str, str | None]:
         """OMP_WAIT_POLICY for one service's process (None: unset, the runtime's default); empty
@@ -74,11 +85,22 @@ class Layout:
         omp = f" (OpenMP waits {self.learner_omp_wait}{others})"
         weights = "the learner's default" if not self.publish_every else "every update" \
             if self.publish_every == 1 else f"every {self.publish_every} updates"
+        lead = "the replay's default" if not self.actor_lead else f"{self.actor_lead} env step(s)"
         return (f"layout for {self.cores} core(s), {gpu}: {self.actors} actor(s), "
                 f"learner {self.learner_threads} torch thread(s)"
-                f"{omp}, weights published {weights}, evaluator {evaluator} (--actors, "
-                "--learner-threads, --learner-omp-wait, --publish-every, --evaluate-in, --evaluator-nice, "
-                "--no-evaluator override)")
+                f"{omp}, weights published {weights}, actors' lead {lead}, evaluator {evaluator} "
+                "(--actors, --learner-threads, --learner-omp-wait, --publish-every, --actor-lead, "
+                "--evaluate-in, --evaluator-nice, --no-evaluator override)")
+
+    def lead_argv(self, updates_per_step: int) -> dict[str, list[str]]:
+        """The replay's and each actor's flags for `actor_lead` (none for 0, the defaults): the
+        limiter's slack that many steps of G samples, and per actor at most that many transitions
+        sent and not yet acknowledged."""
+        if not self.actor_lead:
+            return {"replay": [], "actor": []}
+        send = min(self.actor_lead, SEND_BATCH)
+        return {"replay": ["--error-buffer", str(self.actor_lead * updates_per_step)],
+                "actor": ["--send-batch", str(send), "--max-in-flight", str(max(1, self.actor_lead // send))]}
 
 
 def usable_cores() -> int:
@@ -91,7 +113,7 @@ def usable_cores() -> int:
 
 def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,
            evaluator_nice: int | None = None, learner_omp_wait: OmpWait = "auto",
-           evaluate_in: EvalWhere = "auto", publish_every: int = 0) -> Layout:
+           evaluate_in: EvalWhere = "auto", publish_every: int = 0, actor_lead: int = 0) -> Layout:
     """The layout for `cores` and a GPU or not; a nonzero (or not None) argument is the user's choice
     and is kept as given."""
     small = cores < SMALL_MACHINE_CORES
@@ -110,6 +132,9 @@ def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, eva
         learner_omp_wait = "active" if shared else "default"
     if not publish_every and not gpu:
         publish_every = 1  # act with the newest policy, as nasa train does
+    if not actor_lead and not gpu and actors == 1:
+        actor_lead = 1  # nor act ahead on older weights: the learner sets the pace anyway
     return Layout(actors, learner_threads, evaluator, evaluator_nice, cores, gpu,
                   omp_passive=shared, learner_omp_wait=learner_omp_wait,
-                  eval_in_learner=evaluator and evaluate_in == "learner", publish_every=publish_every)
+                  eval_in_learner=evaluator and evaluate_in == "learner", publish_every=publish_every,
+                  actor_lead=actor_lead)

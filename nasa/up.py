@@ -243,6 +243,11 @@ class UpCommand:
     """K: the learner publishes weights every K updates, so actors act with weights up to K
     updates old (1: the latest after every update, as `nasa train` acts); 0: chosen from the
     machine (nasa.layout: 1 on a CPU, the learner's default with a GPU)."""
+    actor_lead: int = 0
+    """How many env steps the actors may run ahead of the learner's schedule (the replay's rate
+    limiter slack, and each actor's transitions sent and not yet taken); 0: chosen from the
+    machine (nasa.layout: 1 on a CPU with one actor, so it acts with the newest weights as
+    `nasa train` does; else the replay's default of two 16-step batches)."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
     bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
@@ -269,9 +274,9 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
     if cmd.actors < 0 or cmd.learner_threads < 0:
         raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
                           f"got {cmd.actors} and {cmd.learner_threads}")
-    if cmd.publish_every < 0:
-        raise ConfigError(f"--publish-every must be >= 0 (0: chosen from the machine), "
-                          f"got {cmd.publish_every}")
+    for flag, value in (("--publish-every", cmd.publish_every), ("--actor-lead", cmd.actor_lead)):
+        if value < 0:
+            raise ConfigError(f"{flag} must be >= 0 (0: chosen from the machine), got {value}")
     check_bridge(cmd)
     return cmd, preset
 
@@ -344,14 +349,15 @@ def layout_of(cmd: UpCommand, gpu: bool, cores: int | None = None) -> layout.Lay
     return layout.choose(cores or layout.usable_cores(), gpu, 1 if hardware else cmd.actors,
                          cmd.learner_threads, cmd.evaluator and not hardware, cmd.evaluator_nice,
                          cmd.learner_omp_wait, cmd.evaluate_in,  # `learner` with a bridge: refused
-                         cmd.publish_every)
+                         cmd.publish_every, cmd.actor_lead)
 
 
 def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, list[str]]:
     """Each service's flags: the run's config.json (written by `prepare`) and its own role's flags."""
     common = ["--run-config", str(data / run_config.CONFIG_FILE)]
+    lead = lay.lead_argv(cmd.config.updates_per_step)
     out = {
-        "replay": [*common, "--data", str(data)],
+        "replay": [*common, "--data", str(data), *lead["replay"]],
         "learner": [*common, "--data", str(data), "--port", str(cmd.port),
                     "--threads", str(lay.learner_threads)],
     }
@@ -362,7 +368,7 @@ def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, li
     elif lay.evaluator:
         out["evaluator"] = [*common, "--data", str(data)]  # the autoencoder's view and videos go there
     for i in range(lay.actors):
-        out[f"actor-{i}"] = [*common, "--actor-id", str(i)]
+        out[f"actor-{i}"] = [*common, "--actor-id", str(i), *lead["actor"]]
     return out
 
 

@@ -113,6 +113,21 @@ def test_nasa_up_passes_publish_every_to_the_learner_and_refuses_a_negative_one(
         parse_up(["--publish-every", "-1"])
 
 
+def test_nasa_up_passes_the_actor_lead_to_the_replay_and_the_actors(tmp_path):
+    def flags(argv: list[str], gpu: bool) -> tuple[list[str], list[str]]:
+        cmd, _ = parse_up(["--preset", "cpu-small", *argv])
+        out = service_argv(cmd, tmp_path, layout_of(cmd, gpu=gpu, cores=2))
+        return out["replay"][4:], out["actor-0"][4:]  # after the run config and --data / --actor-id
+
+    assert flags([], gpu=False) == (["--error-buffer", "1"], ["--send-batch", "1", "--max-in-flight", "1"])
+    assert flags(["--updates-per-step", "3"], gpu=False)[0] == ["--error-buffer", "3"]
+    assert flags(["--actor-lead", "16"], gpu=True) == (
+        ["--error-buffer", "16"], ["--send-batch", "8", "--max-in-flight", "2"])
+    assert flags([], gpu=True) == ([], [])
+    with pytest.raises(ConfigError, match="--actor-lead must be >= 0"):
+        parse_up(["--actor-lead", "-2"])
+
+
 def up_in_process(argv: list[str], capsys) -> tuple[int, str]:  # noqa: ANN001
     with pytest.raises(SystemExit) as exit_:
         cli.main(["up", "--router-port", "0", *argv])

@@ -42,6 +42,21 @@ def test_the_layout_says_what_it_chose_and_how_to_change_it():
     assert "weights published every update" in text and "--publish-every" in text
     assert "weights published the learner's default" in choose(8, gpu=True).describe()
     assert "every 5 updates" in choose(2, gpu=False, publish_every=5).describe()
+    assert "actors' lead 1 env step(s)" in text and "--actor-lead" in text
+    assert "actors' lead the replay's default" in choose(8, gpu=True).describe()
+
+
+def test_one_cpu_actor_may_run_one_step_ahead_of_the_learner_and_several_keep_the_defaults():
+    assert choose(2, gpu=False).actor_lead == 1
+    assert choose(2, gpu=False, actors=2).actor_lead == 0  # several actors would wait on each other
+    assert choose(16, gpu=True).actor_lead == 0
+    assert choose(16, gpu=True, actor_lead=3).actor_lead == 3
+    # The lead in the replay's flags (the limiter's slack, in samples: G per step) and the actors'.
+    assert choose(2, gpu=False).lead_argv(2) == {
+        "replay": ["--error-buffer", "2"], "actor": ["--send-batch", "1", "--max-in-flight", "1"]}
+    assert choose(2, gpu=False, actor_lead=40).lead_argv(1) == {
+        "replay": ["--error-buffer", "40"], "actor": ["--send-batch", "8", "--max-in-flight", "5"]}
+    assert choose(2, gpu=False, actors=2).lead_argv(1) == {"replay": [], "actor": []}
 
 
 def test_a_negative_count_is_refused_with_a_clear_error():

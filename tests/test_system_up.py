@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from system_harness import REPO, TINY
+from system_harness import REPO, TINY, WARMUP
 
 from bench.up_profile import service_pids
 from nasa import layout
@@ -105,6 +105,11 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         assert status["task"] == "cartpole-balance" and status["algo"] == "nasa_td3"
         assert not status["resumed"]
         assert stat.S_IMODE((data / "auth" / "users.txt").stat().st_mode) == 0o600
+        # One actor on a CPU runs at most one env step ahead of the learner's schedule (the
+        # limiter's inserts over its samples, past the warm-up), so it acts with fresh weights.
+        later = wait_status(up, port, lambda s: s["updates"] > 50, "50 updates")
+        replay = later["replay"]
+        assert replay["limiter_inserts"] - replay["limiter_samples"] <= WARMUP + 2, replay
         stop_with_ctrl_c(up)
     assert (data / "replay" / "MANIFEST.json").exists() and (data / "learner" / "checkpoint.pt").exists()
 

@@ -45,7 +45,7 @@ from services.robot_bridge.client import BRIDGE_LOST, BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import collect_action, make_agent
 from shared.env_loop import EnvLoop
-from shared.replay.adder import ZenohWriter
+from shared.replay.adder import SEND_BATCH, ZenohWriter
 from shared.service import Log, StopFlag
 from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs
@@ -69,7 +69,7 @@ class ActorArgs(ServiceArgs):
     """This actor's id (env NASA_ACTOR_ID); -1: a random one (replicas of a scaled service)."""
     actor_device: str = "cpu"
     """Device the local policy runs on."""
-    send_batch: int = 8
+    send_batch: int = SEND_BATCH
     """Transitions per message."""
     max_in_flight: int = 4
     """Unacknowledged batches before the actor waits for the replay."""

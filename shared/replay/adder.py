@@ -29,6 +29,8 @@ if TYPE_CHECKING:
     from shared.replay.store import ReplayStore
     from shared.service import Log, StopFlag
 
+SEND_BATCH = 8
+"""An actor's transitions per message, unless told otherwise."""
 ACK_TIMEOUT_S = 60.0
 """No acknowledgement for this long while the window is full: the replay restarted and lost them."""
 
