@@ -25,8 +25,9 @@ With one actor on a CPU that lead is one env step (the limiter's slack one
 step, each transition sent alone, one unacknowledged): the learner is the
 bottleneck either way, so a longer lead only makes the actor act with older
 weights, where `nasa train` acts with the policy of the update just made.
-Elsewhere the services' defaults (a slack of two 16-step batches), so several
-actors never wait on each other.
+Elsewhere the services' defaults (the replay's slack of 2 x G x 16 + 8
+samples, room for two 8-transition messages of two actors), so several actors
+do not wait on each other.
 """
 
 from __future__ import annotations

@@ -247,7 +247,7 @@ class UpCommand:
     """How many env steps the actors may run ahead of the learner's schedule (the replay's rate
     limiter slack, and each actor's transitions sent and not yet taken); 0: chosen from the
     machine (nasa.layout: 1 on a CPU with one actor, so it acts with the newest weights as
-    `nasa train` does; else the replay's default of two 16-step batches)."""
+    `nasa train` does; else the replay's default slack, 2 x G x 16 + 8 samples)."""
     logs: bool = False
     """Write each service's output to <data>/logs/<service>.log instead of this terminal."""
     bridge: Literal["off", "stand-in", "emulator", "hardware"] = "off"
