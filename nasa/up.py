@@ -271,10 +271,8 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
         i = argv.index("--")
         argv = [*argv[:i], *argv[i + 1 :]]
     cmd, preset = parse_with_preset(UpCommand, argv, "nasa up")
-    if cmd.actors < 0 or cmd.learner_threads < 0:
-        raise ConfigError(f"--actors and --learner-threads must be >= 0 (0: chosen from the machine), "
-                          f"got {cmd.actors} and {cmd.learner_threads}")
-    for flag, value in (("--publish-every", cmd.publish_every), ("--actor-lead", cmd.actor_lead)):
+    for flag, value in (("--actors", cmd.actors), ("--learner-threads", cmd.learner_threads),
+                        ("--publish-every", cmd.publish_every), ("--actor-lead", cmd.actor_lead)):
         if value < 0:
             raise ConfigError(f"{flag} must be >= 0 (0: chosen from the machine), got {value}")
     check_bridge(cmd)
