@@ -59,6 +59,18 @@ def _client():  # noqa: ANN202
     return LocalReplay(filled_store(60), np.random.default_rng(0))
 
 
+def test_all_finite_tells_non_finite_tensors_from_finite_ones_whose_sum_overflows():
+    big = torch.full((4,), 3e38)  # finite, but its float32 sum is inf
+    assert all_finite({"a": torch.ones(3), "b": {"c": big.double() * 1e100, "d": [big]}})
+    assert all_finite({"steps": torch.tensor([2**62])}) and all_finite({})
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        for dtype in (torch.float32, torch.float16, torch.bfloat16, torch.float64):
+            t = torch.zeros(5, dtype=dtype)
+            t[3] = bad
+            assert not all_finite({"ok": torch.ones(2), "nested": {"t": t}}), (bad, dtype)
+            assert not all_finite({"ok": big, "t": t}), (bad, dtype)
+
+
 def test_a_batch_with_a_non_finite_value_is_dropped_with_its_rows(tmp_path):
     core = core_on(tmp_path)
     batch = core.scorer.client.sample(16)
