@@ -4,9 +4,10 @@ On a CPU the learner is the run's bottleneck: every env step costs G updates,
 and an update costs far more CPU than an env step. So the cores go to the
 learner's torch threads, and one actor is enough to keep it fed (the rate
 limiter holds any other back). On a small machine the evaluator runs in its own
-process at a low CPU priority: it evaluates in the time the learner leaves, and
-an evaluation that starts late takes the newest weights at the newest eval
-step, so the learner never waits for it. (The learner can instead evaluate
+process at a low CPU priority: it evaluates in the time the learner leaves,
+with the weights the learner sent when the eval step was reached (an
+evaluation that starts late takes the newest eval step's), so the learner
+never waits for it. (The learner can instead evaluate
 between its updates, as `nasa train` does; then it stops learning while it
 plays the episodes, where the evaluator's process fills the time the learner
 leaves, so that is not the default.) Where the learner's threads share the

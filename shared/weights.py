@@ -1,7 +1,9 @@
 """The weights subscriber of the processes that act: actors and the evaluator.
 
 The learner publishes the policy's weights every few updates (latest wins) and
-answers `learner/weights/latest` for a process that just started. The
+answers `learner/weights/latest` for a process that just started; the
+evaluator's weights, once per evaluation period, go the same way on
+`learner/eval_weights`. The
 subscriber only parks the newest message; the acting loop loads it between
 steps (`maybe_load`), so acting never waits for weights. (epoch, version)
 orders weights across learner restarts, so an older message never replaces a
@@ -10,6 +12,7 @@ newer one.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from contextlib import ExitStack
 
@@ -17,6 +20,12 @@ import zenoh
 
 from shared import wire
 from shared.agents import Agent
+
+# Until a process holds weights it asks for the latest again this often: a message published
+# while its subscription was still reaching the router, and a query answered before the learner
+# held any, would otherwise leave it waiting for the next publish (the evaluator's come once
+# per evaluation period).
+ASK_AGAIN_S = 1.0
 
 
 class WeightsSubscriber:
@@ -28,6 +37,8 @@ class WeightsSubscriber:
         self._held: tuple[int, int] | None = None
         self._pending: bytes | None = None
         self._stack = ExitStack()
+        self._ask: Callable[[], None] | None = None  # asks the learner for its latest (once subscribed)
+        self._asked_at = 0.0
 
     def offer(self, data: bytes) -> None:
         """Park a weights message (called from Zenoh's thread); the newest offered wins."""
@@ -37,6 +48,10 @@ class WeightsSubscriber:
         """Load the parked message if it is newer than what the agent holds; True if it loaded."""
         data, self._pending = self._pending, None
         if data is None:
+            now = time.monotonic()
+            if self._held is None and self._ask is not None and now - self._asked_at > ASK_AGAIN_S:
+                self._asked_at = now
+                self._ask()
             return False
         try:
             msg = wire.decode(data, wire.Weights)
@@ -51,10 +66,13 @@ class WeightsSubscriber:
         self.env_steps = max(self.env_steps, msg.env_steps)
         return True
 
-    def subscribe(self, session: zenoh.Session, keys: wire.Keys) -> WeightsSubscriber:
-        """Listen for published weights and ask the learner for its latest (a process that just started)."""
-        self._stack.enter_context(session.declare_subscriber(keys.weights, self._on_sample))
-        session.get(keys.weights_latest, self._on_reply, timeout=10.0)
+    def subscribe(self, session: zenoh.Session, key: str, latest: str) -> WeightsSubscriber:
+        """Listen for the weights published on `key` and ask the learner for its latest (`latest`:
+        a process that just started)."""
+        self._stack.enter_context(session.declare_subscriber(key, self._on_sample))
+        self._ask = lambda: session.get(latest, self._on_reply, timeout=10.0)
+        self._asked_at = time.monotonic()
+        self._ask()
         return self
 
     def close(self) -> None:

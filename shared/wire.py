@@ -15,9 +15,11 @@ services count and log it and carry on.
 | replay/unscored (queryable)  | UnscoredRequest -> SampleReply | replay answers | learner (rows to score) |
 | replay/intrinsic             | SetIntrinsic     | learner (BLOCK)      | replay                        |
 | replay/config   (queryable)  | RunConfigMsg     | replay answers       | services joining the run      |
-| replay/stats                 | ReplayStats      | replay (2 Hz)        | learner, actors, evaluator    |
-| learner/weights              | Weights          | learner (every K updates) | actors, evaluator        |
-| learner/weights/latest (queryable) | Weights    | learner answers      | actors, evaluator at start    |
+| replay/stats                 | ReplayStats      | replay (2 Hz)        | learner, actors               |
+| learner/weights              | Weights          | learner (every K updates) | actors                   |
+| learner/weights/latest (queryable) | Weights    | learner answers      | actors at start               |
+| learner/eval_weights         | Weights (+ decoder) | learner (each eval step) | evaluator             |
+| learner/eval_weights/latest (queryable) | Weights | learner answers    | evaluator at start            |
 | actor/status/<actor_id>      | ActorStatus      | actor (1 Hz)         | learner                       |
 | eval/result                  | EvalResult       | evaluator (BLOCK)    | learner (writes eval.csv)     |
 | control/stop                 | Stop             | learner (run done), operator | every service         |
@@ -93,6 +95,8 @@ class Keys:
         self.replay_stats = f"{p}/replay/stats"
         self.weights = f"{p}/learner/weights"
         self.weights_latest = f"{p}/learner/weights/latest"
+        self.eval_weights = f"{p}/learner/eval_weights"
+        self.eval_weights_latest = f"{p}/learner/eval_weights/latest"
         self.actor_status_all = f"{p}/actor/status/*"
         self.eval_result = f"{p}/eval/result"
         self.stop = f"{p}/control/stop"
@@ -732,9 +736,11 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         Route(k.unscored, QUERY, ("replay",), ("learner",)),
         Route(k.intrinsic, PUT, ("learner",), ("replay",)),
         Route(k.config, QUERY, ("replay",), ("learner", "actor", "evaluator")),
-        Route(k.replay_stats, PUT, ("replay",), ("learner", "actor", "evaluator")),
-        Route(k.weights, PUT, ("learner",), ("actor", "evaluator")),
-        Route(k.weights_latest, QUERY, ("learner",), ("actor", "evaluator")),
+        Route(k.replay_stats, PUT, ("replay",), ("learner", "actor")),
+        Route(k.weights, PUT, ("learner",), ("actor",)),
+        Route(k.weights_latest, QUERY, ("learner",), ("actor",)),
+        Route(k.eval_weights, PUT, ("learner",), ("evaluator",)),
+        Route(k.eval_weights_latest, QUERY, ("learner",), ("evaluator",)),
         Route(k.actor_status(ANY), PUT, ("actor",), ("learner",)),
         Route(k.eval_result, PUT, ("evaluator",), ("learner",)),
         # The learner ends a finished run; an operator may stop one. No other role can.

@@ -115,9 +115,10 @@ def wait_routed(sender: zenoh.Session, key: str, q: queue.Queue) -> None:
 
 
 def test_a_role_puts_only_on_its_keys(router: str, auth_dir: Path) -> None:
-    """An actor's forged stop, eval result and weights never arrive; its status does, and so do the
-    learner's weights. Messages from one session go through the router in order, so once the
-    actor's status has arrived, anything it sent before would have been passed on already."""
+    """An actor's forged stop, eval result and evaluation weights never arrive; its status does, and
+    so do the learner's evaluation weights. Messages from one session go through the router in
+    order, so once the actor's status has arrived, anything it sent before would have been passed
+    on already."""
     k = wire.Keys(RUN)
     at_learner: queue.Queue[tuple[str, bytes]] = queue.Queue()
     at_evaluator: queue.Queue[tuple[str, bytes]] = queue.Queue()
@@ -125,16 +126,16 @@ def test_a_role_puts_only_on_its_keys(router: str, auth_dir: Path) -> None:
           login(router, auth_dir, "evaluator") as evaluator):
         subs = [learner.declare_subscriber(key, into(at_learner))
                 for key in (k.stop, k.eval_result, k.actor_status_all)]
-        subs.append(evaluator.declare_subscriber(k.weights, into(at_evaluator)))
+        subs.append(evaluator.declare_subscriber(k.eval_weights, into(at_evaluator)))
         wait_routed(actor, k.actor_status(0), at_learner)
-        actor.put(k.weights, b"forged weights")
+        actor.put(k.eval_weights, b"forged weights")
         actor.put(k.stop, b"forged stop")
         actor.put(k.eval_result, b"forged result")
         actor.put(k.actor_status(0), b"status")
         assert {key for key, _ in until(at_learner, (k.actor_status(0), b"status"))} == {k.actor_status(0)}
         # The forged weights went through the router before the status the learner has now.
-        learner.put(k.weights, b"real weights")
-        assert until(at_evaluator, (k.weights, b"real weights")) == [(k.weights, b"real weights")]
+        learner.put(k.eval_weights, b"real weights")
+        assert until(at_evaluator, (k.eval_weights, b"real weights")) == [(k.eval_weights, b"real weights")]
         for sub in subs:
             sub.undeclare()
 

@@ -25,6 +25,7 @@ def _service(**overrides: object) -> EvaluatorService:
 
 
 def _weights(ev: EvaluatorService, version: int, env_steps: int = 0) -> None:
+    """The learner's evaluation weights of update `version`, sent at its env step `env_steps`."""
     tensors = wire.pack_tensors(ev.agent.policy_state_dict())
     ev.weights.offer(wire.encode(wire.Weights(1, version, env_steps, tensors)))
 
@@ -32,22 +33,20 @@ def _weights(ev: EvaluatorService, version: int, env_steps: int = 0) -> None:
 def test_step_zero_then_the_newest_multiple_reached_each_once_and_capped_at_the_budget():
     torch.manual_seed(0)
     ev = _service()
-    assert ev.due() is None  # no weights, no replay stats yet
+    assert ev.due() is None  # no weights yet
     _weights(ev, version=0)
-    assert ev.due() is None
-    ev.seen_env_steps(0)
     assert ev.due() == 0
     result = ev.evaluate(0)
     assert (result.step, result.policy_version, len(result.returns)) == (0, 0, 2)
     assert all(r >= 0.0 for r in result.returns)
     assert ev.due() is None
-    ev.seen_env_steps(49)
+    _weights(ev, version=5, env_steps=49)
     assert ev.due() is None
-    ev.seen_env_steps(130)  # slower than training: 50 is skipped, 100 is evaluated
-    _weights(ev, version=7)
+    _weights(ev, version=6, env_steps=53)  # weights sent at step 50, not yet taken in
+    _weights(ev, version=7, env_steps=130)  # slower than training: 50 is skipped, 100 is evaluated
     assert ev.due() == 100
-    assert ev.evaluate(100).policy_version == 7
-    ev.seen_env_steps(10_000)
+    assert ev.evaluate(100).policy_version == 7  # the weights sent at that eval step
+    _weights(ev, version=8, env_steps=10_000)
     assert ev.due() == 500  # never past the run's budget
     ev.evaluate(500)
     assert ev.due() is None
@@ -56,9 +55,8 @@ def test_step_zero_then_the_newest_multiple_reached_each_once_and_capped_at_the_
 def test_without_eval_at_start_the_first_evaluation_is_at_eval_every():
     ev = _service(eval_at_start=False)
     _weights(ev, version=0)
-    ev.seen_env_steps(0)
     assert ev.due() is None
-    ev.seen_env_steps(60)
+    _weights(ev, version=1, env_steps=60)
     assert ev.due() == 50
 
 
@@ -72,7 +70,6 @@ def test_between_updates_the_learner_evaluates_the_same_steps_and_episodes_as_th
     assert between.due(120) == 0  # before any update: the untrained policy, as step 0
     ours = between.run(0)
     _weights(ev, version=0)
-    ev.seen_env_steps(0)
     theirs = ev.evaluate(0)
     assert (ours.step, ours.policy_version) == (0, ev.agent.num_updates)
     assert ours.returns == theirs.returns  # the same episodes, the same policy: the same returns

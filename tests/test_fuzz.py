@@ -166,6 +166,10 @@ def fuzz(session: zenoh.Session, keys: wire.Keys, spec: EnvSpec) -> dict[str, in
                 for _ in session.get(key, payload=p, timeout=5.0, congestion_control=block):
                     pass
         sent[key.removeprefix(keys.prefix + "/")] = set(payloads)
+        if cls is wire.Weights:  # the evaluator's weights: the same message on a key of its own
+            for p in payloads:
+                session.put(keys.eval_weights, p, congestion_control=block)
+            sent[keys.eval_weights.removeprefix(keys.prefix + "/")] = set(payloads)
     for p in list(variants(valid[wire.Stop]))[:8]:  # the learner answers whatever the query holds
         for _ in session.get(keys.weights_latest, payload=p, timeout=5.0, congestion_control=block):
             pass
@@ -221,7 +225,7 @@ def test_bad_messages_on_every_key_poison_nothing_and_stop_nothing(tmp_path):
             weights = [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
         finally:
             session.close()
-        assert all(n >= 8 for n in counts.values()) and len(counts) == 13, counts
+        assert all(n >= 8 for n in counts.values()) and len(counts) == 14, counts
         assert {name: c.proc.pid for name, c in system.sup.children.items()} == pids
         assert all(c.restarts == 0 and c.proc.poll() is None for c in system.sup.children.values())
         assert all(a["alive"] for a in after["actors"] if a["id"] != FAKE_ACTOR)

@@ -57,6 +57,30 @@ def test_evaluations_are_recorded_once_and_episodes_carry_the_update_means(tmp_p
     assert rows[0]["novelty_mean"] != ""
 
 
+def test_the_evaluators_weights_go_once_per_eval_period_with_the_decoder_and_the_actors_never_carry_it(
+        tmp_path):
+    core = core_on(tmp_path)  # tiny_run: eval_every 50
+    decoded = lambda msg: wire.unpack_tensors(wire.decode(msg, wire.Weights).tensors)  # noqa: E731
+    policy = decoded(core.weights_message(epoch=1))
+    assert policy.keys() == core.agent.policy_state_dict().keys()  # the actors' weights: no decoder
+    assert core.eval_weights_due()  # step 0
+    at_zero = wire.decode(core.weights_message(epoch=1, evaluation=True), wire.Weights)
+    assert (at_zero.version, at_zero.env_steps) == (0, 0)
+    tensors = wire.unpack_tensors(at_zero.tensors)
+    assert {k for k in tensors if k.startswith("decoder.")} == {
+        f"decoder.{k}" for k in core.agent.decoder.state_dict()}
+    assert not core.eval_weights_due()
+    core.train_on(core.scorer.client.sample(16))
+    core.board.seen_env_steps(49)
+    assert not core.eval_weights_due()
+    core.board.seen_env_steps(53)  # eval step 50 reached: due once, with the weights of now
+    assert core.eval_weights_due()
+    at_fifty = wire.decode(core.weights_message(epoch=1, evaluation=True), wire.Weights)
+    assert (at_fifty.version, at_fifty.env_steps) == (1, 53)
+    assert not core.eval_weights_due()
+    assert "decoder.fc.weight" not in decoded(core.weights_message(epoch=1))
+
+
 def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path):
     core = core_on(tmp_path)
     for _ in range(2):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import torch
 
 from shared import wire
@@ -57,3 +59,37 @@ def test_malformed_weights_are_reported_and_leave_the_agent_as_it_was():
     assert not sub.maybe_load()
     assert len(bad) == 2 and sub.version is None
     assert all(torch.equal(before[k], v) for k, v in actor.policy_state_dict().items())
+
+
+def test_a_subscriber_that_missed_the_only_publish_asks_for_the_latest_until_it_holds_weights():
+    """The evaluator's weights come once per evaluation period: a process whose first query was
+    answered before the learner held any, and whose subscription missed the publish, must not wait
+    for the next period."""
+    import zenoh
+
+    from nasa.up import free_port
+    from shared.zenoh_session import open_client, open_router
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = wire.Keys("weights-test")
+    latest: list[bytes] = []
+
+    def answer(query: zenoh.Query) -> None:
+        if latest:
+            query.reply(keys.eval_weights_latest, latest[0])
+        query.drop()
+
+    actor, learner = _agent(0), _agent(1)
+    with (open_router(endpoint), open_client(endpoint) as at_learner, open_client(endpoint) as at_evaluator,
+          at_learner.declare_queryable(keys.eval_weights_latest, answer)):
+        sub = WeightsSubscriber(actor, lambda what: None).subscribe(
+            at_evaluator, keys.eval_weights, keys.eval_weights_latest)
+        with sub:
+            time.sleep(0.5)  # the first query has been answered with nothing
+            assert not sub.maybe_load()
+            latest.append(_message(learner, epoch=1, version=0))  # held now, never published
+            deadline = time.monotonic() + 10.0
+            while not sub.maybe_load():
+                assert time.monotonic() < deadline, "the subscriber never asked again"
+                time.sleep(0.05)
+            assert sub.version == 0 and _same(actor, learner)

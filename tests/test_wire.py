@@ -109,6 +109,7 @@ def test_arrays_and_tensors():
 def test_keys_live_under_the_run_prefix():
     k = wire.Keys("run-1")
     for key in (k.insert(3), k.ack(3), k.sample, k.intrinsic, k.replay_stats, k.weights, k.weights_latest,
+                k.eval_weights, k.eval_weights_latest,
                 k.actor_status(3), k.eval_result, k.stop, k.alive("actor", 3, 9)):
         assert key.startswith("nasa/run-1/")
     assert k.parse_alive(k.alive("actor", 3, 9)) == ("actor", "3", 9)

@@ -197,7 +197,7 @@ class ActorService:
         s, k = self.session, self.keys
         with (
             self.writer,
-            self.weights.subscribe(s, k),
+            self.weights.subscribe(s, k.weights, k.weights_latest),
             s.declare_subscriber(k.stop, self._on_stop),
             s.liveliness().declare_token(k.alive("actor", self.actor_id, self.incarnation)),
             self.bridge if self.bridge is not None else contextlib.nullcontext(),

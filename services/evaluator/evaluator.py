@@ -1,13 +1,16 @@
-"""The evaluator service: deterministic evaluation episodes with the newest weights.
+"""The evaluator service: deterministic evaluation episodes with the weights of each eval step.
 
-Each time the global env step count (the replay's stats) reaches a multiple
-of config.eval_every, it runs config.eval_episodes deterministic episodes
-(shared/evaluation.py, as the single-process trainer) with the newest weights
-it holds and publishes the returns (`eval/result`, BLOCK); the learner writes
-them to eval.csv. Step 0 is evaluated with the learner's initial weights
-(version 0), as the trainer does, unless eval_at_start is off (the reference
-has no step-0 evaluation). If evaluation is slower than training, it
-evaluates the newest multiple reached and skips those in between.
+Each time the learner's env step count reaches a multiple of
+config.eval_every, the learner sends the weights it holds then, with the
+decoder (`learner/eval_weights`); the evaluator runs config.eval_episodes
+deterministic episodes (shared/evaluation.py, as the single-process trainer)
+with them and publishes the returns (`eval/result`, BLOCK); the learner
+writes them to eval.csv. Step 0 is evaluated with the learner's initial
+weights (version 0), as the trainer does, unless eval_at_start is off (the
+reference has no step-0 evaluation). If evaluation is slower than training,
+it evaluates the newest eval step's weights and skips those in between. It
+takes in no other weights: the policy's weights of every update are the
+actors'.
 
 With a run folder (--data, env NASA_DATA) it also leaves pictures there
 (services/evaluator/media.py): after each evaluation the autoencoder's view
@@ -90,24 +93,12 @@ class EvaluatorService:
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
         self.autoencoder_version = 0
         self.evaluations = 0
-        self.global_steps: int | None = None
         self.invalid = 0
         self.done = first_done(c)  # the newest step evaluated
 
     def _invalid(self, what: str) -> None:
         self.invalid += 1
         self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
-
-    def _on_stats(self, sample: zenoh.Sample) -> None:
-        try:
-            n = wire.decode(sample.payload.to_bytes(), wire.ReplayStats).num_inserted
-        except wire.WireError as err:
-            return self._invalid(f"replay stats: {err}")
-        self.seen_env_steps(n)
-
-    def seen_env_steps(self, n: int) -> None:
-        """The replay's global env-step count, as its stats report it."""
-        self.global_steps = max(self.global_steps or 0, n)
 
     def _on_stop(self, sample: zenoh.Sample) -> None:
         try:
@@ -116,12 +107,13 @@ class EvaluatorService:
             self._invalid(f"stop: {err}")
 
     def due(self) -> int | None:
-        """The eval step to evaluate now (the newest multiple of eval_every reached), or None."""
+        """The eval step to evaluate now (the newest multiple of eval_every the learner's weights
+        were sent at), or None."""
         if self.weights.maybe_load() and self.tap.fresh:
             self.tap.fresh, self.autoencoder_version = False, self.weights.version or 0
-        if self.weights.version is None or self.global_steps is None:
+        if self.weights.version is None:
             return None
-        return eval_due(max(self.global_steps, self.weights.env_steps), self.config, self.done)
+        return eval_due(self.weights.env_steps, self.config, self.done)
 
     def _env_ready(self) -> bool:
         """Whether there is an environment to evaluate on; through a bridge, waits for it."""
@@ -185,8 +177,7 @@ class EvaluatorService:
     def run(self) -> None:
         s, k, c = self.session, self.keys, self.config
         with (
-            self.weights.subscribe(s, k),
-            s.declare_subscriber(k.replay_stats, self._on_stats),
+            self.weights.subscribe(s, k.eval_weights, k.eval_weights_latest),
             s.declare_subscriber(k.stop, self._on_stop),
             s.liveliness().declare_token(k.alive("evaluator", 0)),
             self.bridge if self.bridge is not None else contextlib.nullcontext(),

@@ -49,7 +49,7 @@ class LearnerCore:
         self.checkpoint_error = ""  # why the last checkpoint was not written ("" if it was)
         self._checkpoint_retry_at = 0.0
         self.scalars = Scalars(self.out / TENSORBOARD_DIR / "learner")
-        self._decoder_sent: int | None = None  # the eval period whose weights carried the decoder
+        self._eval_sent: int | None = None  # the eval period whose weights went to the evaluator
         self.counters = Counters()
         self.means = MetricMeans()
         self.policy_version = 0
@@ -95,22 +95,29 @@ class LearnerCore:
         self.means.add({k: v for k, v in metrics.items() if np.isfinite(v)})
         return metrics
 
-    def weights_message(self, epoch: int) -> bytes | None:
+    def weights_message(self, epoch: int, evaluation: bool = False) -> bytes | None:
         """The policy's weights as published; version = the update count. None (nothing to
-        publish) if a tensor is not finite."""
+        publish) if a tensor is not finite. `evaluation`: the evaluator's weights of this eval
+        period, with the decoder so it can show the autoencoder's view."""
         state = self.agent.policy_state_dict()
         if not all_finite(state):
             self.log.every("nonfinite-weights", 5.0, "weights not published: a tensor is not finite")
             return None
         self.policy_version = self.agent.num_updates
-        period = self.env_steps // self.config.eval_every
-        if hasattr(self.agent, "decoder") and period != self._decoder_sent:
-            # Once per evaluation period the weights carry the decoder too, so the evaluator can
-            # show the autoencoder's view; actors load the policy's keys only and ignore it.
-            self._decoder_sent = period
-            state |= {f"decoder.{k}": v for k, v in self.agent.decoder.state_dict().items()}
+        if evaluation:
+            self._eval_sent = self.eval_period()
+            if hasattr(self.agent, "decoder"):
+                state |= {f"decoder.{k}": v for k, v in self.agent.decoder.state_dict().items()}
         tensors = wire.pack_tensors(state)
         return wire.encode(wire.Weights(epoch, self.policy_version, self.env_steps, tensors))
+
+    def eval_period(self) -> int:
+        return self.env_steps // self.config.eval_every
+
+    def eval_weights_due(self) -> bool:
+        """Whether an eval step was reached since the evaluator's weights last went out: it plays
+        each evaluation with the weights of its step, as `nasa train` does, and takes in only those."""
+        return self.eval_period() != self._eval_sent
 
     def done(self) -> bool:
         return self.board.replay["done"] and self.agent.num_updates >= self.target_updates

@@ -6,7 +6,10 @@
   unscored rows before each update and writes the scores back.
 - Weights: version = the update count; published every `publish_every`
   updates (latest wins) and served on `learner/weights/latest` for processes
-  that just started.
+  that just started. The evaluator's weights go out on `learner/eval_weights`
+  (and `.../latest`) once per evaluation period, when its eval step is
+  reached, with the decoder: it plays each evaluation with the weights of its
+  step and takes in nothing else.
 - Records: evaluations from the evaluator become eval.csv rows (or, with
   --eval-between-updates, the learner plays them itself between updates),
   episodes the actors report become train.csv rows; a checkpoint every checkpoint_every env
@@ -65,7 +68,8 @@ class Learner:
         self.epoch = wire.restart_stamp(1000, 62)  # orders weights across learner restarts
         self._evals: queue.Queue[wire.EvalResult] = queue.Queue()
         self._episodes: queue.Queue[tuple[float, int]] = queue.Queue()
-        self._weights_msg: bytes | None = None
+        self._latest: dict[str, bytes] = {}  # the newest message of each weights key, for `.../latest`
+        self._publishers: dict[str, zenoh.Publisher] = {}
         self.wall_s = self.core.counters.wall_s
         self.metrics = LearnerMetrics(self.status)
         self.history = History()  # read by its own thread, never the update loop
@@ -128,10 +132,12 @@ class Learner:
         if (m := self._decoded(sample, wire.Stop, "stop")) is not None:
             self.stop.set("stop message: " + m.reason)
 
-    def _on_weights_query(self, query: zenoh.Query) -> None:
-        if self._weights_msg is not None:
-            query.reply(self.keys.weights_latest, self._weights_msg)
-        query.drop()
+    def _latest_answer(self, which: str, key: str) -> Callable[[zenoh.Query], None]:
+        def answer(query: zenoh.Query) -> None:
+            if (msg := self._latest.get(which)) is not None:
+                query.reply(key, msg)
+            query.drop()
+        return answer
 
     # -- the HTTP controls (POST /control/<name>) ----------------------------------------
 
@@ -150,11 +156,17 @@ class Learner:
 
     # -- the loop ----------------------------------------------------------------------
 
-    def publish_weights(self, publisher: zenoh.Publisher) -> None:
-        msg = self.core.weights_message(self.epoch)
+    def publish_weights(self, evaluation: bool = False) -> None:
+        msg = self.core.weights_message(self.epoch, evaluation)
         if msg is not None:  # never non-finite weights: the actors keep the last good ones
-            self._weights_msg = msg
-            publisher.put(msg)
+            which = "evaluation" if evaluation else "policy"
+            self._latest[which] = msg
+            self._publishers[which].put(msg)
+
+    def publish_eval_weights(self) -> None:
+        """The evaluator's weights, once an eval step is reached (none when the learner evaluates)."""
+        if self.between is None and self.core.eval_weights_due():
+            self.publish_weights(evaluation=True)
 
     def run(self) -> None:
         from services.learner.status_api import StatusServer, api_token, is_loopback, make_app
@@ -180,18 +192,21 @@ class Learner:
                 evaluators = s.liveliness().declare_subscriber(k.alive_evaluators, self._on_evaluator_alive,
                                                                history=True)
                 stack.enter_context(evaluators)
-                stack.enter_context(s.declare_queryable(k.weights_latest, self._on_weights_query))
-                publisher = stack.enter_context(s.declare_publisher(k.weights))
+                for which, key, latest in (("policy", k.weights, k.weights_latest),
+                                           ("evaluation", k.eval_weights, k.eval_weights_latest)):
+                    stack.enter_context(s.declare_queryable(latest, self._latest_answer(which, latest)))
+                    self._publishers[which] = stack.enter_context(s.declare_publisher(key))
                 stack.enter_context(s.liveliness().declare_token(k.alive("learner", 0)))
                 self.log(f"run {k.run_id}: status on http://{self.args.host}:{self.args.port}/status")
-                self._loop(publisher)
+                self._loop()
         finally:
             self.history.stop()
             server.stop()
 
-    def _loop(self, publisher: zenoh.Publisher) -> None:
+    def _loop(self) -> None:
         core, c = self.core, self.core.config
-        self.publish_weights(publisher)
+        self.publish_weights()
+        self.publish_eval_weights()  # before any update: step 0's, the untrained policy
         # The limiter then counts the samples this learner used: the updates its checkpoint lost
         # (a kill -9 after it) are made up, so the run still ends with G * (steps - warm-up).
         while not self.stop and not self.client.sync_samples(core.agent.num_updates):
@@ -208,6 +223,7 @@ class Learner:
             while not self.stop:
                 self.wall_s = wall0 + time.monotonic() - wall_start
                 self._drain()
+                self.publish_eval_weights()
                 if core.checkpoint_due() or self._checkpoint_asked.is_set():
                     self._checkpoint_asked.clear()
                     core.save_checkpoint(self.wall_s)
@@ -248,15 +264,16 @@ class Learner:
                 self.metrics.update_seconds.observe(time.perf_counter() - began)
                 core.board.seen_env_steps(self.client.num_inserted)
                 if core.agent.num_updates % self.args.publish_every == 0:
-                    self.publish_weights(publisher)
-        self._finish(publisher, finished)
+                    self.publish_weights()
+        self._finish(finished)
 
-    def _finish(self, publisher: zenoh.Publisher, finished: bool) -> None:
+    def _finish(self, finished: bool) -> None:
         core = self.core
         if finished:
             if core.scorer is not None:
                 core.scorer.catch_up()
-            self.publish_weights(publisher)
+            self.publish_weights()
+            self.publish_eval_weights()
             if self.between is None:
                 self._wait_final_eval()
             elif (target := self.between.due(core.env_steps)) is not None:
