@@ -192,10 +192,13 @@ class Learner:
                 evaluators = s.liveliness().declare_subscriber(k.alive_evaluators, self._on_evaluator_alive,
                                                                history=True)
                 stack.enter_context(evaluators)
-                for which, key, latest in (("policy", k.weights, k.weights_latest),
-                                           ("evaluation", k.eval_weights, k.eval_weights_latest)):
+                # The actors' weights: latest wins (DROP). The evaluator's: each one is an eval step (BLOCK).
+                for which, key, latest, congestion in (
+                        ("policy", k.weights, k.weights_latest, zenoh.CongestionControl.DROP),
+                        ("evaluation", k.eval_weights, k.eval_weights_latest, BLOCK)):
                     stack.enter_context(s.declare_queryable(latest, self._latest_answer(which, latest)))
-                    self._publishers[which] = stack.enter_context(s.declare_publisher(key))
+                    self._publishers[which] = stack.enter_context(
+                        s.declare_publisher(key, congestion_control=congestion))
                 stack.enter_context(s.liveliness().declare_token(k.alive("learner", 0)))
                 self.log(f"run {k.run_id}: status on http://{self.args.host}:{self.args.port}/status")
                 self._loop()
