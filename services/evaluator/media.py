@@ -1,10 +1,10 @@
 """The evaluator's pictures of a run: the autoencoder's view and evaluation videos, in <data>/media.
 
-The learner sends the decoder with its weights once per evaluation period
-(services/learner/core.py); `AutoencoderTap` keeps the encoder and decoder of
-the newest such message in a second agent, so the view always pairs an
-encoder with its own decoder even after later weights (policy only) replace
-the acting agent's encoder. Everything here runs in the evaluator's process,
+The learner sends the evaluator the weights of each eval step with the
+decoder (services/learner/core.py); `AutoencoderTap` keeps the encoder and
+decoder of the newest message that carried one in a second agent, so the
+view always pairs an encoder with its own decoder. Everything here runs in
+the evaluator's process,
 after an evaluation's episodes: the learner's update loop renders nothing.
 
 <data>/media/media.json lists what is there, for the dashboard:
