@@ -187,12 +187,16 @@ def _agent():
 
 def test_evaluation_video_decodes_to_its_frame_count_and_the_autoencoder_view(tmp_path):
     source = _agent()
-    tap = AutoencoderTap(_agent(), _agent)
+    tap = AutoencoderTap(_agent())
     tap.load_policy_state_dict(source.policy_state_dict())
     assert tap.autoencoder is None  # policy weights alone: no autoencoder to show
+    with pytest.raises(ValueError, match="has none"):  # a decoder for an agent without one
+        AutoencoderTap(make_agent("pixel_td3", (9, 32, 32), 1, tiny_run().config.agent,
+                                  torch.device("cpu"))).load_policy_state_dict({"decoder.w": torch.zeros(1)})
     decoder = {f"decoder.{k}": v for k, v in source.decoder.state_dict().items()}
     tap.load_policy_state_dict(source.policy_state_dict() | decoder)
-    for name in ("encoder", "decoder"):
+    assert tap.autoencoder is tap.agent and tap.fresh  # the evaluated policy's encoder, its decoder
+    for name in ("encoder", "decoder", "actor"):
         for a, b in zip(getattr(tap.autoencoder, name).parameters(), getattr(source, name).parameters(),
                         strict=True):
             assert torch.equal(a, b)

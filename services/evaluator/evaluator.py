@@ -87,8 +87,7 @@ class EvaluatorService:
         spec = run.spec
         device = torch.device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
-        self.tap = AutoencoderTap(
-            self.agent, lambda: make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device))
+        self.tap = AutoencoderTap(self.agent)
         self.weights = WeightsSubscriber(self.tap, self._invalid)  # type: ignore[arg-type]
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
         self.autoencoder_version = 0

@@ -1,11 +1,10 @@
 """The evaluator's pictures of a run: the autoencoder's view and evaluation videos, in <data>/media.
 
 The learner sends the evaluator the weights of each eval step with the
-decoder (services/learner/core.py); `AutoencoderTap` keeps the encoder and
-decoder of the newest message that carried one in a second agent, so the
-view always pairs an encoder with its own decoder. Everything here runs in
-the evaluator's process,
-after an evaluation's episodes: the learner's update loop renders nothing.
+decoder (services/learner/core.py); `AutoencoderTap` loads that decoder into
+the evaluated agent, so the view is always the evaluated policy's encoder
+with its own decoder. Everything here runs in the evaluator's process, after
+an evaluation's episodes: the learner's update loop renders nothing.
 
 <data>/media/media.json lists what is there, for the dashboard:
 `{"autoencoder": {step, policy_version, autoencoder_version, novelty, image},
@@ -16,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -37,25 +35,26 @@ AE_IMAGE = "autoencoder.png"
 
 
 class AutoencoderTap:
-    """Stands for the agent in a WeightsSubscriber: loads the policy into it, and keeps the
-    encoder and decoder of weights that carry a decoder in `autoencoder` (built on first use)."""
+    """Stands for the agent in a WeightsSubscriber: loads the policy into it and, from weights that
+    carry a decoder, the decoder too; `autoencoder` is then that agent, whose encoder is the
+    policy's own."""
 
-    def __init__(self, agent, build: Callable[[], object]) -> None:  # noqa: ANN001
-        self.agent, self.build = agent, build
+    def __init__(self, agent) -> None:  # noqa: ANN001
+        self.agent = agent
         self.autoencoder = None
         self.fresh = False
 
     def load_policy_state_dict(self, state: dict) -> None:
+        head = "decoder."
+        decoder = {k[len(head):]: v for k, v in state.items() if k.startswith(head)}
+        module = getattr(self.agent, "decoder", None)
+        if decoder and module is None:
+            raise ValueError(f"weights carry a decoder, but {type(self.agent).__name__} has none")
         self.agent.load_policy_state_dict(state)
-        if not any(k.startswith("decoder.") for k in state):
+        if not decoder:
             return
-        if self.autoencoder is None:
-            self.autoencoder = self.build()
-        for name in ("encoder", "decoder"):
-            head = name + "."
-            module = getattr(self.autoencoder, name)
-            module.load_state_dict({k[len(head):]: v for k, v in state.items() if k.startswith(head)})
-        self.fresh = True
+        module.load_state_dict(decoder)
+        self.autoencoder, self.fresh = self.agent, True
 
 
 class EvalMedia:
