@@ -13,6 +13,7 @@ a reward of -1/2 a step over 50 steps. A pixel agent is not expected to learn fa
 one: where this one needs N steps, a 30-minute pixel run of fewer steps says little about the method.
 
     python -m bench.gripper_state [--steps 50000] [--eval-every 2500] [--seed 0]
+        [--updates-per-step 1] [--gamma G] [--actor-lr LR] [--exploration-noise S] [--threads N]
 
 The last line is one JSON object.
 """
@@ -51,10 +52,15 @@ class StateValve(ValveSim):
         return np.concatenate([angles, fingers, self._setpoint]).astype(np.float32)
 
 
-def state_agent(seed: int) -> tuple[PixelTD3, TrainConfig]:
-    """TD3 with cpu-small's settings whose 'encoder' passes the state through; and those settings."""
+def state_agent(seed: int, agent_settings: dict | None = None) -> tuple[PixelTD3, TrainConfig]:
+    """TD3 with cpu-small's settings (and `agent_settings` over them: AgentConfig fields) whose
+    'encoder' passes the state through; and those settings."""
     torch.manual_seed(seed)
     config = default_config("pixel_td3", "cpu-small", TASK)
+    for name, value in (agent_settings or {}).items():
+        if not hasattr(config.agent, name):
+            raise ValueError(f"unknown agent setting {name!r}")
+        setattr(config.agent, name, value)
     config.agent.latent_dim = STATE_DIM
     agent = PixelTD3((3, 16, 16), 4, config.agent, torch.device("cpu"))
     agent.encoder = torch.nn.Identity()
@@ -77,10 +83,11 @@ def evaluate(agent: PixelTD3, env: StateValve, episodes: int) -> float:
 
 
 def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = None,
-          warmup: int | None = None) -> dict:
-    """Learn from state for `steps` env steps; the evaluations' means by step. Evaluation episodes
-    and warm-up default to cpu-small's gripper settings."""
-    agent, config = state_agent(seed)
+          warmup: int | None = None, agent_settings: dict | None = None, updates_per_step: int = 1) -> dict:
+    """Learn from state for `steps` env steps, `updates_per_step` updates (each on its own
+    minibatch) after each; the evaluations' means by step. Evaluation episodes and warm-up default
+    to cpu-small's gripper settings."""
+    agent, config = state_agent(seed, agent_settings)
     batch_size = config.batch_size
     eval_episodes = config.eval_episodes if eval_episodes is None else eval_episodes
     warmup = config.warmup_steps if warmup is None else warmup
@@ -99,7 +106,7 @@ def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = No
         next_state, reward, _, last = env.step(action.astype(np.float64))
         obs[i], actions[i], rewards[i], next_obs[i] = state, action, reward, next_state
         state = env.reset()[0] if last else next_state
-        if i >= warmup:
+        for _ in range(updates_per_step if i >= warmup else 0):
             rows = rng.integers(0, i + 1, batch_size)
             agent.update({  # the time limit is not an end: discount 1, as the pixel runs store it
                 "obs": torch.from_numpy(obs[rows]), "next_obs": torch.from_numpy(next_obs[rows]),
@@ -123,12 +130,24 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50_000)
     parser.add_argument("--eval-every", type=int, default=2_500)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--updates-per-step", type=int, default=1, help="G (cpu-small: 1)")
+    parser.add_argument("--gamma", type=float, help="the discount (cpu-small: 0.99)")
+    parser.add_argument("--actor-lr", type=float, help="the actor's learning rate (cpu-small: 1e-4)")
+    parser.add_argument("--exploration-noise", type=float, help="cpu-small: 0.1")
+    parser.add_argument("--threads", type=int, help="torch threads (default: torch's); results differ "
+                        "in rounding, and so in their path, from one thread count to another")
     args = parser.parse_args()
-    if args.steps < 1 or args.eval_every < 1 or args.seed < 0:
-        parser.error("--steps and --eval-every must be >= 1, --seed >= 0")
+    if args.steps < 1 or args.eval_every < 1 or args.seed < 0 or args.updates_per_step < 1:
+        parser.error("--steps, --eval-every and --updates-per-step must be >= 1, --seed >= 0")
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    settings = {name: value for name in ("gamma", "actor_lr", "exploration_noise")
+                if (value := getattr(args, name)) is not None}
     result = {"task": TASK, "observation": "state", "steps": args.steps, "seed": args.seed,
-              "ignores_target": IGNORES_TARGET}
-    result |= train(args.steps, args.eval_every, args.seed)
+              "ignores_target": IGNORES_TARGET, "updates_per_step": args.updates_per_step,
+              "agent_settings": settings, "threads": torch.get_num_threads()}
+    result |= train(args.steps, args.eval_every, args.seed, agent_settings=settings,
+                    updates_per_step=args.updates_per_step)
     evals = list(result["evals"].values())
     result["best"], result["last"] = max(evals), evals[-1]
     print(json.dumps(result))

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from bench.gripper_state import STATE_DIM, StateValve, train
+from bench.gripper_state import STATE_DIM, StateValve, state_agent, train
 
 
 def test_the_state_holds_the_valve_the_target_and_the_fingers():
@@ -31,7 +31,18 @@ def test_a_short_run_updates_after_the_warm_up_and_evaluates_on_schedule():
     assert all(-50.0 <= v <= 0.0 for v in result["evals"].values())
 
 
-BAD = [["--steps", "0"], ["--eval-every", "-5"], ["--seed", "-1"], ["--steps", "nan"]]
+def test_settings_over_cpu_small_reach_the_agent_and_g_updates_follow_each_step():
+    result = train(steps=30, eval_every=30, seed=0, eval_episodes=1, warmup=20,
+                   agent_settings={"gamma": 0.5}, updates_per_step=3)
+    assert result["updates"] == 30  # three per step after the warm-up
+    agent, _ = state_agent(0, {"gamma": 0.5, "exploration_noise": 0.3})
+    assert agent.config.gamma == 0.5 and agent.config.exploration_noise == 0.3
+    with pytest.raises(ValueError, match="unknown agent setting"):
+        state_agent(0, {"gama": 0.5})
+
+
+BAD = [["--steps", "0"], ["--eval-every", "-5"], ["--seed", "-1"], ["--steps", "nan"],
+       ["--updates-per-step", "0"], ["--gamma", "x"]]
 
 
 @pytest.mark.parametrize("bad", BAD)
