@@ -137,8 +137,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's); results differ "
                         "in rounding, and so in their path, from one thread count to another")
     args = parser.parse_args()
-    if args.steps < 1 or args.eval_every < 1 or args.seed < 0 or args.updates_per_step < 1:
-        parser.error("--steps, --eval-every and --updates-per-step must be >= 1, --seed >= 0")
+    if min(args.steps, args.eval_every, args.updates_per_step,
+           1 if args.threads is None else args.threads) < 1 or args.seed < 0:
+        parser.error("--steps, --eval-every, --updates-per-step and --threads must be >= 1, --seed >= 0")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     settings = {name: value for name in ("gamma", "actor_lr", "exploration_noise")

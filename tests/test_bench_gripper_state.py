@@ -42,7 +42,7 @@ def test_settings_over_cpu_small_reach_the_agent_and_g_updates_follow_each_step(
 
 
 BAD = [["--steps", "0"], ["--eval-every", "-5"], ["--seed", "-1"], ["--steps", "nan"],
-       ["--updates-per-step", "0"], ["--gamma", "x"]]
+       ["--updates-per-step", "0"], ["--gamma", "x"], ["--threads", "0"]]
 
 
 @pytest.mark.parametrize("bad", BAD)
