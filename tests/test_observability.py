@@ -195,11 +195,14 @@ def test_evaluation_video_decodes_to_its_frame_count_and_the_autoencoder_view(tm
                                   torch.device("cpu"))).load_policy_state_dict({"decoder.w": torch.zeros(1)})
     decoder = {f"decoder.{k}": v for k, v in source.decoder.state_dict().items()}
     tap.load_policy_state_dict(source.policy_state_dict() | decoder)
-    assert tap.autoencoder is tap.agent and tap.fresh  # the evaluated policy's encoder, its decoder
+    assert tap.autoencoder is tap.agent  # the evaluated policy's encoder, its decoder
     for name in ("encoder", "decoder", "actor"):
         for a, b in zip(getattr(tap.autoencoder, name).parameters(), getattr(source, name).parameters(),
                         strict=True):
             assert torch.equal(a, b)
+    tap.load_policy_state_dict(_agent().policy_state_dict())  # a new encoder, no decoder with it
+    assert tap.autoencoder is None  # never an encoder shown with another message's decoder
+    tap.load_policy_state_dict(source.policy_state_dict() | decoder)
     obs = np.random.default_rng(0).integers(0, 256, (23, 9, 32, 32), dtype=np.uint8)
     media = EvalMedia(tmp_path, frames=5)
     image = media.autoencoder_view(tap.autoencoder, obs, step=100, policy_version=7, autoencoder_version=5)

@@ -90,7 +90,6 @@ class EvaluatorService:
         self.tap = AutoencoderTap(self.agent)
         self.weights = WeightsSubscriber(self.tap, self._invalid)  # type: ignore[arg-type]
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
-        self.autoencoder_version = 0
         self.evaluations = 0
         self.invalid = 0
         self.done = first_done(c)  # the newest step evaluated
@@ -108,8 +107,7 @@ class EvaluatorService:
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every the learner's weights
         were sent at), or None."""
-        if self.weights.maybe_load() and self.tap.fresh:
-            self.tap.fresh, self.autoencoder_version = False, self.weights.version or 0
+        self.weights.maybe_load()
         if self.weights.version is None:
             return None
         return eval_due(self.weights.env_steps, self.config, self.done)
@@ -152,7 +150,7 @@ class EvaluatorService:
         if self.media is not None and obs:
             autoencoder, frames = self.tap.autoencoder, np.stack(obs)
             if autoencoder is not None:
-                self.media.autoencoder_view(autoencoder, frames, target, version, self.autoencoder_version)
+                self.media.autoencoder_view(autoencoder, frames, target, version, version)
             if video:
                 path = self.media.video(autoencoder, frames, cameras, target, first)
                 self.log(f"step {target}: video {path}")

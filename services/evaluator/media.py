@@ -36,13 +36,12 @@ AE_IMAGE = "autoencoder.png"
 
 class AutoencoderTap:
     """Stands for the agent in a WeightsSubscriber: loads the policy into it and, from weights that
-    carry a decoder, the decoder too; `autoencoder` is then that agent, whose encoder is the
-    policy's own."""
+    carry a decoder, the decoder too. `autoencoder` is that agent while its encoder and decoder
+    came in one message (the evaluated policy's own pair), else None."""
 
     def __init__(self, agent) -> None:  # noqa: ANN001
         self.agent = agent
         self.autoencoder = None
-        self.fresh = False
 
     def load_policy_state_dict(self, state: dict) -> None:
         head = "decoder."
@@ -51,10 +50,9 @@ class AutoencoderTap:
         if decoder and module is None:
             raise ValueError(f"weights carry a decoder, but {type(self.agent).__name__} has none")
         self.agent.load_policy_state_dict(state)
-        if not decoder:
-            return
-        module.load_state_dict(decoder)
-        self.autoencoder, self.fresh = self.agent, True
+        if decoder:
+            module.load_state_dict(decoder)
+        self.autoencoder = self.agent if decoder else None
 
 
 class EvalMedia:
