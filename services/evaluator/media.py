@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.agents.base import module_state
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.video import (
     CAMERA_SIZE,
@@ -44,8 +45,7 @@ class AutoencoderTap:
         self.autoencoder = None
 
     def load_policy_state_dict(self, state: dict) -> None:
-        head = "decoder."
-        decoder = {k[len(head):]: v for k, v in state.items() if k.startswith(head)}
+        decoder = module_state(state, "decoder")
         module = getattr(self.agent, "decoder", None)
         if decoder and module is None:
             raise ValueError(f"weights carry a decoder, but {type(self.agent).__name__} has none")

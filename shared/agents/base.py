@@ -44,6 +44,12 @@ class Agent(Protocol):
     def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None: ...
 
 
+def module_state(state: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    """The tensors of `state` under `prefix.` (as `policy_state_dict` names them), without it."""
+    head = prefix + "."
+    return {k[len(head):]: v for k, v in state.items() if k.startswith(head)}
+
+
 def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
     """A (C, H, W) uint8 observation as a (1, C, H, W) uint8 tensor on `device`; the cast happens there."""
     return torch.as_tensor(obs, device=device).unsqueeze(0)
@@ -168,5 +174,4 @@ class ModuleStateMixin:
 
     def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         for prefix, module in self._policy_modules().items():
-            head = prefix + "."
-            module.load_state_dict({k[len(head) :]: v for k, v in state.items() if k.startswith(head)})
+            module.load_state_dict(module_state(state, prefix))
