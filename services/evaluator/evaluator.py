@@ -150,7 +150,7 @@ class EvaluatorService:
         if self.media is not None and obs:
             autoencoder, frames = self.tap.autoencoder, np.stack(obs)
             if autoencoder is not None:
-                self.media.autoencoder_view(autoencoder, frames, target, version, version)
+                self.media.autoencoder_view(autoencoder, frames, target, version)
             if video:
                 path = self.media.video(autoencoder, frames, cameras, target, first)
                 self.log(f"step {target}: video {path}")

@@ -64,9 +64,11 @@ class EvalMedia:
         path = self.dir / "media.json"
         self.manifest = json.loads(path.read_text()) if path.exists() else {"autoencoder": None, "videos": []}
 
-    def autoencoder_view(self, autoencoder, obs: np.ndarray, step: int, policy_version: int,  # noqa: ANN001
-                         autoencoder_version: int) -> np.ndarray:
-        """Frames spread over an evaluation episode beside Dec(Enc(s)), with each one's novelty."""
+    def autoencoder_view(self, autoencoder, obs: np.ndarray, step: int,  # noqa: ANN001
+                         policy_version: int) -> np.ndarray:
+        """Frames spread over an evaluation episode beside Dec(Enc(s)), with each one's novelty.
+        The decoder came in the policy's own message, so the view's autoencoder version is the
+        policy's (both fields stay in media.json, which the dashboard reads)."""
         from PIL import Image
 
         idx = np.unique(np.linspace(0, len(obs) - 1, min(self.frames, len(obs))).round().astype(int))
@@ -80,7 +82,7 @@ class EvalMedia:
         self.scalars.flush()
         self.manifest["autoencoder"] = {
             "step": int(step), "policy_version": int(policy_version),
-            "autoencoder_version": int(autoencoder_version),
+            "autoencoder_version": int(policy_version),
             "novelty": [round(float(v), 4) for v in novelty], "image": AE_IMAGE,
         }
         self._save()
