@@ -3,7 +3,9 @@
 The project's TD3 core (the critic, actor, TD target and update order of every TD3 agent here)
 learns `gripper-valve` from the simulator's true state instead of the camera: the valve's and the
 target's angles (cos, sin, and of their difference) and the four finger joints' angles and
-setpoints. Settings are cpu-small's for the gripper (hidden 256, batch 64, G = 1, warm-up 500,
+setpoints. `--without-difference` leaves the difference out: the state then holds what a frame
+shows (the valve, the target, the fingers), and the agent must relate the two angles itself, as a
+pixel agent must. Settings are cpu-small's for the gripper (hidden 256, batch 64, G = 1, warm-up 500,
 exploration noise 0.1, 20 evaluation episodes), with the encoder replaced by the state itself.
 Every `--eval-every` steps it evaluates on a separate stand-in (seed + 1,000,000).
 
@@ -12,7 +14,7 @@ the valve at random) scores -25 on average, since the target is uniform: a mean 
 a reward of -1/2 a step over 50 steps. A pixel agent is not expected to learn faster than this
 one: where this one needs N steps, a 30-minute pixel run of fewer steps says little about the method.
 
-    python -m bench.gripper_state [--steps 50000] [--eval-every 2500] [--seed 0]
+    python -m bench.gripper_state [--steps 50000] [--eval-every 2500] [--seed 0] [--without-difference]
         [--updates-per-step 1] [--gamma G] [--actor-lr LR] [--exploration-noise S] [--threads N]
 
 The last line is one JSON object.
@@ -35,11 +37,21 @@ from shared.gripper.sim import EPISODE_STEPS, ValveSim
 
 TASK = "gripper-valve"
 STATE_DIM = 14
+DIFFERENCE = slice(4, 6)  # cos and sin of target - valve, in `StateValve.state()`
 IGNORES_TARGET = -EPISODE_STEPS / 2  # a mean distance of pi/2 is a reward of -1/2 a step
 
 
 class StateValve(ValveSim):
-    """The stand-in without its camera: reset and step return `state()` where a frame would be."""
+    """The stand-in without its camera: reset and step return `state()` where a frame would be;
+    with `difference=False`, without the two elements of the target's angle from the valve."""
+
+    def __init__(self, *args, difference: bool = True, **kwargs) -> None:  # noqa: ANN002, ANN003 (ValveSim's)
+        self.difference = difference
+        super().__init__(*args, **kwargs)
+
+    @property
+    def state_dim(self) -> int:
+        return STATE_DIM if self.difference else STATE_DIM - 2
 
     def render(self) -> np.ndarray:
         return self.state()
@@ -49,19 +61,21 @@ class StateValve(ValveSim):
         fingers = self.data.qpos[self._finger_qpos]
         angles = (math.cos(valve), math.sin(valve), math.cos(target), math.sin(target),
                   math.cos(target - valve), math.sin(target - valve))
-        return np.concatenate([angles, fingers, self._setpoint]).astype(np.float32)
+        state = np.concatenate([angles, fingers, self._setpoint]).astype(np.float32)
+        return state if self.difference else np.delete(state, DIFFERENCE)
 
 
-def state_agent(seed: int, agent_settings: dict | None = None) -> tuple[PixelTD3, TrainConfig]:
+def state_agent(seed: int, agent_settings: dict | None = None,
+                state_dim: int = STATE_DIM) -> tuple[PixelTD3, TrainConfig]:
     """TD3 with cpu-small's settings (and `agent_settings` over them: AgentConfig fields) whose
-    'encoder' passes the state through; and those settings."""
+    'encoder' passes a state of `state_dim` through; and those settings."""
     torch.manual_seed(seed)
     config = default_config("pixel_td3", "cpu-small", TASK)
     for name, value in (agent_settings or {}).items():
         if not hasattr(config.agent, name):
             raise ValueError(f"unknown agent setting {name!r}")
         setattr(config.agent, name, value)
-    config.agent.latent_dim = STATE_DIM
+    config.agent.latent_dim = state_dim
     agent = PixelTD3((3, 16, 16), 4, config.agent, torch.device("cpu"))
     agent.encoder = torch.nn.Identity()
     agent.critic_opt = adam(agent.critic.parameters(), config.agent.critic_lr)
@@ -83,17 +97,19 @@ def evaluate(agent: PixelTD3, env: StateValve, episodes: int) -> float:
 
 
 def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = None,
-          warmup: int | None = None, agent_settings: dict | None = None, updates_per_step: int = 1) -> dict:
+          warmup: int | None = None, agent_settings: dict | None = None, updates_per_step: int = 1,
+          difference: bool = True) -> dict:
     """Learn from state for `steps` env steps, `updates_per_step` updates (each on its own
     minibatch) after each; the evaluations' means by step. Evaluation episodes and warm-up default
-    to cpu-small's gripper settings."""
-    agent, config = state_agent(seed, agent_settings)
+    to cpu-small's gripper settings; `difference` as `StateValve`'s."""
+    env = StateValve(TASK, seed, difference=difference)
+    eval_env = StateValve(TASK, seed + EVAL_SEED_OFFSET, difference=difference)
+    agent, config = state_agent(seed, agent_settings, env.state_dim)
     batch_size = config.batch_size
     eval_episodes = config.eval_episodes if eval_episodes is None else eval_episodes
     warmup = config.warmup_steps if warmup is None else warmup
-    env, eval_env = StateValve(TASK, seed), StateValve(TASK, seed + EVAL_SEED_OFFSET)
     rng = np.random.default_rng(seed)
-    obs = np.zeros((steps, STATE_DIM), np.float32)
+    obs = np.zeros((steps, env.state_dim), np.float32)
     next_obs = np.zeros_like(obs)
     actions = np.zeros((steps, 4), np.float32)
     rewards = np.zeros(steps, np.float32)
@@ -130,6 +146,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50_000)
     parser.add_argument("--eval-every", type=int, default=2_500)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--without-difference", action="store_true",
+                        help="leave the target's angle from the valve out of the state")
     parser.add_argument("--updates-per-step", type=int, default=1, help="G (cpu-small: 1)")
     parser.add_argument("--gamma", type=float, help="the discount (cpu-small: 0.99)")
     parser.add_argument("--actor-lr", type=float, help="the actor's learning rate (cpu-small: 1e-4)")
@@ -146,9 +164,10 @@ def main() -> None:
                 if (value := getattr(args, name)) is not None}
     result = {"task": TASK, "observation": "state", "steps": args.steps, "seed": args.seed,
               "ignores_target": IGNORES_TARGET, "updates_per_step": args.updates_per_step,
+              "difference": not args.without_difference,
               "agent_settings": settings, "threads": torch.get_num_threads()}
     result |= train(args.steps, args.eval_every, args.seed, agent_settings=settings,
-                    updates_per_step=args.updates_per_step)
+                    updates_per_step=args.updates_per_step, difference=not args.without_difference)
     evals = list(result["evals"].values())
     result["best"], result["last"] = max(evals), evals[-1]
     print(json.dumps(result))

@@ -24,6 +24,19 @@ def test_the_state_holds_the_valve_the_target_and_the_fingers():
     env.close()
 
 
+def test_without_the_difference_the_state_holds_what_a_frame_shows():
+    full, bare = StateValve("gripper-valve", 3), StateValve("gripper-valve", 3, difference=False)
+    for env in (full, bare):
+        env.reset()
+        env.step(np.array([0.5, -0.5, 0.2, 0.0]))
+    assert bare.state_dim == STATE_DIM - 2 and bare.state().shape == (STATE_DIM - 2,)
+    assert np.array_equal(bare.state(), np.delete(full.state(), [4, 5]))  # same draws, less state
+    result = train(steps=30, eval_every=30, seed=0, eval_episodes=1, warmup=20, difference=False)
+    assert result["updates"] == 10
+    full.close()
+    bare.close()
+
+
 def test_a_short_run_updates_after_the_warm_up_and_evaluates_on_schedule():
     result = train(steps=60, eval_every=30, seed=0, eval_episodes=1, warmup=20)
     assert list(result["evals"]) == ["0", "30", "60"]
