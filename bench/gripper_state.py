@@ -5,8 +5,10 @@ learns `gripper-valve` from the simulator's true state instead of the camera: th
 target's angles (cos, sin, and of their difference) and the four finger joints' angles and
 setpoints. `--without-difference` leaves the difference out: the state then holds what a frame
 shows (the valve, the target, the fingers), and the agent must relate the two angles itself, as a
-pixel agent must. Settings are cpu-small's for the gripper (hidden 256, batch 64, G = 1, warm-up 500,
-exploration noise 0.1, 20 evaluation episodes), with the encoder replaced by the state itself.
+pixel agent must. `--angle-noise DEG` reads both angles with Gaussian noise of that many degrees
+at every step, as an encoder that holds them only approximately would. Settings are cpu-small's
+for the gripper (hidden 256, batch 64, G = 1, warm-up 500, exploration noise 0.1, 20 evaluation
+episodes), with the encoder replaced by the state itself.
 Every `--eval-every` steps it evaluates on a separate stand-in (seed + 1,000,000).
 
 What to read it against: a policy that ignores the target (the untrained one, or one that turns
@@ -15,7 +17,8 @@ a reward of -1/2 a step over 50 steps. A pixel agent is not expected to learn fa
 one: where this one needs N steps, a 30-minute pixel run of fewer steps says little about the method.
 
     python -m bench.gripper_state [--steps 50000] [--eval-every 2500] [--seed 0] [--without-difference]
-        [--updates-per-step 1] [--gamma G] [--actor-lr LR] [--exploration-noise S] [--threads N]
+        [--angle-noise DEG] [--updates-per-step 1] [--gamma G] [--actor-lr LR]
+        [--exploration-noise S] [--threads N]
 
 The last line is one JSON object.
 """
@@ -37,17 +40,23 @@ from shared.gripper.sim import EPISODE_STEPS, ValveSim
 
 TASK = "gripper-valve"
 STATE_DIM = 14
+NOISE_STREAM = 0x6E6F  # keeps the angle noise's draws apart from the stand-in's own
 DIFFERENCE = slice(4, 6)  # cos and sin of target - valve, in `StateValve.state()`
 IGNORES_TARGET = -EPISODE_STEPS / 2  # a mean distance of pi/2 is a reward of -1/2 a step
 
 
 class StateValve(ValveSim):
     """The stand-in without its camera: reset and step return `state()` where a frame would be;
-    with `difference=False`, without the two elements of the target's angle from the valve."""
+    with `difference=False`, without the two elements of the target's angle from the valve; with
+    `angle_noise` > 0, both angles read with Gaussian noise of that many degrees (its own draws,
+    from the seed, so the stand-in's draws do not change)."""
 
-    def __init__(self, *args, difference: bool = True, **kwargs) -> None:  # noqa: ANN002, ANN003 (ValveSim's)
+    def __init__(self, task: str, seed: int, *args, difference: bool = True,  # noqa: ANN002 (ValveSim's)
+                 angle_noise: float = 0.0, **kwargs) -> None:  # noqa: ANN003
         self.difference = difference
-        super().__init__(*args, **kwargs)
+        self.angle_noise = math.radians(angle_noise)
+        self._noise = np.random.default_rng([seed, NOISE_STREAM])
+        super().__init__(task, seed, *args, **kwargs)
 
     @property
     def state_dim(self) -> int:
@@ -58,6 +67,8 @@ class StateValve(ValveSim):
 
     def state(self) -> np.ndarray:
         valve, target = self.valve_angle, self.target_angle
+        if self.angle_noise > 0:
+            valve, target = np.array([valve, target]) + self._noise.normal(0.0, self.angle_noise, 2)
         fingers = self.data.qpos[self._finger_qpos]
         angles = (math.cos(valve), math.sin(valve), math.cos(target), math.sin(target),
                   math.cos(target - valve), math.sin(target - valve))
@@ -98,12 +109,12 @@ def evaluate(agent: PixelTD3, env: StateValve, episodes: int) -> float:
 
 def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = None,
           warmup: int | None = None, agent_settings: dict | None = None, updates_per_step: int = 1,
-          difference: bool = True) -> dict:
+          difference: bool = True, angle_noise: float = 0.0) -> dict:
     """Learn from state for `steps` env steps, `updates_per_step` updates (each on its own
     minibatch) after each; the evaluations' means by step. Evaluation episodes and warm-up default
-    to cpu-small's gripper settings; `difference` as `StateValve`'s."""
-    env = StateValve(TASK, seed, difference=difference)
-    eval_env = StateValve(TASK, seed + EVAL_SEED_OFFSET, difference=difference)
+    to cpu-small's gripper settings; `difference` and `angle_noise` as `StateValve`'s."""
+    env = StateValve(TASK, seed, difference=difference, angle_noise=angle_noise)
+    eval_env = StateValve(TASK, seed + EVAL_SEED_OFFSET, difference=difference, angle_noise=angle_noise)
     agent, config = state_agent(seed, agent_settings, env.state_dim)
     batch_size = config.batch_size
     eval_episodes = config.eval_episodes if eval_episodes is None else eval_episodes
@@ -148,6 +159,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--without-difference", action="store_true",
                         help="leave the target's angle from the valve out of the state")
+    parser.add_argument("--angle-noise", type=float, default=0.0, metavar="DEG",
+                        help="read the valve's and the target's angles with Gaussian noise of DEG degrees")
     parser.add_argument("--updates-per-step", type=int, default=1, help="G (cpu-small: 1)")
     parser.add_argument("--gamma", type=float, help="the discount (cpu-small: 0.99)")
     parser.add_argument("--actor-lr", type=float, help="the actor's learning rate (cpu-small: 1e-4)")
@@ -158,16 +171,19 @@ def main() -> None:
     if min(args.steps, args.eval_every, args.updates_per_step,
            1 if args.threads is None else args.threads) < 1 or args.seed < 0:
         parser.error("--steps, --eval-every, --updates-per-step and --threads must be >= 1, --seed >= 0")
+    if not 0.0 <= args.angle_noise <= 360.0:  # also refuses nan
+        parser.error("--angle-noise must be between 0 and 360 degrees")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     settings = {name: value for name in ("gamma", "actor_lr", "exploration_noise")
                 if (value := getattr(args, name)) is not None}
     result = {"task": TASK, "observation": "state", "steps": args.steps, "seed": args.seed,
               "ignores_target": IGNORES_TARGET, "updates_per_step": args.updates_per_step,
-              "difference": not args.without_difference,
+              "difference": not args.without_difference, "angle_noise_deg": args.angle_noise,
               "agent_settings": settings, "threads": torch.get_num_threads()}
     result |= train(args.steps, args.eval_every, args.seed, agent_settings=settings,
-                    updates_per_step=args.updates_per_step, difference=not args.without_difference)
+                    updates_per_step=args.updates_per_step, difference=not args.without_difference,
+                    angle_noise=args.angle_noise)
     evals = list(result["evals"].values())
     result["best"], result["last"] = max(evals), evals[-1]
     print(json.dumps(result))

@@ -37,6 +37,26 @@ def test_without_the_difference_the_state_holds_what_a_frame_shows():
     bare.close()
 
 
+def test_angle_noise_blurs_the_reading_of_both_angles_and_not_the_stand_in():
+    exact, noisy = StateValve("gripper-valve", 4), StateValve("gripper-valve", 4, angle_noise=15.0)
+    errors = []
+    for env in (exact, noisy):
+        env.reset()
+    for i in range(200):
+        action = np.array([0.6, -0.6, 0.3, -0.1]) * (-1) ** (i // 10)
+        for env in (exact, noisy):
+            if env.step(action)[3]:
+                env.reset()
+        assert noisy.valve_angle == exact.valve_angle and noisy.target_angle == exact.target_angle
+        read = noisy.state()
+        for k, angle in ((0, noisy.valve_angle), (2, noisy.target_angle)):
+            errors.append(math.remainder(math.atan2(read[k + 1], read[k]) - angle, 2 * math.pi))
+        assert np.allclose(read[6:], exact.state()[6:])  # the fingers are read exactly
+    assert 12.0 < math.degrees(np.std(errors)) < 18.0
+    exact.close()
+    noisy.close()
+
+
 def test_a_short_run_updates_after_the_warm_up_and_evaluates_on_schedule():
     result = train(steps=60, eval_every=30, seed=0, eval_episodes=1, warmup=20)
     assert list(result["evals"]) == ["0", "30", "60"]
@@ -55,7 +75,8 @@ def test_settings_over_cpu_small_reach_the_agent_and_g_updates_follow_each_step(
 
 
 BAD = [["--steps", "0"], ["--eval-every", "-5"], ["--seed", "-1"], ["--steps", "nan"],
-       ["--updates-per-step", "0"], ["--gamma", "x"], ["--threads", "0"]]
+       ["--updates-per-step", "0"], ["--gamma", "x"], ["--threads", "0"], ["--angle-noise", "-1"],
+       ["--angle-noise", "nan"]]
 
 
 @pytest.mark.parametrize("bad", BAD)
