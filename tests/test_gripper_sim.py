@@ -128,6 +128,32 @@ def test_frames_are_uint8_chw_at_the_image_size_in_every_quality() -> None:
         ValveSim("gripper-door", seed=0)
 
 
+def _direction(frame: np.ndarray, mask: np.ndarray) -> float:
+    """The angle of the masked pixels' centroid about the image centre, as the top camera sees
+    the world (image right is +x, image up is +y)."""
+    rows, cols = np.nonzero(mask)
+    centre = (frame.shape[1] - 1) / 2
+    return math.atan2(centre - rows.mean(), cols.mean() - centre)
+
+
+def test_the_target_and_the_valve_angle_are_drawn_where_they_are_and_large_enough_for_32x32() -> None:
+    """The policy sees only pixels: at 32x32 the green target bar and the red spoke must each
+    cover several pixels, in the direction of their angle, with the fingers at home."""
+    for quality in ("plain", "paper"):
+        env = ValveSim("gripper-valve_reset", seed=1, image_size=32, render_quality=quality)
+        try:
+            for _ in range(8):
+                frame, *_ = env.reset()
+                r, g, b = frame.astype(int)
+                green = (g > 150) & (r < 100) & (b < 120)
+                red = (r > 150) & (g < 90) & (b < 90)
+                assert green.sum() >= 10 and red.sum() >= 6, (quality, green.sum(), red.sum())
+                assert math.degrees(angle_distance(_direction(frame, green), env.target_angle)) < 5
+                assert math.degrees(angle_distance(_direction(frame, red), env.valve_angle)) < 5
+        finally:
+            env.close()
+
+
 def test_action_repeat_shortens_the_episode() -> None:
     env = ValveSim("gripper-valve", seed=0, action_repeat=2, render_quality="fast")
     try:

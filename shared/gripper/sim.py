@@ -52,7 +52,7 @@ HOME_TIMEOUT_S = 2.0
 VALVE_TOLERANCE = math.radians(1.0)
 VALVE_TIMEOUT_S = 4.0
 VALVE_KP, VALVE_KD = 2.0, 0.04
-TARGET_RADIUS = 0.105
+TARGET_RADIUS = 0.125
 
 
 class UnknownGripperTask(ValueError):
