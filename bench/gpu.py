@@ -10,7 +10,9 @@ Steps, each in a child process with a timeout cut to the time left:
 1. `pytest -m cuda tests/test_cuda.py`: CPU/GPU agreement, checkpoints across devices;
 2. `bench.learner --device cuda` at the paper's settings (batch 128, the reference's
    widths): updates/s, scoring, FLOP/s against the GPU's measured fp32/TF32/BF16 peaks;
-3. `nasa up --preset paper --device cuda --actors 8 --task cheetah-run` for
+3. `bench.update_profile --device cuda`: updates/s under other CUDA settings and batches, and
+   the host's, the device's and the wall time per update (what bounds an update);
+4. `nasa up --preset paper --device cuda --actors 8 --task cheetah-run` for
    `--up-seconds`, its /status polled (updates/s, env steps/s, updates per env step)
    and the GPU's memory and load read from nvidia-smi; then stopped.
 The last line printed is one JSON object; a step that failed or ran out of time
@@ -36,7 +38,6 @@ import urllib.request
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-# Distribution name -> the module it provides, where they differ.
 UP_ARGS = ["--preset", "paper", "--device", "cuda", "--actors", "8", "--task", "cheetah-run"]
 STATUS_KEYS = ("updates_per_s", "env_steps_per_s", "updates_per_env_step")
 LEARNER_KEYS = (
@@ -44,6 +45,10 @@ LEARNER_KEYS = (
     "update_fraction_of_peak", "update_fraction_of_tf32_peak", "update_fraction_of_bf16_peak",
     "part_fraction_of_peak", "score_fraction_of_peak", "variant_updates_per_s",
     "variant_score_ms_stored_order", "machine",
+)  # fmt: skip
+PROFILE_KEYS = (
+    "updates_per_s", "profiled_wall_s_per_update", "host_s_per_update", "device_busy_s_per_update",
+    "kernel_launches_per_update",
 )  # fmt: skip
 
 
@@ -54,16 +59,29 @@ def requirement_name(requirement: str) -> str:
     return re.split(r"[<>=!~\[; ]", requirement, maxsplit=1)[0].strip()
 
 
+# Requirements that no step of the check imports: the real gripper's camera and servos, video
+# files, TLS certificates, and the dev tools for linting, the browser and deployment files. An
+# offline GPU machine can then be set up from a small carried folder (docs/benchmarks.md).
+NOT_USED_BY_THE_CHECK = frozenset({
+    "opencv-contrib-python-headless", "dynamixel-sdk", "imageio-ffmpeg", "cryptography",
+    "ruff", "playwright", "kubernetes-validate", "compose-spec",
+})  # fmt: skip
+
+
 def missing_requirements(
-    pyproject: Path = ROOT / "pyproject.toml", extras: tuple[str, ...] = ("dev",)
+    pyproject: Path = ROOT / "pyproject.toml", extras: tuple[str, ...] = ("dev",),
+    unused: frozenset[str] = NOT_USED_BY_THE_CHECK,
 ) -> list[str]:
-    """The project's pinned requirements (runtime and `extras`) not installed here."""
+    """The project's requirements (runtime and `extras`, less `unused`) not installed here; any
+    installed version counts, since a GPU machine brings its own CUDA build of torch."""
     project = tomllib.loads(pyproject.read_text())["project"]
     wanted = list(project["dependencies"])
     for extra in extras:
         wanted += project.get("optional-dependencies", {}).get(extra, [])
     missing = []
     for req in wanted:
+        if requirement_name(req).lower() in unused:
+            continue
         try:
             importlib.metadata.version(requirement_name(req))
         except importlib.metadata.PackageNotFoundError:
@@ -140,12 +158,23 @@ def step_learner(budget: Budget, rounds: int, updates: int) -> dict:
     cmd = [sys.executable, "-m", "bench.learner", "--device", "cuda", "--rounds", str(rounds),
            "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5",
            "--variants", "nasa_td3+bf16"]  # fmt: skip
-    result = run_child(cmd, budget.step_timeout(150, reserve=220))
+    result = run_child(cmd, budget.step_timeout(150, reserve=300))
     summary = last_json(result["output"]) if result["rc"] == 0 else None
     if summary is None:
         return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
                 "tail": result["output"][-1500:]}  # fmt: skip
     return {"seconds": result["seconds"], **{k: summary[k] for k in LEARNER_KEYS if k in summary}}
+
+
+def step_profile(budget: Budget, updates: int) -> dict:
+    """bench.update_profile on CUDA: settings compared; host, device and wall time per update."""
+    cmd = [sys.executable, "-m", "bench.update_profile", "--device", "cuda", "--updates", str(updates)]
+    result = run_child(cmd, budget.step_timeout(120, reserve=220))
+    summary = last_json(result["output"]) if result["rc"] == 0 else None
+    if summary is None:
+        return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
+                "tail": result["output"][-1500:]}  # fmt: skip
+    return {"seconds": result["seconds"], **{k: summary[k] for k in PROFILE_KEYS if k in summary}}
 
 
 # -- nasa up ------------------------------------------------------------------------------
@@ -258,7 +287,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--port", type=int, default=8765, help="the learner's status port during nasa up")
     p.add_argument("--rounds", type=int, default=2, help="bench.learner rounds")
     p.add_argument("--updates", type=int, default=20, help="bench.learner timed updates per round")
-    p.add_argument("--skip", default="", help="comma-separated steps to skip: tests,learner,up")
+    p.add_argument("--profile-updates", type=int, default=50, help="bench.update_profile timed updates")
+    p.add_argument("--skip", default="", help="comma-separated steps to skip: tests,learner,profile,up")
     return p.parse_args(argv)
 
 
@@ -278,6 +308,7 @@ def main(argv: list[str] | None = None) -> None:
     for name, step in (
         ("tests", lambda: step_tests(budget)),
         ("learner", lambda: step_learner(budget, args.rounds, args.updates)),
+        ("profile", lambda: step_profile(budget, args.profile_updates)),
         ("up", lambda: step_up(budget, args.up_seconds, args.port)),
     ):
         if name in skip:

@@ -6,6 +6,12 @@
 #   scripts/gpu-check.sh
 #   NASA_WHEELS=DIR scripts/gpu-check.sh   # offline: the requirements this machine's Python
 #                                          # lacks come from wheels in DIR (pip --no-index)
+#   PYTHONPATH=SITE scripts/gpu-check.sh   # offline: the machine's own python3 (its CUDA torch)
+#                                          # with the rest unpacked in SITE; no setup at all
+#
+# The Python it uses is the first that sees the GPU and imports every requirement the check
+# needs (`python -m bench.gpu missing` prints nothing): $NASA_PYTHON if set, .venv, .venv-gpu,
+# then the machine's python3; only when none does is one set up.
 #
 # Everything is bounded: the whole script by TOTAL_TIMEOUT_S (default 540 s, setup included),
 # setup by SETUP_TIMEOUT_S, and each step of the check by its own timeout, so it ends in time
@@ -30,7 +36,7 @@ cuda_python() {  # a Python whose torch sees the GPU and which imports every req
 }
 
 PY=""
-for candidate in .venv/bin/python .venv-gpu/bin/python; do
+for candidate in ${NASA_PYTHON:-} .venv/bin/python .venv-gpu/bin/python python3; do
     if cuda_python "$candidate"; then PY=$candidate; break; fi
 done
 if [ -z "$PY" ]; then

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -54,6 +55,45 @@ def test_missing_requirements_names_the_pins_whose_module_does_not_import(tmp_pa
     )
     assert gpu.missing_requirements(pyproject) == ["surely-absent-pkg-x==1.0", "absent-dev-tool==2.0"]
     assert gpu.missing_requirements(pyproject, extras=()) == ["surely-absent-pkg-x==1.0"]
+
+
+def test_missing_requirements_leaves_out_what_the_check_never_imports(tmp_path):
+    pyproject = tmp_path / "pyproject.toml"
+    pyproject.write_text(
+        '[project]\nname = "x"\ndependencies = ["surely-absent-pkg-x==1.0", "Absent-Camera-Lib==3"]\n'
+    )
+    unused = frozenset({"absent-camera-lib"})
+    assert gpu.missing_requirements(pyproject, unused=unused) == ["surely-absent-pkg-x==1.0"]
+
+
+def test_what_the_check_leaves_out_are_requirements_of_the_project_and_not_torch():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = {gpu.requirement_name(r).lower() for r in project["dependencies"]}
+    names |= {gpu.requirement_name(r).lower() for r in project["optional-dependencies"]["dev"]}
+    assert gpu.NOT_USED_BY_THE_CHECK <= names
+    needed = {"torch", "mujoco", "dm-control", "eclipse-zenoh", "fastapi", "pytest"}
+    assert not needed & gpu.NOT_USED_BY_THE_CHECK
+
+
+def test_with_a_gpu_the_script_runs_the_check_with_the_python_it_is_given(tmp_path):
+    """NASA_PYTHON (a Python with CUDA and every requirement) is used as it is: no setup."""
+    smi = tmp_path / "nvidia-smi"
+    smi.write_text("#!/bin/sh\necho 'GPU 0: Test GPU (UUID: GPU-0)'\n")
+    python = tmp_path / "python"
+    python.write_text(  # answers the script's probes; the check itself prints its JSON line
+        "#!/bin/sh\n"
+        'if [ "$1" = "-c" ]; then case "$2" in *version*) echo 9.9;; esac; exit 0; fi\n'
+        'if [ "$3" = "missing" ]; then exit 0; fi\n'
+        'echo "{\\"check\\": \\"gpu\\", \\"args\\": \\"$*\\"}"\n'
+    )
+    for f in (smi, python):
+        f.chmod(0o755)
+    env = {**os.environ, "PATH": f"{tmp_path}:/usr/bin:/bin", "NASA_PYTHON": str(python)}
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "setup" not in result.stdout and f"gpu-check: {python}, torch 9.9" in result.stdout
+    last = json.loads(result.stdout.splitlines()[-1])
+    assert last["check"] == "gpu" and "-m bench.gpu --budget-s" in last["args"]
 
 
 def test_the_missing_command_prints_nothing_when_every_requirement_imports():

@@ -1,0 +1,150 @@
+"""Where one learner update's time goes: the wall clock against the host's and the device's time.
+
+    python -m bench.update_profile [--device cuda] [--updates 100] [--profiled 10]
+        [--batches 256,512]
+
+The project's NaSA-TD3 update at the paper's settings, on bench.learner's batch of real
+cheetah-run frames (batch 128), with nothing attached (bench.learner's part meter synchronises
+between parts). It reports:
+
+- updates/s eager with default settings and, on CUDA, each setting added in turn:
+  `cudnn.benchmark`, TF32 matmuls, bf16 pixel networks (`--pixel-precision bf16`), and the
+  same at larger batches (the data repeated);
+- from torch's profiler over `--profiled` updates: the host's time in torch's operators, the
+  device's busy time (the kernels' own time) and the kernel launches, each per update.
+
+An update whose wall time is close to the host's time and well above the device's busy time is
+bound by Python and launches: fewer, larger kernels or a captured CUDA graph are the lever, not
+faster arithmetic. One whose wall time is close to the device's busy time is bound by its kernels.
+The last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+from bench import hardware
+from bench import learner as bench_learner
+
+LAUNCHES = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx")
+
+
+def summarize_profile(events: Iterable, updates: int) -> dict:
+    """Per update, from torch profiler events: the host's self time in operators, the device's
+    busy time (kernels and device copies, each counted once) and the kernel launches."""
+    host_us = device_us = launches = 0.0
+    for e in events:
+        if e.device_type == torch.autograd.DeviceType.CUDA:
+            device_us += e.time_range.elapsed_us()
+        else:
+            host_us += e.self_cpu_time_total
+            launches += e.name in LAUNCHES
+    return {
+        "host_s_per_update": host_us / 1e6 / updates,
+        "device_busy_s_per_update": device_us / 1e6 / updates if device_us else None,
+        "kernel_launches_per_update": launches / updates,
+    }
+
+
+@contextmanager
+def cuda_settings(cudnn_benchmark: bool, tf32: bool) -> Iterator[None]:
+    """cudnn.benchmark and TF32 matmuls set for the block (process-wide), restored afterwards."""
+    before = torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32 = cudnn_benchmark, tf32
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32 = before
+
+
+def updates_per_s(
+    data: dict, device: torch.device, updates: int, batch_repeat: int = 1, **overrides: object
+) -> float:
+    """A fresh agent's eager updates/s on the batch (repeated `batch_repeat` times), after warm-up."""
+    agent = bench_learner.make_project_agent(
+        bench_learner.ALGO, tuple(data["obs"].shape[1:]), device, **overrides
+    )
+    batch = {k: torch.cat([v] * batch_repeat) for k, v in bench_learner.device_batch(data, device).items()}
+    seconds = bench_learner.seconds_per_call(
+        lambda: agent.update(batch), bench_learner.even(updates), device, warmup=4
+    )
+    return 1.0 / seconds
+
+
+def profile(data: dict, device: torch.device, updates: int) -> dict:
+    agent = bench_learner.make_project_agent(bench_learner.ALGO, tuple(data["obs"].shape[1:]), device)
+    batch = bench_learner.device_batch(data, device)
+    for _ in range(4):
+        agent.update(batch)
+    hardware.sync(device)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    start = time.perf_counter()
+    with torch.profiler.profile(activities=activities) as prof:
+        for _ in range(updates):
+            agent.update(batch)
+        hardware.sync(device)
+    wall = (time.perf_counter() - start) / updates
+    return {"profiled_wall_s_per_update": wall, **summarize_profile(prof.events(), updates)}
+
+
+def rates(data: dict, device: torch.device, updates: int, batches: list[int]) -> dict[str, float]:
+    out = {"default": updates_per_s(data, device, updates)}
+    if device.type != "cuda":
+        return out
+    with cuda_settings(cudnn_benchmark=True, tf32=False):
+        out["cudnn_benchmark"] = updates_per_s(data, device, updates)
+    with cuda_settings(cudnn_benchmark=True, tf32=True):
+        out["cudnn_benchmark+tf32"] = updates_per_s(data, device, updates)
+        out["cudnn_benchmark+tf32+bf16"] = updates_per_s(data, device, updates, pixel_precision="bf16")
+        base = len(data["reward"])
+        for size in batches:
+            out[f"cudnn_benchmark+tf32 batch {size}"] = updates_per_s(data, device, updates, size // base)
+    return out
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--updates", type=int, default=100, help="timed updates per setting")
+    p.add_argument("--profiled", type=int, default=10, help="updates under the profiler")
+    p.add_argument("--batches", default="256,512", help="larger batches (multiples of 128) on CUDA")
+    args = p.parse_args(argv)
+    try:
+        args.batches = [int(b) for b in args.batches.split(",") if b.strip()]
+    except ValueError:
+        p.error(f"--batches: comma-separated integers, got {args.batches!r}")
+    if min(args.updates, args.profiled) < 1 or any(b < 128 or b % 128 for b in args.batches):
+        p.error("--updates and --profiled must be >= 1; --batches multiples of 128")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        p.error(f"--device {args.device}: torch sees no CUDA device here")
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    device = torch.device(args.device)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "batch.npz"
+        bench_learner.write_data(path, 128)
+        data = bench_learner.read_data(path)
+    result: dict = {"device": str(device), "machine": hardware.machine(device), "batch": 128}
+    result["updates_per_s"] = {
+        k: round(v, 2) for k, v in rates(data, device, args.updates, args.batches).items()
+    }
+    print(f"updates/s: {result['updates_per_s']}", flush=True)
+    result |= profile(data, device, args.profiled)
+    print(json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()}))
+
+
+if __name__ == "__main__":
+    main()
