@@ -144,9 +144,21 @@ def last_json(output: str) -> dict | None:
     return None
 
 
-def step_tests(budget: Budget) -> dict:
+STEPS = ("tests", "learner", "profile", "up")
+# What each step keeps back for itself from the steps before it: with the default budget, every
+# step fits; a step that is skipped keeps nothing back.
+NEEDS_S = {"tests": 0.0, "learner": 60.0, "profile": 50.0, "up": 220.0}
+
+
+def reserve_after(name: str, skip: set[str]) -> float:
+    """The seconds that the steps after `name`, less those skipped, need to be left."""
+    later = STEPS[STEPS.index(name) + 1 :]
+    return sum(NEEDS_S[step] for step in later if step not in skip)
+
+
+def step_tests(budget: Budget, reserve: float) -> dict:
     cmd = [sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", "tests/test_cuda.py"]
-    result = run_child(cmd, budget.step_timeout(150, reserve=330))
+    result = run_child(cmd, budget.step_timeout(150, reserve))
     out = {"rc": result["rc"], "seconds": result["seconds"], **pytest_counts(result["output"])}
     if result["rc"] != 0:
         out["error"] = result.get("error") or "tests failed"
@@ -154,11 +166,11 @@ def step_tests(budget: Budget) -> dict:
     return out
 
 
-def step_learner(budget: Budget, rounds: int, updates: int) -> dict:
+def step_learner(budget: Budget, rounds: int, updates: int, reserve: float) -> dict:
     cmd = [sys.executable, "-m", "bench.learner", "--device", "cuda", "--rounds", str(rounds),
            "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5",
            "--variants", "nasa_td3+bf16"]  # fmt: skip
-    result = run_child(cmd, budget.step_timeout(150, reserve=300))
+    result = run_child(cmd, budget.step_timeout(150, reserve))
     summary = last_json(result["output"]) if result["rc"] == 0 else None
     if summary is None:
         return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
@@ -166,10 +178,10 @@ def step_learner(budget: Budget, rounds: int, updates: int) -> dict:
     return {"seconds": result["seconds"], **{k: summary[k] for k in LEARNER_KEYS if k in summary}}
 
 
-def step_profile(budget: Budget, updates: int) -> dict:
+def step_profile(budget: Budget, updates: int, reserve: float) -> dict:
     """bench.update_profile on CUDA: settings compared; host, device and wall time per update."""
     cmd = [sys.executable, "-m", "bench.update_profile", "--device", "cuda", "--updates", str(updates)]
-    result = run_child(cmd, budget.step_timeout(120, reserve=220))
+    result = run_child(cmd, budget.step_timeout(120, reserve))
     summary = last_json(result["output"]) if result["rc"] == 0 else None
     if summary is None:
         return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
@@ -289,7 +301,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--updates", type=int, default=20, help="bench.learner timed updates per round")
     p.add_argument("--profile-updates", type=int, default=50, help="bench.update_profile timed updates")
     p.add_argument("--skip", default="", help="comma-separated steps to skip: tests,learner,profile,up")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if unknown := set(filter(None, args.skip.split(","))) - set(STEPS):
+        p.error(f"--skip: unknown step(s) {', '.join(sorted(unknown))}; the steps are {', '.join(STEPS)}")
+    return args
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -306,15 +321,15 @@ def main(argv: list[str] | None = None) -> None:
     skip = set(filter(None, args.skip.split(",")))
     steps: dict[str, dict] = {}
     for name, step in (
-        ("tests", lambda: step_tests(budget)),
-        ("learner", lambda: step_learner(budget, args.rounds, args.updates)),
-        ("profile", lambda: step_profile(budget, args.profile_updates)),
-        ("up", lambda: step_up(budget, args.up_seconds, args.port)),
+        ("tests", lambda r: step_tests(budget, r)),
+        ("learner", lambda r: step_learner(budget, args.rounds, args.updates, r)),
+        ("profile", lambda r: step_profile(budget, args.profile_updates, r)),
+        ("up", lambda _: step_up(budget, args.up_seconds, args.port)),
     ):
         if name in skip:
             continue
         print(f"gpu-check: {name} ({budget.left():.0f} s left)", flush=True)
-        steps[name] = step()
+        steps[name] = step(reserve_after(name, skip))
         print(f"gpu-check: {name}: {json.dumps({k: v for k, v in steps[name].items() if k != 'tail'})}",
               flush=True)  # fmt: skip
     summary = assemble(torch.cuda.get_device_name(0), steps, time.monotonic() - start)

@@ -135,6 +135,20 @@ def running(pid: int) -> bool:
     return state != "Z"
 
 
+def test_each_step_keeps_back_only_what_the_steps_after_it_need():
+    assert [gpu.reserve_after(step, set()) for step in gpu.STEPS] == [330.0, 270.0, 220.0, 0.0]
+    # A skipped step keeps nothing back: the profile alone may use the whole budget.
+    assert gpu.reserve_after("profile", {"tests", "learner", "up"}) == 0.0
+    assert gpu.reserve_after("tests", {"up"}) == 110.0
+
+
+def test_an_unknown_step_to_skip_is_refused_with_exit_2(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        gpu.parse_args(["--skip", "tests,bogus"])
+    assert exit_info.value.code == 2 and "bogus" in capsys.readouterr().err
+    assert gpu.parse_args(["--skip", "tests,up"]).skip == "tests,up"
+
+
 def test_a_child_past_its_timeout_is_killed_with_its_whole_group(tmp_path):
     marker = tmp_path / "grandchild.pid"
     result = gpu.run_child(["sh", "-c", f"sleep 60 & echo $! > {marker}; wait"], timeout=1.0)
