@@ -61,7 +61,7 @@ def requirement_name(requirement: str) -> str:
 
 # Requirements that no step of the check imports: the real gripper's camera and servos, video
 # files, TLS certificates, and the dev tools for linting, the browser and deployment files. An
-# offline GPU machine can then be set up from a small carried folder (docs/benchmarks.md).
+# offline GPU machine can then be set up from a small carried folder (docs/benchmarks-reference.md).
 NOT_USED_BY_THE_CHECK = frozenset({
     "opencv-contrib-python-headless", "dynamixel-sdk", "imageio-ffmpeg", "cryptography",
     "ruff", "playwright", "kubernetes-validate", "compose-spec",
@@ -145,8 +145,8 @@ def last_json(output: str) -> dict | None:
 
 
 STEPS = ("tests", "learner", "profile", "up")
-# What each step keeps back for itself from the steps before it: with the default budget, every
-# step fits; a step that is skipped keeps nothing back.
+# The seconds each step needs to be left when an earlier step starts, so that an earlier step that
+# hangs cannot take them; a skipped step needs none. With the default budget every step fits.
 NEEDS_S = {"tests": 0.0, "learner": 60.0, "profile": 50.0, "up": 220.0}
 
 
