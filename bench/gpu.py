@@ -166,27 +166,27 @@ def step_tests(budget: Budget, reserve: float) -> dict:
     return out
 
 
-def step_learner(budget: Budget, rounds: int, updates: int, reserve: float) -> dict:
-    cmd = [sys.executable, "-m", "bench.learner", "--device", "cuda", "--rounds", str(rounds),
-           "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5",
-           "--variants", "nasa_td3+bf16"]  # fmt: skip
-    result = run_child(cmd, budget.step_timeout(150, reserve))
+def json_step(cmd: list[str], timeout: float, keys: tuple[str, ...]) -> dict:
+    """A benchmark run as a child: `keys` of its last JSON line, or an error with its output's tail."""
+    result = run_child(cmd, timeout)
     summary = last_json(result["output"]) if result["rc"] == 0 else None
     if summary is None:
         return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
                 "tail": result["output"][-1500:]}  # fmt: skip
-    return {"seconds": result["seconds"], **{k: summary[k] for k in LEARNER_KEYS if k in summary}}
+    return {"seconds": result["seconds"], **{k: summary[k] for k in keys if k in summary}}
+
+
+def step_learner(budget: Budget, rounds: int, updates: int, reserve: float) -> dict:
+    cmd = [sys.executable, "-m", "bench.learner", "--device", "cuda", "--rounds", str(rounds),
+           "--updates", str(updates), "--score-repeats", "5", "--peak-seconds", "0.5",
+           "--variants", "nasa_td3+bf16"]  # fmt: skip
+    return json_step(cmd, budget.step_timeout(150, reserve), LEARNER_KEYS)
 
 
 def step_profile(budget: Budget, updates: int, reserve: float) -> dict:
     """bench.update_profile on CUDA: settings compared; host, device and wall time per update."""
     cmd = [sys.executable, "-m", "bench.update_profile", "--device", "cuda", "--updates", str(updates)]
-    result = run_child(cmd, budget.step_timeout(120, reserve))
-    summary = last_json(result["output"]) if result["rc"] == 0 else None
-    if summary is None:
-        return {"rc": result["rc"], "seconds": result["seconds"], "error": result.get("error") or "no result",
-                "tail": result["output"][-1500:]}  # fmt: skip
-    return {"seconds": result["seconds"], **{k: summary[k] for k in PROFILE_KEYS if k in summary}}
+    return json_step(cmd, budget.step_timeout(120, reserve), PROFILE_KEYS)
 
 
 # -- nasa up ------------------------------------------------------------------------------

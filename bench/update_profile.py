@@ -33,6 +33,7 @@ import torch
 
 from bench import hardware
 from bench import learner as bench_learner
+from shared.agents.base import Agent
 
 LAUNCHES = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx")
 
@@ -57,21 +58,26 @@ def summarize_profile(events: Iterable, updates: int) -> dict:
 @contextmanager
 def cuda_settings(cudnn_benchmark: bool, tf32: bool) -> Iterator[None]:
     """cudnn.benchmark and TF32 matmuls set for the block (process-wide), restored afterwards."""
-    before = torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32 = cudnn_benchmark, tf32
+    before = torch.backends.cudnn.benchmark
+    torch.backends.cudnn.benchmark = cudnn_benchmark
     try:
-        yield
+        with hardware.matmul_precision(torch.float32, tf32):
+            yield
     finally:
-        torch.backends.cudnn.benchmark, torch.backends.cuda.matmul.allow_tf32 = before
+        torch.backends.cudnn.benchmark = before
+
+
+def fresh_agent(data: dict, device: torch.device, **overrides: object) -> Agent:
+    """A new NaSA-TD3 agent (bench.learner's, seeded) for the batch's frame stacks."""
+    shape = tuple(data["obs"].shape[1:])
+    return bench_learner.make_project_agent(bench_learner.ALGO, shape, device, **overrides)
 
 
 def updates_per_s(
     data: dict, device: torch.device, updates: int, batch_repeat: int = 1, **overrides: object
 ) -> float:
     """A fresh agent's eager updates/s on the batch (repeated `batch_repeat` times), after warm-up."""
-    agent = bench_learner.make_project_agent(
-        bench_learner.ALGO, tuple(data["obs"].shape[1:]), device, **overrides
-    )
+    agent = fresh_agent(data, device, **overrides)
     batch = {k: torch.cat([v] * batch_repeat) for k, v in bench_learner.device_batch(data, device).items()}
     seconds = bench_learner.seconds_per_call(
         lambda: agent.update(batch), bench_learner.even(updates), device, warmup=4
@@ -80,7 +86,7 @@ def updates_per_s(
 
 
 def profile(data: dict, device: torch.device, updates: int) -> dict:
-    agent = bench_learner.make_project_agent(bench_learner.ALGO, tuple(data["obs"].shape[1:]), device)
+    agent = fresh_agent(data, device)
     batch = bench_learner.device_batch(data, device)
     for _ in range(4):
         agent.update(batch)
