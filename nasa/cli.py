@@ -67,6 +67,7 @@ def train(argv: list[str]) -> None:
     cmd, preset, steps = parse_train(argv)
     device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL
+    from shared.agents import check_update_device
     from shared.faults import lock_run
 
     if cmd.resume is not None:
@@ -75,6 +76,7 @@ def train(argv: list[str]) -> None:
             Trainer.resume(cmd.resume, steps=steps).run()
         return
     c = cmd.config
+    check_update_device(c.agent, device)  # before the run folder is made
     out = cmd.out or Path("runs") / f"{c.env.task}-{c.algo}-s{c.seed}"
     how = f"{preset} (auto: {device.type})" if cmd.preset == "auto" else preset
     print(

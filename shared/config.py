@@ -93,6 +93,9 @@ class AgentConfig:
     `fp32` (the reference) or `bf16`, mixed precision (bfloat16 products, float32
     sums, parameters, heads, losses and optimizer states); faster where the hardware
     has bfloat16 units (recent x86 CPUs, GPUs from Ampere on), not the reference."""
+    cuda_graph: bool = False
+    """Replay each update as a captured CUDA graph (CUDA only): one launch instead of hundreds of
+    small kernels, each from Python; the same arithmetic, not the reference's way of running it."""
     # SAC-AE only.
     encoder_tau: float = 0.05
     init_temperature: float = 0.1

@@ -35,8 +35,9 @@ from shared.config import ConfigError, TrainConfig, from_dict, to_dict, validate
 CONFIG_FILE = "config.json"
 LOCAL_FIELDS: tuple[str, ...] = ("device",)
 """Fields each process chooses for itself: not compared between processes, not in the digest."""
-RESUME_MAY_CHANGE: tuple[str, ...] = ("steps",)
-"""What a resumed run may change: its step budget."""
+RESUME_MAY_CHANGE: tuple[str, ...] = ("steps", "agent.cuda_graph")
+"""What a resumed run may change: its step budget, and whether its updates are replayed as CUDA
+graphs (the same arithmetic, run another way)."""
 
 
 class ConfigMismatch(ConfigError):

@@ -310,7 +310,7 @@ def test_a_fresh_update_scores_with_the_encoder_passes_it_makes_anyway(shared_en
         other.load_state_dict(shared.state_dict())
     scoring = type(apart).score_with_next_latent
     # Ignoring the given latent and returning none: scoring and the TD target encode themselves.
-    apart.score_with_next_latent = lambda obs, action, next_obs, latent=None: (
+    apart.score_with_next_latent = lambda obs, action, next_obs, latent=None, chain=True: (
         scoring(apart, obs, action, next_obs)[0], None)
     passes = {}
     for agent in (shared, apart, collect):

@@ -76,6 +76,13 @@ def test_resume_of_a_folder_without_a_run_is_a_clear_error(tmp_path, capsys):
     assert exit_.value.code == 2 and "no run there" in capsys.readouterr().err
 
 
+def test_cuda_graph_on_a_cpu_is_refused_before_a_run_folder_is_made(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--cuda-graph", "--device", "cpu", "--out", str(tmp_path / "run")])
+    assert exit_.value.code == 2 and "agent.cuda_graph needs a CUDA device" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 def test_nasa_up_declares_no_config_field_of_its_own():
     launcher = {f.name for f in dataclasses.fields(UpCommand)}
     assert not launcher & {f.name for f in dataclasses.fields(TrainConfig)}

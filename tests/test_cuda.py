@@ -160,3 +160,46 @@ def test_matmul_peaks_and_flop_counts_on_cuda():
     conv = torch.nn.Conv2d(9, 32, 3, stride=2).to(CUDA)
     x = torch.randn(4, 9, 84, 84, device=CUDA)
     assert hardware.count_flops(lambda: conv(x)) == 2 * 4 * 32 * 41 * 41 * 9 * 9
+
+
+def graphed_pair(algo: str, **overrides):
+    """Two agents on CUDA with the same weights: one eager, one replaying captured graphs."""
+    eager = make(algo, CUDA, **overrides)
+    graphed = make(algo, CUDA, cuda_graph=True, **overrides)
+    graphed.load_state_dict(copy.deepcopy(eager.state_dict()))
+    return eager, graphed
+
+
+@pytest.mark.parametrize("variant", [{}, {"intrinsic_timing": "fresh"}, {"ensemble_every": 3}])
+def test_a_graphed_update_matches_the_eager_one_on_cuda(variant):
+    eager, graphed = graphed_pair("nasa_td3", **variant)  # target_noise 0: no draw differs
+    steps = max(3, 2 * graphed.update_period()) + graphed.update_period() + 2
+    for step in range(steps):
+        m_eager = eager.update(batch(CUDA, seed=step))
+        m_graphed = graphed.update(batch(CUDA, seed=step))
+        assert m_graphed.keys() == m_eager.keys()
+        for key in m_eager:
+            assert m_graphed[key] == pytest.approx(m_eager[key], rel=1e-3, abs=1e-5), (step, key)
+    assert len(graphed._graphed.graphs) == graphed.update_period()
+    assert graphed.num_updates == eager.num_updates == steps
+    assert_same_state(eager, graphed)
+
+
+def test_a_graphed_update_skips_a_non_finite_step_and_captures_again_after_a_load():
+    eager, graphed = graphed_pair("td3_ae")
+    for step in range(6):
+        graphed.update(batch(CUDA, seed=step))
+    before = copy.deepcopy(graphed.state_dict())
+    bad = batch(CUDA, seed=9)
+    bad["reward"][:] = 3e38  # the critic's loss overflows
+    graphed.update(bad)
+    assert graphed.critic_opt.nonfinite_skips.item() == 1
+    torch.testing.assert_close(graphed.critic.state_dict(), before["critic"], rtol=0, atol=0)
+    graphed.load_state_dict(before)
+    assert graphed._graphed is None
+    eager.load_state_dict(copy.deepcopy(before))
+    for step in range(6, 14):
+        eager.update(batch(CUDA, seed=step))
+        graphed.update(batch(CUDA, seed=step))
+    assert len(graphed._graphed.graphs) == 2
+    assert_same_state(eager, graphed)

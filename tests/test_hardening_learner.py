@@ -12,7 +12,7 @@ import torch
 
 from services.learner.core import CHECKPOINT, all_finite
 from shared import checkpoint, wire
-from shared.agents.base import nonfinite_skips, optimizer_step
+from shared.agents.base import adam, nonfinite_skips, optimizer_step
 from tests.test_learner import core_on
 
 
@@ -22,18 +22,43 @@ def _finite_params(agent) -> bool:  # noqa: ANN001
 
 def test_a_non_finite_loss_skips_the_optimizer_step():
     layer = torch.nn.Linear(3, 1)
-    opt = torch.optim.Adam(layer.parameters(), lr=0.1)
+    opt = adam(layer.parameters(), lr=0.1)
     before = [p.detach().clone() for p in layer.parameters()]
     loss = (layer(torch.ones(1, 3)) * torch.tensor(float("nan"))).sum()
-    assert optimizer_step([opt], loss) is False
+    assert optimizer_step([opt], loss).item() == 1.0
     assert all(torch.equal(a, b) for a, b in zip(before, layer.parameters(), strict=True))
-    assert opt.nonfinite_skips == 1 and not opt.state  # Adam's moments never saw the NaN
+    assert opt.nonfinite_skips.item() == 1
+    for state in opt.state.values():  # Adam's moments never saw the NaN, and its step count stays
+        assert state["step"].item() == 0
+        assert not state["exp_avg"].any() and not state["exp_avg_sq"].any()
     # a finite loss whose gradient overflows is skipped too
     loss = torch.sqrt((layer.weight - layer.weight.detach()).abs()).sum()  # 0, slope infinite at 0
     assert torch.isfinite(loss)
-    assert optimizer_step([opt], loss) is False and opt.nonfinite_skips == 2
-    assert optimizer_step([opt], layer(torch.ones(1, 3)).sum()) is True
+    assert optimizer_step([opt], loss).item() == 1.0 and opt.nonfinite_skips.item() == 2
+    assert optimizer_step([opt], layer(torch.ones(1, 3)).sum()).item() == 0.0
     assert not all(torch.equal(a, b) for a, b in zip(before, layer.parameters(), strict=True))
+    assert all(state["step"].item() == 1 for state in opt.state.values())
+
+
+def test_a_finite_step_is_the_plain_adam_step():
+    """The skip costs nothing when nothing is skipped: the same weights as Adam stepped directly."""
+    torch.manual_seed(0)
+    layers = [torch.nn.Linear(3, 2) for _ in range(2)]
+    layers[1].load_state_dict(layers[0].state_dict())
+    opts = [adam(layer.parameters(), lr=0.1, weight_decay=0.01) for layer in layers]
+    x = torch.randn(4, 3)
+    for _ in range(3):
+        optimizer_step([opts[0]], layers[0](x).pow(2).sum())
+        opts[1].zero_grad()
+        layers[1](x).pow(2).sum().backward()
+        opts[1].step()
+    assert all(torch.equal(a, b) for a, b in zip(layers[0].parameters(), layers[1].parameters(), strict=True))
+
+
+def test_only_a_fused_adam_can_skip_on_the_device():
+    layer = torch.nn.Linear(3, 1)
+    with pytest.raises(TypeError, match="fused Adam"):
+        optimizer_step([torch.optim.SGD(layer.parameters(), lr=0.1)], layer(torch.ones(1, 3)).sum())
 
 
 @pytest.mark.parametrize("algo", ["nasa_td3", "sac_ae"])

@@ -142,7 +142,8 @@ class ActorService:
         torch.set_num_threads(max(1, args.threads))
         spec = run.spec
         device = torch.device(args.actor_device)
-        self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
+        self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device,
+                                updates=False)
         self.weights = WeightsSubscriber(self.agent, self._invalid)
         self.writer = ZenohWriter(session, self.keys, self.actor_id, self.incarnation, spec.frame_shape,
                                   args.send_batch, args.max_in_flight, stop, self.log)

@@ -86,7 +86,8 @@ class EvaluatorService:
             (lambda: None) if self.env is None else draws_restarter(self.env, c.eval_same_episodes))
         spec = run.spec
         device = torch.device(args.eval_device)
-        self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
+        self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device,
+                                updates=False)
         self.tap = AutoencoderTap(self.agent)
         self.weights = WeightsSubscriber(self.tap, self._invalid)  # type: ignore[arg-type]
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None

@@ -13,7 +13,7 @@ from shared.agents.nasa_td3 import NaSATD3, UnscoredBatchError
 from shared.agents.sac_ae import SACAE
 from shared.agents.td3 import TD3, PixelTD3
 from shared.agents.td3_ae import TD3AE
-from shared.config import AgentConfig, check_algo
+from shared.config import AgentConfig, ConfigError, check_algo
 
 AGENTS: dict[str, type[TD3] | type[SACAE]] = {
     "nasa_td3": NaSATD3,
@@ -29,9 +29,20 @@ def make_agent(
     action_dim: int,
     config: AgentConfig,
     device: torch.device,
+    updates: bool = True,
 ) -> Agent:
+    """The agent of `algo`; `updates`: False where it only acts (actors, the evaluator), which then
+    ignore the options of its updates (`cuda_graph` on a learner that has a GPU)."""
     check_algo(algo)
+    if updates:
+        check_update_device(config, device)
     return AGENTS[algo](obs_shape, action_dim, config, device)
+
+
+def check_update_device(config: AgentConfig, device: torch.device) -> None:
+    """ConfigError if the agent's updates cannot run on `device`."""
+    if config.cuda_graph and device.type != "cuda":
+        raise ConfigError(f"agent.cuda_graph needs a CUDA device, and this run's device is {device}")
 
 
 __all__ = [
@@ -44,6 +55,7 @@ __all__ = [
     "TD3AE",
     "UnscoredBatchError",
     "batch_to_device",
+    "check_update_device",
     "collect_action",
     "make_agent",
 ]

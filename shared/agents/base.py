@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import torch
 
+from shared.config import AgentConfig
 from shared.nets import float_channels_last, pixel_dtype
+
+if TYPE_CHECKING:
+    from shared.agents.cuda_graph import GraphedUpdate
 
 
 class Agent(Protocol):
@@ -23,6 +27,10 @@ class Agent(Protocol):
 
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """One gradient update on a batch already on `device`; returns its losses."""
+        ...
+
+    def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """`update` with its losses left on the device: no step of it waits for the device."""
         ...
 
     def score(
@@ -104,11 +112,14 @@ def adam(params, lr: float, weight_decay: float = 0.0, betas=(0.9, 0.999)) -> to
     return torch.optim.Adam(list(params), lr=lr, weight_decay=weight_decay, betas=betas, fused=True)
 
 
-def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) -> bool:
+def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) -> torch.Tensor:
     """Zero, backpropagate once, step each optimizer (several when one loss trains several parts).
 
-    A non-finite loss or gradient skips the step (False; counted in each optimizer's
-    `nonfinite_skips`): a NaN never reaches the weights or Adam's moments.
+    A non-finite loss or gradient skips the step: a NaN never reaches the weights or Adam's
+    moments, and the step count stays. The test and the skip both run on the device (the fused
+    Adam kernel's `found_inf`, as mixed-precision training uses it), so a step never waits for
+    the device: the update can be captured as a CUDA graph. Returns the device's 1.0 (skipped)
+    or 0.0; the skips add up in each optimizer's `nonfinite_skips` tensor.
     """
     for opt in optimizers:
         opt.zero_grad(set_to_none=True)
@@ -116,32 +127,70 @@ def optimizer_step(optimizers: list[torch.optim.Optimizer], loss: torch.Tensor) 
     grads = [p.grad for opt in optimizers for group in opt.param_groups for p in group["params"]
              if p.grad is not None]
     finite = torch.isfinite(loss.detach()).all()
-    if grads:  # one device-to-host sync for the loss and every gradient
+    if grads:
         finite = finite & torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
-    if not bool(finite):
-        for opt in optimizers:
-            opt.zero_grad(set_to_none=True)
-            opt.nonfinite_skips = getattr(opt, "nonfinite_skips", 0) + 1
-        return False
+    skipped = (~finite).float()
     for opt in optimizers:
+        if not all(group.get("fused") for group in opt.param_groups):
+            raise TypeError("optimizer_step needs fused Adam (shared.agents.base.adam): its kernel skips "
+                            "a step on the device")
+        opt.found_inf = skipped
         opt.step()
-    return True
+        counter = getattr(opt, "nonfinite_skips", None)
+        if counter is None:
+            opt.nonfinite_skips = skipped.clone()
+        else:
+            counter.add_(skipped)
+    return skipped
 
 
 def nonfinite_skips(agent: object) -> int:
     """Optimizer steps the agent skipped for a non-finite loss or gradient (optimizer_step)."""
     optimizers = agent._optimizers().values() if hasattr(agent, "_optimizers") else []
-    return sum(getattr(opt, "nonfinite_skips", 0) for opt in optimizers)
+    counts = [opt.nonfinite_skips for opt in optimizers if hasattr(opt, "nonfinite_skips")]
+    return int(torch.stack(counts).sum()) if counts else 0
+
+
+def metric_floats(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
+    """An update's metrics (0-d tensors on the device) as floats, with one device-to-host copy."""
+    if not metrics:
+        return {}
+    values = torch.stack([v.detach().float() for v in metrics.values()]).tolist()
+    return dict(zip(metrics, values, strict=True))
 
 
 class ModuleStateMixin:
-    """state_dict / policy_state_dict from the named modules and optimizers an agent lists.
+    """state_dict / policy_state_dict from the named modules and optimizers an agent lists, and
+    `update` from the agent's `update_step`.
 
     An agent lists its parts once (`_modules`, `_optimizers`, `_policy_modules`);
     saving, loading and the weights actors receive all follow from that list.
     """
 
     num_updates: int
+    config: AgentConfig
+    _graphed: GraphedUpdate | None = None
+
+    def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def update_period(self) -> int:
+        """After how many updates the path of `update_step` repeats (a CUDA graph per phase)."""
+        raise NotImplementedError
+
+    def check_batch(self, batch: dict[str, torch.Tensor]) -> None:
+        """Raise if the batch cannot be trained on (a test that reads the device, so not in `update_step`)."""
+
+    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """One update, eager or replayed from its CUDA graph (`cuda_graph`); its losses as floats."""
+        self.check_batch(batch)
+        if not self.config.cuda_graph:
+            return metric_floats(self.update_step(batch))
+        if self._graphed is None:
+            from shared.agents.cuda_graph import GraphedUpdate
+
+            self._graphed = GraphedUpdate(self)
+        return metric_floats(self._graphed(batch))
 
     def _modules(self) -> dict[str, torch.nn.Module]:
         raise NotImplementedError
@@ -159,6 +208,7 @@ class ModuleStateMixin:
         return state
 
     def load_state_dict(self, state: dict) -> None:
+        self._graphed = None  # the optimizers' new state tensors are not the captured ones
         for name, module in self._modules().items():
             module.load_state_dict(state[name])
         for name, opt in self._optimizers().items():

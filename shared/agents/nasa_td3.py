@@ -11,6 +11,8 @@ update; `fresh` rescores the batch with the current networks at each update.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from shared import intrinsic
@@ -58,11 +60,14 @@ class NaSATD3(TD3AE):
         action: torch.Tensor,
         next_obs: torch.Tensor,
         latent: torch.Tensor | None = None,
+        chain: bool = True,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """`score` (`latent`: Enc(obs) already computed with the current weights), and
-        Enc(next_obs), which a fresh-timing update's TD target reuses."""
+        Enc(next_obs), which a fresh-timing update's TD target reuses. `chain`: reuse a row's
+        latent for the next stack that equals its obs (`intrinsic.encode_next`); the lookup reads
+        the frames on the host, so a captured update encodes every next stack instead."""
         z = self.encoder(obs) if latent is None else latent
-        z_next = intrinsic.encode_next(self.encoder, obs, z, next_obs)
+        z_next = intrinsic.encode_next(self.encoder, obs, z, next_obs) if chain else self.encoder(next_obs)
         novelty = intrinsic.novelty(obs, self.decoder(z))
         surprise = intrinsic.surprise(self.ensemble(z, action), z_next)
         total = self.config.novelty_weight * novelty + self.config.surprise_weight * surprise
@@ -70,9 +75,16 @@ class NaSATD3(TD3AE):
 
     # -- learning -------------------------------------------------------------
 
+    def update_period(self) -> int:
+        return math.lcm(self.config.policy_delay, self.config.ensemble_every)
+
+    def check_batch(self, batch: dict[str, torch.Tensor]) -> None:
+        if self.config.intrinsic_timing == "collect":
+            check_scored(batch["intrinsic"])
+
     def reward(
         self, batch: dict[str, torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, dict[str, float]]:
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, dict[str, torch.Tensor]]:
         """The environment's reward plus the intrinsic bonus: the stored score (`collect`),
         or the batch scored now (`fresh`)."""
         latent = next_latent = None
@@ -82,18 +94,18 @@ class NaSATD3(TD3AE):
             # Enc(next_obs) serve all three.
             latent = self.encoder(batch["obs"])
             scores, next_latent = self.score_with_next_latent(
-                batch["obs"], batch["action"], batch["next_obs"], latent.detach()
+                batch["obs"], batch["action"], batch["next_obs"], latent.detach(),
+                chain=not self.config.cuda_graph,
             )
             bonus = scores["intrinsic"]
         else:
-            bonus = batch["intrinsic"]
-            check_scored(bonus)
+            bonus = batch["intrinsic"]  # checked by `check_batch`
         reward = batch["reward"].view(-1, 1) + bonus.view(-1, 1)
-        return reward, latent, next_latent, {"intrinsic_batch_mean": bonus.mean().item()}
+        return reward, latent, next_latent, {"intrinsic_batch_mean": bonus.detach().mean()}
 
     def update_auxiliary(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor, z: torch.Tensor | None
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """The ensemble, on every `ensemble_every`-th update."""
         if self.num_updates % self.config.ensemble_every != 0:
             return {}
@@ -101,7 +113,7 @@ class NaSATD3(TD3AE):
 
     def update_ensemble(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor, z: torch.Tensor | None = None
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """Each predictor regresses Enc(next_obs) from (Enc(obs), action), on detached latents."""
         with torch.no_grad():
             z = self.encoder(obs) if z is None else z
@@ -110,7 +122,7 @@ class NaSATD3(TD3AE):
         # Sum of the members' MSEs: each member gets exactly its own gradient.
         loss = (predictions - z_next).pow(2).mean(dim=(1, 2)).sum()
         optimizer_step([self.ensemble_opt], loss)
-        return {"ensemble_loss": loss.item() / self.config.ensemble_size}
+        return {"ensemble_loss": loss.detach() / self.config.ensemble_size}
 
     # -- state ----------------------------------------------------------------
 

@@ -113,7 +113,10 @@ class SACAE(ModuleStateMixin):
     ) -> dict[str, torch.Tensor]:
         raise RuntimeError("sac_ae has no intrinsic rewards")
 
-    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+    def update_period(self) -> int:
+        return self.config.policy_delay
+
+    def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One update in SAC-AE's order: critic, actor and alpha, targets, decoder."""
         c = self.config
         self.num_updates += 1
@@ -121,7 +124,7 @@ class SACAE(ModuleStateMixin):
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
         discount = batch["discount"].view(-1, 1)
-        metrics: dict[str, float] = {}
+        metrics: dict[str, torch.Tensor] = {}
 
         with torch.no_grad():
             next_action, next_log_pi = self.actor(self.actor_encoder(next_obs))
@@ -131,7 +134,7 @@ class SACAE(ModuleStateMixin):
         q1, q2 = self.critic(self.critic_encoder(obs), action)
         critic_loss = F.mse_loss(q1, q_target) + F.mse_loss(q2, q_target)
         optimizer_step([self.critic_opt], critic_loss)
-        metrics["critic_loss"] = critic_loss.item()
+        metrics["critic_loss"] = critic_loss.detach()
 
         if self.num_updates % c.policy_delay == 0:
             pi, log_pi = self.actor(self.actor_encoder(obs, detach_conv=True))
@@ -144,7 +147,7 @@ class SACAE(ModuleStateMixin):
             optimizer_step([self.actor_opt], actor_loss)
             alpha_loss = (self.alpha * (-log_pi - self.target_entropy).detach()).mean()
             optimizer_step([self.alpha_opt], alpha_loss)
-            metrics |= {"actor_loss": actor_loss.item(), "alpha": self.alpha.item()}
+            metrics |= {"actor_loss": actor_loss.detach(), "alpha": self.alpha.detach()}
             soft_update(self.critic_target, self.critic, c.tau)
             soft_update(self.critic_encoder_target, self.critic_encoder, c.encoder_tau)
 
@@ -152,7 +155,7 @@ class SACAE(ModuleStateMixin):
         rec_loss = F.mse_loss(self.decoder(z), preprocess_obs(obs))
         ae_loss = rec_loss + c.decoder_latent_lambda * (0.5 * z.pow(2).sum(dim=1)).mean()
         optimizer_step([self.encoder_opt, self.decoder_opt], ae_loss)
-        metrics["ae_loss"] = ae_loss.item()
+        metrics["ae_loss"] = ae_loss.detach()
         return metrics
 
     def _modules(self) -> dict[str, torch.nn.Module]:

@@ -87,7 +87,10 @@ class TD3(ModuleStateMixin):
 
     # -- learning -------------------------------------------------------------
 
-    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+    def update_period(self) -> int:
+        return self.config.policy_delay
+
+    def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One update: reward, encoder losses (critic first), delayed actor and targets, auxiliaries."""
         c = self.config
         batch = float_pixels(batch, self.config.pixel_precision)
@@ -108,7 +111,7 @@ class TD3(ModuleStateMixin):
 
     def reward(
         self, batch: dict[str, torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, dict[str, float]]:
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, dict[str, torch.Tensor]]:
         """The (B, 1) reward the TD target uses, with Enc(obs) (its graph kept) and Enc(next_obs)
         when computing the reward already encoded them with the current weights (else None),
         and the reward's metrics. Here: the environment's reward alone."""
@@ -120,13 +123,13 @@ class TD3(ModuleStateMixin):
         action: torch.Tensor,
         q_target: torch.Tensor,
         latent: torch.Tensor | None = None,
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """Every loss that trains the encoder: here the critic's alone."""
         return self.update_critic(obs, action, q_target, latent)
 
     def update_auxiliary(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor, z: torch.Tensor | None
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """Models trained after the actor on the same batch (`z`: Enc(obs) of this update's actor
         step, or None); none here."""
         return {}
@@ -160,22 +163,22 @@ class TD3(ModuleStateMixin):
         action: torch.Tensor,
         q_target: torch.Tensor,
         latent: torch.Tensor | None = None,
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """The critic loss trains the Q heads and the whole encoder (conv, fc, LayerNorm);
         `latent`: Enc(obs) with its graph, already computed with the current weights."""
         z = self.encoder(obs) if latent is None else latent
         loss = self.critic_loss(z, action, q_target)
         optimizer_step([self.critic_opt], loss)
-        return {"critic_loss": loss.item()}
+        return {"critic_loss": loss.detach()}
 
-    def update_actor(self, z: torch.Tensor) -> dict[str, float]:
+    def update_actor(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
         """The actor loss on detached latents: it reaches no encoder parameter."""
         z = z.detach()
         self.critic.requires_grad_(False)  # the actor loss trains the actor only; skip critic grads
         loss = -torch.min(*self.critic(z, self.actor(z))).mean()
         optimizer_step([self.actor_opt], loss)
         self.critic.requires_grad_(True)
-        return {"actor_loss": loss.item()}
+        return {"actor_loss": loss.detach()}
 
     # -- state ----------------------------------------------------------------
 

@@ -46,18 +46,18 @@ class TD3AE(TD3):
         action: torch.Tensor,
         q_target: torch.Tensor,
         latent: torch.Tensor | None = None,
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """The critic's step then the autoencoder's, or both in one (`shared_encoder_pass`)."""
         if self.config.shared_encoder_pass:
             return self.update_critic_and_autoencoder(obs, action, q_target, latent)
         metrics = self.update_critic(obs, action, q_target, latent)
         return metrics | self.update_autoencoder(obs)
 
-    def update_autoencoder(self, obs: torch.Tensor) -> dict[str, float]:
+    def update_autoencoder(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
         """Reconstruction + latent penalty; the reference encodes again after the critic step."""
         loss = self._ae_loss(obs, self.encoder(obs))
         optimizer_step([self.encoder_opt, self.decoder_opt], loss)
-        return {"ae_loss": loss.item()}
+        return {"ae_loss": loss.detach()}
 
     def update_critic_and_autoencoder(
         self,
@@ -65,13 +65,13 @@ class TD3AE(TD3):
         action: torch.Tensor,
         q_target: torch.Tensor,
         latent: torch.Tensor | None = None,
-    ) -> dict[str, float]:
+    ) -> dict[str, torch.Tensor]:
         """`shared_encoder_pass`: one encoder pass and one backward for both losses (not the reference)."""
         z = self.encoder(obs) if latent is None else latent
         critic_loss = self.critic_loss(z, action, q_target)
         ae_loss = self._ae_loss(obs, z)
         optimizer_step([self.critic_opt, self.encoder_opt, self.decoder_opt], critic_loss + ae_loss)
-        return {"critic_loss": critic_loss.item(), "ae_loss": ae_loss.item()}
+        return {"critic_loss": critic_loss.detach(), "ae_loss": ae_loss.detach()}
 
     def _ae_loss(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         rec_loss = sigmoid_mse(self.decoder.logits(z), obs)
