@@ -8,10 +8,12 @@ cheetah-run frames (batch 128), with nothing attached (bench.learner's part mete
 between parts). It reports:
 
 - updates/s eager with default settings and, on CUDA, each setting added in turn:
-  `cudnn.benchmark`, TF32 matmuls, bf16 pixel networks (`--pixel-precision bf16`), and the
-  same at larger batches (the data repeated);
+  `cudnn.benchmark`, TF32 matmuls, then either bf16 pixel networks (`--pixel-precision bf16`)
+  or the update replayed as captured CUDA graphs (`agent.cuda_graph`), and the first two at
+  larger batches (the data repeated);
 - from torch's profiler over `--profiled` updates: the host's time in torch's operators, the
-  device's busy time (the kernels' own time) and the kernel launches, each per update.
+  device's busy time (the kernels' own time) and the kernel launches, each per update; on
+  CUDA for the graphed update too (keys `cuda_graph_...`).
 
 An update whose wall time is close to the host's time and well above the device's busy time is
 bound by Python and launches: fewer, larger kernels or a captured CUDA graph are the lever, not
@@ -67,6 +69,11 @@ def cuda_settings(cudnn_benchmark: bool, tf32: bool) -> Iterator[None]:
         torch.backends.cudnn.benchmark = before
 
 
+# A graphed agent's first updates: eager ones (shared.agents.cuda_graph: twice the update's period
+# of two), then one capture per phase, with room to spare.
+GRAPH_WARMUP = 8
+
+
 def fresh_agent(data: dict, device: torch.device, **overrides: object) -> Agent:
     """A new NaSA-TD3 agent (bench.learner's, seeded) for the batch's frame stacks."""
     shape = tuple(data["obs"].shape[1:])
@@ -76,19 +83,25 @@ def fresh_agent(data: dict, device: torch.device, **overrides: object) -> Agent:
 def updates_per_s(
     data: dict, device: torch.device, updates: int, batch_repeat: int = 1, **overrides: object
 ) -> float:
-    """A fresh agent's eager updates/s on the batch (repeated `batch_repeat` times), after warm-up."""
+    """A fresh agent's updates/s on the batch (repeated `batch_repeat` times), after warm-up (with
+    `cuda_graph`, after its graphs are captured)."""
     agent = fresh_agent(data, device, **overrides)
     batch = {k: torch.cat([v] * batch_repeat) for k, v in bench_learner.device_batch(data, device).items()}
     seconds = bench_learner.seconds_per_call(
-        lambda: agent.update(batch), bench_learner.even(updates), device, warmup=4
+        lambda: agent.update(batch), bench_learner.even(updates), device, warmup=warmup_updates(overrides)
     )
     return 1.0 / seconds
 
 
-def profile(data: dict, device: torch.device, updates: int) -> dict:
-    agent = fresh_agent(data, device)
+def warmup_updates(overrides: dict) -> int:
+    """Updates before timing: a graphed agent's eager ones and its captures come first."""
+    return GRAPH_WARMUP if overrides.get("cuda_graph") else 4
+
+
+def profile(data: dict, device: torch.device, updates: int, **overrides: object) -> dict:
+    agent = fresh_agent(data, device, **overrides)
     batch = bench_learner.device_batch(data, device)
-    for _ in range(4):
+    for _ in range(warmup_updates(overrides)):
         agent.update(batch)
     hardware.sync(device)
     activities = [torch.profiler.ProfilerActivity.CPU]
@@ -112,6 +125,7 @@ def rates(data: dict, device: torch.device, updates: int, batches: list[int]) ->
     with cuda_settings(cudnn_benchmark=True, tf32=True):
         out["cudnn_benchmark+tf32"] = updates_per_s(data, device, updates)
         out["cudnn_benchmark+tf32+bf16"] = updates_per_s(data, device, updates, pixel_precision="bf16")
+        out["cudnn_benchmark+tf32+cuda_graph"] = updates_per_s(data, device, updates, cuda_graph=True)
         base = len(data["reward"])
         for size in batches:
             out[f"cudnn_benchmark+tf32 batch {size}"] = updates_per_s(data, device, updates, size // base)
@@ -149,6 +163,9 @@ def main(argv: list[str] | None = None) -> None:
     }
     print(f"updates/s: {result['updates_per_s']}", flush=True)
     result |= profile(data, device, args.profiled)
+    if device.type == "cuda":
+        graphed = profile(data, device, args.profiled, cuda_graph=True)
+        result |= {f"cuda_graph_{key}": value for key, value in graphed.items()}
     print(json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()}))
 
 
