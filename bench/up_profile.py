@@ -8,7 +8,7 @@ made updates for --settle seconds, then over a window of --seconds measures:
   its share of the machine's cores, and the launcher's (it runs the Zenoh
   router); what no service used is `unused_share_of_cores`;
 - the learner's wall-clock split: updating (scoring owed rows, then the
-  agent's update), waiting for its next batch (the rate limiter holding it
+  agent's update; the scoring's own share beside it), waiting for its next batch (the rate limiter holding it
   back, or the replay not serving in time), and the rest (draining messages,
   publishing weights, checkpoints);
 - env steps/s, updates/s and updates per env step against G;
@@ -139,6 +139,7 @@ def measure(a: dict, b: dict, wire_cost: dict, cores: int) -> dict:
     upd = {k: (b["hist"][k][0] - a["hist"].get(k, (0, 0))[0]) for k in b["hist"]}
     updates, steps = b["updates"] - a["updates"], b["env_steps"] - a["env_steps"]
     updating, waiting = upd.get("nasa_update_duration_seconds", 0.0), upd.get("nasa_batch_wait_seconds", 0.0)
+    scoring = upd.get("nasa_scoring_duration_seconds", 0.0)
     serial = updates * wire_cost["per_sampled_batch_s"] + steps * wire_cost["per_frame_s"]
     return {
         "window_s": round(wall, 1), "cores": cores,
@@ -146,7 +147,8 @@ def measure(a: dict, b: dict, wire_cost: dict, cores: int) -> dict:
         "unused_share_of_cores": round(1 - sum(cpu.values()) / (wall * cores), 3),
         "learner_wall_share": {"updating": round(updating / wall, 3),
                                "waiting_for_batch": round(waiting / wall, 3),
-                               "other": round(1 - (updating + waiting) / wall, 3)},
+                               "other": round(1 - (updating + waiting) / wall, 3),
+                               "scoring_in_updating": round(scoring / wall, 3)},
         "env_steps_per_s": round(steps / wall, 2), "updates_per_s": round(updates / wall, 2),
         "updates_per_env_step": round(updates / max(steps, 1), 3), "g": b["g"],
         "wire": {"per_sampled_batch_ms": round(1e3 * wire_cost["per_sampled_batch_s"], 3),

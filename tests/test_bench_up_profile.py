@@ -17,13 +17,16 @@ def test_histogram_sums_read_prometheus_text():
 
 def test_measure_splits_the_window():
     a = {"t": 0.0, "cpu": {"learner": 10.0, "actor": 1.0}, "env_steps": 100, "updates": 100, "g": 1,
-         "hist": {"nasa_update_duration_seconds": (5.0, 50), "nasa_batch_wait_seconds": (1.0, 50)}}
+         "hist": {"nasa_update_duration_seconds": (5.0, 50), "nasa_batch_wait_seconds": (1.0, 50),
+                  "nasa_scoring_duration_seconds": (1.0, 50)}}
     b = {"t": 10.0, "cpu": {"learner": 25.0, "actor": 3.0}, "env_steps": 150, "updates": 160, "g": 1,
-         "hist": {"nasa_update_duration_seconds": (12.0, 110), "nasa_batch_wait_seconds": (2.0, 110)}}
+         "hist": {"nasa_update_duration_seconds": (12.0, 110), "nasa_batch_wait_seconds": (2.0, 110),
+                  "nasa_scoring_duration_seconds": (3.0, 110)}}
     r = measure(a, b, {"per_sampled_batch_s": 0.01, "per_frame_s": 0.001, "batch_bytes": 9}, cores=2)
     assert r["cpu_s"] == {"learner": 15.0, "actor": 2.0}
     assert r["cpu_share_of_cores"] == {"learner": 0.75, "actor": 0.1}
     assert r["unused_share_of_cores"] == 0.15
-    assert r["learner_wall_share"] == {"updating": 0.7, "waiting_for_batch": 0.1, "other": 0.2}
+    assert r["learner_wall_share"] == {"updating": 0.7, "waiting_for_batch": 0.1, "other": 0.2,
+                                       "scoring_in_updating": 0.2}
     assert (r["env_steps_per_s"], r["updates_per_s"], r["updates_per_env_step"]) == (5.0, 6.0, 1.2)
     assert r["wire"]["cpu_s_in_window"] == 0.65  # 60 batches and 50 frames

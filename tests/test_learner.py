@@ -28,6 +28,7 @@ def test_an_update_scores_what_collect_timing_owes_and_reports_policy_lag(tmp_pa
         metrics = core.train_on(batch)
         assert np.isfinite(batch["intrinsic"]).all()
         assert {"critic_loss", "ae_loss", "ensemble_loss"} <= set(metrics)
+        assert core.last_scoring_s > 0  # the scoring's time, apart from the update's (bench.up_profile)
     assert not np.isnan(store.get(np.arange(16))["intrinsic"]).any()  # score_new wrote back the oldest rows
     status = core.status("r", 1.0)
     assert status["updates"] == 3 and status["intrinsic"]["scored"] > 0

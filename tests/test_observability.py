@@ -110,6 +110,7 @@ def test_metrics_parse_and_hold_every_figure_of_status():
     info = {k: v for (name, labels), _ in got.items() if name == "nasa_run_info" for k, v in labels}
     assert info == {k: STATUS[k] for k in INFO}
     assert got[("nasa_update_duration_seconds_count", ())] == 1
+    assert got[("nasa_scoring_duration_seconds_count", ())] == 0
     assert got[("nasa_batch_wait_seconds_bucket", (("le", "0.001"),))] == 1
     # Every figure of /status is covered: a new field without a metric fails here.
     covered = {path for path, *_ in SCALARS} | {"policy_lag.mean", "policy_lag.max"} \

@@ -57,6 +57,7 @@ class LearnerCore:
         self.last_checkpoint_step = 0
         self.resumed = False
         self.eval = self.recorder.last_eval() or {"step": None, "mean": None, "std": None}
+        self.last_scoring_s = 0.0  # the last train_on's time in scoring owed rows
         if (self.out / CHECKPOINT).exists():
             self.restore(checkpoint.load(self.out / CHECKPOINT, device))
 
@@ -71,8 +72,10 @@ class LearnerCore:
         update whose loss or gradient is non-finite skips that optimizer step (optimizer_step)
         and is counted as skipped. Either way no NaN reaches the weights."""
         if self.scorer is not None:
+            began = time.perf_counter()
             self.scorer.score_new()
             self.scorer.score_batch(batch)
+            self.last_scoring_s = time.perf_counter() - began
         bad = nonfinite_rows(batch, intrinsic=self.scorer is not None)
         if len(bad):
             index = batch["index"][bad].tolist()

@@ -265,6 +265,7 @@ class Learner:
                 core.train_on(batch, on_device)
                 self.metrics.batch_wait_seconds.observe(began - waited)
                 self.metrics.update_seconds.observe(time.perf_counter() - began)
+                self.metrics.scoring_seconds.observe(core.last_scoring_s)
                 core.board.seen_env_steps(self.client.num_inserted)
                 if core.agent.num_updates % self.args.publish_every == 0:
                     self.publish_weights()

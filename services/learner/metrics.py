@@ -191,7 +191,8 @@ class StatusCollector:
 
 
 class LearnerMetrics:
-    """The learner's registry: /status's figures plus the update-time and batch-wait histograms."""
+    """The learner's registry: /status's figures plus the update-time, scoring-time and batch-wait
+    histograms."""
 
     def __init__(self, status: Callable[[], dict]) -> None:
         self.registry = CollectorRegistry(auto_describe=False)
@@ -199,6 +200,10 @@ class LearnerMetrics:
         buckets = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
         self.update_seconds = Histogram(
             "nasa_update_duration_seconds", "Time of one update (scoring owed rows, then agent.update)",
+            buckets=buckets, registry=self.registry)
+        self.scoring_seconds = Histogram(
+            "nasa_scoring_duration_seconds",
+            "Time of one update's scoring of owed rows (a part of nasa_update_duration_seconds)",
             buckets=buckets, registry=self.registry)
         self.batch_wait_seconds = Histogram(
             "nasa_batch_wait_seconds", "Time the learner waited for its next training batch",
