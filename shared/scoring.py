@@ -54,6 +54,11 @@ class IntrinsicScorer:
             index = np.arange(self._after, warm)
             self.client.set_intrinsic(index, np.zeros(len(index), np.float32))
             self._after, zeros = warm, len(index)
+        if self._after >= self.client.num_inserted:
+            # Nothing stored since the last scan: no query (the learner service would otherwise ask
+            # the replay before every update). Its count comes with every batch the replay serves,
+            # so a row is found at the first update after a batch that could hold it.
+            return zeros
         batch, seen = self.client.unscored(self._after, self.batch_size)
         if batch is None:
             self._after = max(self._after, seen)

@@ -111,3 +111,28 @@ def test_a_scorer_started_late_zeroes_the_warm_up_and_scores_the_new_row_in_the_
     late.score_new()
     assert not np.isnan(store.get(np.arange(40))["intrinsic"]).any()
     assert late.scored == 1
+
+
+class CountingClient(LocalReplay):
+    def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003
+        super().__init__(*args, **kwargs)
+        self.scans = 0
+
+    def unscored(self, after: int, limit: int):  # noqa: ANN201
+        self.scans += 1
+        return super().unscored(after, limit)
+
+
+def test_the_scorer_asks_the_replay_only_when_rows_were_stored_since_its_last_scan():
+    store, agent = filled_store(40), nasa_agent()
+    client = CountingClient(store, np.random.default_rng(0))
+    scorer = IntrinsicScorer(agent, client, WARMUP, batch_size=64)
+    scorer.catch_up()
+    scans = client.scans
+    assert scorer.score_new() == 0 and client.scans == scans  # nothing new: no scan
+    spec, adder = tiny_run().spec, StoreAdder(store)
+    adder.add_first(np.zeros(spec.frame_shape, np.uint8))
+    adder.add(np.zeros(spec.action_dim, np.float32), 1.0, 1.0, np.zeros(spec.frame_shape, np.uint8), False,
+              policy_version=0)
+    assert scorer.score_new() == 1 and client.scans == scans + 1
+    assert not np.isnan(store.get(np.arange(store.num_inserted))["intrinsic"]).any()
