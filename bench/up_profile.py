@@ -14,7 +14,9 @@ made updates for --settle seconds, then over a window of --seconds measures:
 - env steps/s, updates/s and updates per env step against G;
 - the wire: a sampled batch's and an actor's transition batch's encoding and
   decoding, timed in this process for the run's shapes, times the window's
-  counts: the CPU seconds (de)serialisation and copying cost all processes.
+  counts: the CPU seconds (de)serialisation and copying cost all processes;
+- with --gil, who holds the learner's interpreter lock over the window, by
+  thread and by the main thread's functions (bench.gil_profile, py-spy).
 
 The last line is one JSON object.
 """
@@ -34,6 +36,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bench.gil_profile import GilProfileError, Recording
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
@@ -121,6 +124,25 @@ def wire_seconds(run_config: Path, reps: int = 20) -> dict[str, float]:
             "batch_bytes": len(data)}
 
 
+def gil_recording(pid: int | None, seconds: float, folder: Path) -> Recording | GilProfileError:
+    """py-spy on the learner over the window, or why it cannot run."""
+    if pid is None:
+        return GilProfileError("no learner process found")
+    try:
+        return Recording(pid, seconds, folder / "gil.txt")
+    except (GilProfileError, OSError) as err:
+        return GilProfileError(str(err))
+
+
+def gil_result(recording: Recording | GilProfileError) -> dict:
+    try:
+        if isinstance(recording, GilProfileError):
+            raise recording
+        return recording.result()
+    except GilProfileError as err:
+        return {"error": str(err)}
+
+
 def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and proc.poll() is None:
@@ -133,22 +155,28 @@ def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float) -> None:
     raise SystemExit(f"nasa up made no update in {timeout_s:.0f} s (exit {proc.poll()})")
 
 
+def learner_wall_share(a: dict, b: dict) -> dict[str, float]:
+    """The learner's wall clock between two snapshots, split by its histograms."""
+    wall = b["t"] - a["t"]
+    spent = {k: (b["hist"][k][0] - a["hist"].get(k, (0, 0))[0]) for k in b["hist"]}
+    updating = spent.get("nasa_update_duration_seconds", 0.0)
+    waiting = spent.get("nasa_batch_wait_seconds", 0.0)
+    scoring = spent.get("nasa_scoring_duration_seconds", 0.0)
+    return {"updating": round(updating / wall, 3), "waiting_for_batch": round(waiting / wall, 3),
+            "other": round(1 - (updating + waiting) / wall, 3),
+            "scoring_in_updating": round(scoring / wall, 3)}
+
+
 def measure(a: dict, b: dict, wire_cost: dict, cores: int) -> dict:
     wall = b["t"] - a["t"]
     cpu = {n: round(b["cpu"][n] - a["cpu"].get(n, 0.0), 2) for n in b["cpu"]}
-    upd = {k: (b["hist"][k][0] - a["hist"].get(k, (0, 0))[0]) for k in b["hist"]}
     updates, steps = b["updates"] - a["updates"], b["env_steps"] - a["env_steps"]
-    updating, waiting = upd.get("nasa_update_duration_seconds", 0.0), upd.get("nasa_batch_wait_seconds", 0.0)
-    scoring = upd.get("nasa_scoring_duration_seconds", 0.0)
     serial = updates * wire_cost["per_sampled_batch_s"] + steps * wire_cost["per_frame_s"]
     return {
         "window_s": round(wall, 1), "cores": cores,
         "cpu_s": cpu, "cpu_share_of_cores": {n: round(v / (wall * cores), 3) for n, v in cpu.items()},
         "unused_share_of_cores": round(1 - sum(cpu.values()) / (wall * cores), 3),
-        "learner_wall_share": {"updating": round(updating / wall, 3),
-                               "waiting_for_batch": round(waiting / wall, 3),
-                               "other": round(1 - (updating + waiting) / wall, 3),
-                               "scoring_in_updating": round(scoring / wall, 3)},
+        "learner_wall_share": learner_wall_share(a, b),
         "env_steps_per_s": round(steps / wall, 2), "updates_per_s": round(updates / wall, 2),
         "updates_per_env_step": round(updates / max(steps, 1), 3), "g": b["g"],
         "wire": {"per_sampled_batch_ms": round(1e3 * wire_cost["per_sampled_batch_s"], 3),
@@ -163,6 +191,8 @@ def main() -> None:
     p.add_argument("--task", default="ball_in_cup-catch")
     p.add_argument("--seconds", type=float, default=120.0, help="the measured window")
     p.add_argument("--settle", type=float, default=30.0, help="seconds of learning before the window")
+    p.add_argument("--gil", action="store_true",
+                   help="also sample who holds the learner's interpreter lock over the window (py-spy)")
     p.add_argument("up_args", nargs="*", help="more nasa up flags, after --")
     args = p.parse_args()
     port = free_port()
@@ -181,9 +211,12 @@ def main() -> None:
             time.sleep(args.settle)
             pids = {"launcher+router": proc.pid, **service_pids(proc.pid)}
             first = snapshot(url, pids)
+            recording = gil_recording(pids.get("learner"), args.seconds, Path(tmp)) if args.gil else None
             time.sleep(args.seconds)
             last = snapshot(url, pids)
             result = measure(first, last, wire_seconds(data / "config.json"), usable_cores())
+            if recording is not None:
+                result["learner_gil"] = gil_result(recording)
         finally:
             os.killpg(proc.pid, signal.SIGINT)
             try:
