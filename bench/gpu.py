@@ -39,6 +39,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 UP_ARGS = ["--preset", "paper", "--device", "cuda", "--actors", "8", "--task", "cheetah-run"]
+UP_PROFILE_S = 45.0  # the up step's measured window, once the learner updates
 STATUS_KEYS = ("updates_per_s", "env_steps_per_s", "updates_per_env_step")
 LEARNER_KEYS = (
     "updates_per_s", "score_ms_per_transition", "sgemm_peak_gflops", "matmul_peak_gflops", "update_gflop",
@@ -65,6 +66,7 @@ def requirement_name(requirement: str) -> str:
 NOT_USED_BY_THE_CHECK = frozenset({
     "opencv-contrib-python-headless", "dynamixel-sdk", "imageio-ffmpeg", "cryptography",
     "ruff", "playwright", "kubernetes-validate", "compose-spec",
+    "py-spy",  # used where present (the learner's lock profile), never needed
 })  # fmt: skip
 
 
@@ -256,22 +258,70 @@ def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> d
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)  # fmt: skip
     samples, gpu, start = [], [], time.monotonic()
+    window = UpWindow(proc.pid, port, data)
     while time.monotonic() - start < run_for and proc.poll() is None:
         time.sleep(poll_s)
         status = get_status(port)
         if status is not None:
             samples.append(status)
+            if status.get("updates", 0) > 0:
+                window.tick(left_s=run_for - (time.monotonic() - start))
         if (g := gpu_sample()) is not None:
             gpu.append(g)
     exited_early = proc.poll() is not None
+    profile = window.result()
     rc = stop_group(proc)
     output = proc.stdout.read() if proc.stdout else ""
-    out = {"seconds": round(time.monotonic() - start, 1), "args": UP_ARGS, **summarize_up(samples, gpu)}
+    out = {"seconds": round(time.monotonic() - start, 1), "args": UP_ARGS, **summarize_up(samples, gpu),
+           "profile": profile}
     if exited_early or not samples:
         out["error"] = f"nasa up exited early (rc {rc})" if exited_early else "no /status answered"
         out["tail"] = output[-1500:] + logs_tail(data / "run" / "logs")
     shutil.rmtree(data, ignore_errors=True)
     return out
+
+
+class UpWindow:
+    """bench.up_profile's measurement over one window of the run, once the learner updates: each
+    service's CPU, the learner's wall clock split (scoring apart), and, where py-spy is present,
+    who holds the learner's interpreter lock (bench.gil_profile)."""
+
+    def __init__(self, launcher: int, port: int, folder: Path, seconds: float = UP_PROFILE_S) -> None:
+        self.launcher, self.folder, self.seconds = launcher, folder, seconds
+        self.url = f"http://127.0.0.1:{port}"
+        self.pids: dict[str, int] = {}
+        self.gil: object = None
+        self.first: dict | None = None
+        self.last: dict | None = None
+        self.error = ""
+
+    def tick(self, left_s: float) -> None:
+        """Called while the learner updates: opens the window (if the run has time for it), closes it."""
+        from bench import up_profile
+
+        try:
+            if self.first is None and left_s > self.seconds + 10:
+                self.pids = {"launcher+router": self.launcher, **up_profile.service_pids(self.launcher)}
+                self.first = up_profile.snapshot(self.url, self.pids)
+                learner = self.pids.get("learner")
+                self.gil = up_profile.gil_recording(learner, self.seconds, self.folder)
+            elif self.first is not None and self.last is None and \
+                    time.monotonic() - self.first["t"] >= self.seconds:
+                self.last = up_profile.snapshot(self.url, self.pids)
+        except Exception as err:  # noqa: BLE001 -- the profile is extra: it never fails the step
+            self.error = f"{type(err).__name__}: {err}"
+
+    def result(self) -> dict:
+        from bench import up_profile
+
+        if self.first is None or self.last is None:
+            if isinstance(self.gil, up_profile.Recording):
+                self.gil.proc.kill()
+            return {"error": self.error or "skipped: the learner updated too briefly for the window"}
+        free = {"per_sampled_batch_s": 0.0, "per_frame_s": 0.0, "batch_bytes": 0}
+        out = up_profile.measure(self.first, self.last, free, os.cpu_count() or 1)
+        out.pop("wire")
+        return out | {"learner_gil": up_profile.gil_result(self.gil)}
 
 
 def logs_tail(folder: Path, chars: int = 600) -> str:

@@ -216,3 +216,37 @@ def test_the_check_without_cuda_fails_with_one_json_line():
     assert result.returncode == 1
     line = json.loads(result.stdout.strip().splitlines()[-1])
     assert line["ok"] is False and line["cuda"]["error"] == "torch sees no CUDA device"
+
+
+def test_the_up_steps_window_opens_once_the_learner_updates_with_time_left_and_closes_after_it(
+        monkeypatch, tmp_path):
+    from bench import up_profile
+
+    clock = [100.0]
+    snaps = []
+
+    def snapshot(url, pids):  # noqa: ANN001, ANN202
+        snaps.append(clock[0])
+        return {"t": clock[0], "cpu": {n: clock[0] for n in pids}, "hist": {}, "env_steps": 10 * len(snaps),
+                "updates": 50 * len(snaps), "g": 5}
+
+    monkeypatch.setattr(gpu.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(up_profile, "snapshot", snapshot)
+    monkeypatch.setattr(up_profile, "service_pids", lambda launcher: {"learner": 7, "replay": 8})
+    monkeypatch.setattr(up_profile, "gil_recording",
+                        lambda pid, s, f: up_profile.GilProfileError(f"pid {pid}"))
+    short = gpu.UpWindow(1, 9, tmp_path, seconds=45)
+    short.tick(left_s=50)  # not enough time left for the window
+    assert short.result()["error"].startswith("skipped")
+    window = gpu.UpWindow(1, 9, tmp_path, seconds=45)
+    window.tick(left_s=100)
+    clock[0] += 20
+    window.tick(left_s=80)  # still inside the window
+    assert snaps == [100.0]
+    clock[0] += 30
+    window.tick(left_s=50)
+    assert snaps == [100.0, 150.0]
+    out = window.result()
+    assert out["updates_per_s"] == 1.0 and out["cpu_s"] == {"launcher+router": 50.0, "learner": 50.0,
+                                                              "replay": 50.0}
+    assert out["learner_gil"] == {"error": "pid 7"} and "wire" not in out
