@@ -58,6 +58,7 @@ class LearnerCore:
         self.resumed = False
         self.eval = self.recorder.last_eval() or {"step": None, "mean": None, "std": None}
         self.last_scoring_s = 0.0  # the last train_on's time in scoring owed rows
+        self._skips_seen = 0  # the agent's skipped optimizer steps after the last update
         if (self.out / CHECKPOINT).exists():
             self.restore(checkpoint.load(self.out / CHECKPOINT, device))
 
@@ -84,13 +85,13 @@ class LearnerCore:
                            f"{index[:16]}")
             return {}
         self.board.record_lag(self.agent.num_updates, batch["policy_version"])
-        skipped = nonfinite_skips(self.agent)
         if on_device is None:
             on_device = batch_to_device(batch, self.device)
         else:
             on_device["intrinsic"] = torch.from_numpy(batch["intrinsic"]).to(self.device)
         metrics = self.agent.update(on_device)
-        if nonfinite_skips(self.agent) > skipped or not all(np.isfinite(v) for v in metrics.values()):
+        skipped, self._skips_seen = self._skips_seen, nonfinite_skips(self.agent)  # one read per update
+        if self._skips_seen > skipped or not all(np.isfinite(v) for v in metrics.values()):
             n = self.board.count_skipped_update()
             self.log.every("nonfinite-update", 5.0, f"skipped update ({n} so far): non-finite loss or "
                            f"gradient {metrics}")
