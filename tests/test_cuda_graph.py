@@ -122,8 +122,8 @@ class Emulator:
     the update count back as they were: a real capture runs no kernel. A replay runs the step
     again on the graph's static inputs and writes the outputs the capture returned."""
 
-    def __init__(self, agent) -> None:  # noqa: ANN001
-        self.agent = agent
+    def __init__(self, agent, fail: bool = False) -> None:  # noqa: ANN001
+        self.agent, self.fail = agent, fail
         self.captures = 0
         self.replays = 0
 
@@ -141,14 +141,15 @@ class Emulator:
         assert all(g["capturable"] for o in self.agent._optimizers().values() for g in o.param_groups)
         tensors = self.tensors()
         saved = [t.detach().clone() for t in tensors]
-        rng, count = torch.get_rng_state(), self.agent.num_updates
+        rng = torch.get_rng_state()  # the update count: GraphedUpdate puts it back itself
         yield
         with torch.no_grad():
             for t, s in zip(tensors, saved, strict=True):
                 t.copy_(s)
         torch.set_rng_state(rng)
-        self.agent.num_updates = count  # GraphedUpdate puts it back itself, too
         self.captures += 1
+        if self.fail:
+            raise RuntimeError("operation not permitted when stream is capturing")
 
     def make_graph(self):  # noqa: ANN201
         emulator = self
@@ -248,3 +249,20 @@ def test_a_batch_of_another_shape_is_refused(monkeypatch):
     _train(graphed, [random_batch(seed=i) for i in range(5)])
     with pytest.raises(ValueError, match=r"batch\['obs'\] is \(8, 9, 48, 48\)"):
         graphed.update(random_batch(batch_size=4))
+
+
+def test_a_failed_capture_leaves_the_run_eager_with_a_warning(monkeypatch):
+    torch.manual_seed(4)
+    eager = agent_of("td3_ae")
+    batches = [random_batch(seed=i) for i in range(9)]
+    eager_losses = _train(eager, batches)
+    torch.manual_seed(4)
+    graphed = agent_of("td3_ae", cuda_graph=True)
+    emulator = Emulator(graphed, fail=True)
+    emulator.install(monkeypatch)
+    with pytest.warns(RuntimeWarning, match="CUDA graph capture failed; updates run eagerly"):
+        graphed_losses = _train(graphed, batches)
+    assert emulator.captures == 1 and emulator.replays == 0  # tried once, then eager for good
+    assert "operation not permitted" in graphed._graphed.failed
+    assert graphed.num_updates == 9 and graphed_losses == eager_losses
+    assert _same(_weights(graphed), _weights(eager))

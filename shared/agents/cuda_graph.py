@@ -18,10 +18,13 @@ is the same.
 - Loading a state replaces the optimizers' state tensors that the graphs point
   to: the agent then drops its graphs (`ModuleStateMixin.load_state_dict`) and
   captures again.
+- A capture that fails (a GPU, driver or torch version that cannot capture some
+  step) leaves the run eager, with a warning, rather than ending it.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -41,15 +44,25 @@ class GraphedUpdate:
         self.side = torch.cuda.Stream(agent.device)
         self.static: dict[str, torch.Tensor] = {}
         self.graphs: dict[int, tuple[torch.cuda.CUDAGraph, dict[str, torch.Tensor]]] = {}
+        self.failed = ""  # why a capture failed; the updates are then eager for good
 
     def __call__(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        if self.failed:
+            return self.agent.update_step(batch)
         if self.eager_updates < self.warmup:
             self.eager_updates += 1
             return self._on_side_stream(batch)
         self._copy_in(batch)
         phase = self.agent.num_updates % self.period
         if phase not in self.graphs:
-            self.graphs[phase] = self._capture()
+            try:
+                self.graphs[phase] = self._capture()
+            except RuntimeError as err:  # a GPU, driver or torch that cannot capture: slower, not dead
+                self.failed = f"{type(err).__name__}: {err}"
+                self.graphs.clear()
+                warnings.warn(f"CUDA graph capture failed; updates run eagerly from now on ({self.failed})",
+                              RuntimeWarning, stacklevel=2)
+                return self.agent.update_step(batch)
         graph, losses = self.graphs[phase]
         graph.replay()
         self.agent.num_updates += 1
@@ -80,11 +93,13 @@ class GraphedUpdate:
     def _capture(self) -> tuple[torch.cuda.CUDAGraph, dict[str, torch.Tensor]]:
         graph = torch.cuda.CUDAGraph()
         count = self.agent.num_updates
-        # thread_local: the learner's prefetch thread keeps copying batches to the device meanwhile.
-        with capturable(self.agent._optimizers().values()), \
-                torch.cuda.graph(graph, capture_error_mode="thread_local"):
-            losses = self.agent.update_step(self.static)
-        self.agent.num_updates = count  # capture ran no kernel: the update is the replay's
+        try:
+            # thread_local: the learner's prefetch thread keeps copying batches to the device meanwhile.
+            with capturable(self.agent._optimizers().values()), \
+                    torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                losses = self.agent.update_step(self.static)
+        finally:
+            self.agent.num_updates = count  # capture ran no kernel: the update is the replay's
         return graph, losses
 
 
