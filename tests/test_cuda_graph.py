@@ -136,8 +136,9 @@ class Emulator:
         return out + ([a.log_alpha] if hasattr(a, "log_alpha") else [])
 
     @contextlib.contextmanager
-    def graph(self, graph, capture_error_mode: str = "global"):  # noqa: ANN001, ANN201
+    def graph(self, graph, stream=None, capture_error_mode: str = "global"):  # noqa: ANN001, ANN201
         assert capture_error_mode == "thread_local"
+        assert stream is self.agent._graphed.side  # captured on the stream the warm-up ran on
         assert all(g["capturable"] for o in self.agent._optimizers().values() for g in o.param_groups)
         tensors = self.tensors()
         saved = [t.detach().clone() for t in tensors]

@@ -94,9 +94,11 @@ class GraphedUpdate:
         graph = torch.cuda.CUDAGraph()
         count = self.agent.num_updates
         try:
-            # thread_local: the learner's prefetch thread keeps copying batches to the device meanwhile.
+            # The warm-up's stream: libraries cache their handles and workspaces per stream, and
+            # creating one mid-capture fails. thread_local: the learner's prefetch thread keeps
+            # copying batches to the device meanwhile.
             with capturable(self.agent._optimizers().values()), \
-                    torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                    torch.cuda.graph(graph, stream=self.side, capture_error_mode="thread_local"):
                 losses = self.agent.update_step(self.static)
         finally:
             self.agent.num_updates = count  # capture ran no kernel: the update is the replay's
