@@ -8,12 +8,13 @@ cheetah-run frames (batch 128), with nothing attached (bench.learner's part mete
 between parts). It reports:
 
 - updates/s eager with default settings and, on CUDA, each setting added in turn:
-  `cudnn.benchmark`, TF32 matmuls, then either bf16 pixel networks (`--pixel-precision bf16`)
-  or the update replayed as captured CUDA graphs (`agent.cuda_graph`), and the first two at
-  larger batches (the data repeated);
+  `cudnn.benchmark`, TF32 matmuls, bf16 pixel networks (`--pixel-precision bf16`), and the
+  first two at larger batches (the data repeated); last, the update replayed as captured CUDA
+  graphs (`agent.cuda_graph`, with cudnn.benchmark and TF32: `cuda_graph_updates_per_s`);
 - from torch's profiler over `--profiled` updates: the host's time in torch's operators, the
   device's busy time (the kernels' own time) and the kernel launches, each per update; on
-  CUDA for the graphed update too (keys `cuda_graph_...`).
+  CUDA for the graphed update too (keys `cuda_graph_...`, with `cuda_graph_capture`: `ok` or
+  why the capture failed and the agent stayed eager).
 
 An update whose wall time is close to the host's time and well above the device's busy time is
 bound by Python and launches: fewer, larger kernels or a captured CUDA graph are the lever, not
@@ -113,7 +114,10 @@ def profile(data: dict, device: torch.device, updates: int, **overrides: object)
             agent.update(batch)
         hardware.sync(device)
     wall = (time.perf_counter() - start) / updates
-    return {"profiled_wall_s_per_update": wall, **summarize_profile(prof.events(), updates)}
+    out = {"profiled_wall_s_per_update": wall, **summarize_profile(prof.events(), updates)}
+    if overrides.get("cuda_graph"):  # a failed capture leaves the agent eager: say so
+        out["capture"] = agent._graphed.failed or "ok"
+    return out
 
 
 def rates(data: dict, device: torch.device, updates: int, batches: list[int]) -> dict[str, float]:
@@ -125,11 +129,23 @@ def rates(data: dict, device: torch.device, updates: int, batches: list[int]) ->
     with cuda_settings(cudnn_benchmark=True, tf32=True):
         out["cudnn_benchmark+tf32"] = updates_per_s(data, device, updates)
         out["cudnn_benchmark+tf32+bf16"] = updates_per_s(data, device, updates, pixel_precision="bf16")
-        out["cudnn_benchmark+tf32+cuda_graph"] = updates_per_s(data, device, updates, cuda_graph=True)
         base = len(data["reward"])
         for size in batches:
             out[f"cudnn_benchmark+tf32 batch {size}"] = updates_per_s(data, device, updates, size // base)
     return out
+
+
+def graphed(data: dict, device: torch.device, updates: int, profiled: int) -> dict:
+    """The update replayed as CUDA graphs (`agent.cuda_graph`): updates/s with cudnn.benchmark and
+    TF32, and its profile, under `cuda_graph_` keys; or the error that stopped them."""
+    try:
+        with cuda_settings(cudnn_benchmark=True, tf32=True):
+            rate = updates_per_s(data, device, updates, cuda_graph=True)
+        profiled_graph = profile(data, device, profiled, cuda_graph=True)
+        return {"cuda_graph_updates_per_s": round(rate, 2)} | {
+            f"cuda_graph_{key}": value for key, value in profiled_graph.items()}
+    except RuntimeError as err:
+        return {"cuda_graph_error": f"{type(err).__name__}: {err}"[:400]}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -163,9 +179,8 @@ def main(argv: list[str] | None = None) -> None:
     }
     print(f"updates/s: {result['updates_per_s']}", flush=True)
     result |= profile(data, device, args.profiled)
-    if device.type == "cuda":
-        graphed = profile(data, device, args.profiled, cuda_graph=True)
-        result |= {f"cuda_graph_{key}": value for key, value in graphed.items()}
+    if device.type == "cuda":  # last: the eager figures stand even if a capture breaks the device
+        result |= graphed(data, device, args.updates, args.profiled)
     print(json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()}))
 
 

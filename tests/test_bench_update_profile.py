@@ -74,3 +74,14 @@ def test_a_real_run_on_the_cpu_ends_with_one_json_line():
     wall = out["profiled_wall_s_per_update"]
     assert 0.5 * wall < out["host_s_per_update"] <= 1.05 * wall
     assert out["device_busy_s_per_update"] is None and out["kernel_launches_per_update"] == 0
+
+
+def test_a_graphed_measurement_that_fails_reports_its_error_and_nothing_else(monkeypatch):
+    why = "CUDA error: operation not permitted when stream is capturing"
+
+    def broken(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise RuntimeError(why)
+
+    monkeypatch.setattr(update_profile, "updates_per_s", broken)
+    out = update_profile.graphed({}, torch.device("cpu"), updates=1, profiled=1)
+    assert out == {"cuda_graph_error": f"RuntimeError: {why}"}
