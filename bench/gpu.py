@@ -319,7 +319,7 @@ class UpWindow:
                 self.gil.proc.kill()
             return {"error": self.error or "skipped: the learner updated too briefly for the window"}
         free = {"per_sampled_batch_s": 0.0, "per_frame_s": 0.0, "batch_bytes": 0}
-        out = up_profile.measure(self.first, self.last, free, os.cpu_count() or 1)
+        out = up_profile.measure(self.first, self.last, free, up_profile.usable_cores())
         out.pop("wire")
         return out | {"learner_gil": up_profile.gil_result(self.gil)}
 
