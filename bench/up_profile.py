@@ -135,9 +135,10 @@ def gil_recording(pid: int | None, seconds: float, folder: Path) -> Recording | 
 
 
 def gil_result(recording: Recording | GilProfileError) -> dict:
+    """The recording's summary, or why there is none."""
+    if isinstance(recording, GilProfileError):
+        return {"error": str(recording)}
     try:
-        if isinstance(recording, GilProfileError):
-            raise recording
         return recording.result()
     except GilProfileError as err:
         return {"error": str(err)}

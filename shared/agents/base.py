@@ -175,8 +175,9 @@ class ModuleStateMixin:
         raise NotImplementedError
 
     def update_period(self) -> int:
-        """After how many updates the path of `update_step` repeats (a CUDA graph per phase)."""
-        raise NotImplementedError
+        """After how many updates the path of `update_step` repeats (a CUDA graph per phase): the
+        delayed actor's period, unless an agent has more on a schedule."""
+        return self.config.policy_delay
 
     def check_batch(self, batch: dict[str, torch.Tensor]) -> None:
         """Raise if the batch cannot be trained on (a test that reads the device, so not in `update_step`)."""

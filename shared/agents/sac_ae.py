@@ -113,9 +113,6 @@ class SACAE(ModuleStateMixin):
     ) -> dict[str, torch.Tensor]:
         raise RuntimeError("sac_ae has no intrinsic rewards")
 
-    def update_period(self) -> int:
-        return self.config.policy_delay
-
     def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One update in SAC-AE's order: critic, actor and alpha, targets, decoder."""
         c = self.config

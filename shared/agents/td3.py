@@ -87,9 +87,6 @@ class TD3(ModuleStateMixin):
 
     # -- learning -------------------------------------------------------------
 
-    def update_period(self) -> int:
-        return self.config.policy_delay
-
     def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One update: reward, encoder losses (critic first), delayed actor and targets, auxiliaries."""
         c = self.config
