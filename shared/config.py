@@ -188,6 +188,10 @@ def validate(config: TrainConfig) -> TrainConfig:
         "agent.policy_delay": config.agent.policy_delay,
         "agent.ensemble_every": config.agent.ensemble_every,
     }
+    for prefix, section in (("", config), ("env.", config.env), ("agent.", config.agent)):
+        for f in dataclasses.fields(section):  # a hand-written config's "yes" would read as true
+            if f.type == "bool" and not isinstance(value := getattr(section, f.name), bool):
+                raise ConfigError(f"{prefix}{f.name} must be true or false, got {value!r}")
     for name, value in positive.items():
         if value < 1:
             raise ConfigError(f"{name} must be >= 1, got {value}")

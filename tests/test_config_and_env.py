@@ -38,6 +38,9 @@ from shared.device import DeviceError, resolve_device
         ("env.time_limit", "never", "time_limit must be bootstrap or terminal"),
         ("env.image_size", 8, "too small"),
         ("algo", "dqn", "unknown algo 'dqn'"),
+        ("agent.cuda_graph", "no", "agent.cuda_graph must be true or false, got 'no'"),
+        ("agent.shared_encoder_pass", 1, "agent.shared_encoder_pass must be true or false"),
+        ("eval_same_episodes", None, "eval_same_episodes must be true or false"),
     ],
 )
 def test_bad_values_are_rejected_with_a_clear_message(path, value, message):
