@@ -59,6 +59,22 @@ def test_resume_continues_exactly(tmp_path, algo):
         assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
 
 
+def test_resume_continues_exactly_on_the_gripper_stand_in(tmp_path):
+    """The stand-in carries the valve and the fingers from one episode into the next, in training
+    and in evaluation: a resumed run must get them back as they were."""
+    def config(steps):
+        c = tiny_config(steps=steps)
+        c.env.task = "gripper-valve"
+        c.env.action_repeat = 5  # 10-step episodes
+        return c
+
+    Trainer.create(config(80), tmp_path / "straight").run()
+    Trainer.create(config(65), tmp_path / "resumed").run()  # the last checkpoint is at 60
+    Trainer.resume(tmp_path / "resumed", steps=80).run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
+
+
 def test_existing_run_folder_is_not_overwritten(tmp_path):
     Trainer.create(tiny_config(steps=40), tmp_path / "run").run()
     with pytest.raises(FileExistsError, match="--resume"):

@@ -53,6 +53,8 @@ VALVE_TOLERANCE = math.radians(1.0)
 VALVE_TIMEOUT_S = 4.0
 VALVE_KP, VALVE_KD = 2.0, 0.04
 TARGET_RADIUS = 0.125
+# What a checkpoint keeps of the simulation: everything the next physics step reads.
+PHYSICS_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 class UnknownGripperTask(ValueError):
@@ -166,18 +168,33 @@ class ValveSim:
         return np.ascontiguousarray(self._renderer.render().transpose(2, 0, 1))
 
     def rng_state(self) -> dict:
-        """The random state that draws targets (and reset angles), and where the valve stands."""
+        """The random state that draws targets (and reset angles), and the whole physical state.
+
+        Scenario 1 carries the valve, and the fingers' pose, from one episode into the next, so
+        a run resumed from this state takes the same path as one never stopped only if the
+        physics comes back bit for bit: MuJoCo's integration state (positions, velocities,
+        controls, the solver's warm start, the target's mocap pose) and the servo setpoints.
+        `valve_angle` is kept beside it for states that say only where the valve stands."""
         name, keys, pos, has_gauss, cached = self._random.get_state()
+        physics = np.empty(mujoco.mj_stateSize(self.model, PHYSICS_STATE))
+        mujoco.mj_getState(self.model, self.data, physics, PHYSICS_STATE)
         return {
             "name": name, "keys": keys.tolist(), "pos": pos, "has_gauss": has_gauss, "cached": cached,
             "valve_angle": self.valve_angle,
+            "physics": physics.tolist(), "setpoint": self._setpoint.tolist(),
+            "target_angle": self.target_angle,
         }
 
     def set_rng_state(self, state: dict) -> None:
         keys = np.asarray(state["keys"], dtype=np.uint32)
         self._random.set_state((state["name"], keys, state["pos"], state["has_gauss"], state["cached"]))
-        # Put the valve back where the state left it, since scenario 1 starts each episode from
-        # there; the fingers go home first, as at a reset, so the valve is not put into one.
+        physics = state.get("physics")
+        if physics is not None:
+            self._set_physics(physics, state["setpoint"], state["target_angle"])
+            return
+        # A state with only the valve's angle: put the valve back there, since scenario 1 starts
+        # each episode from it; the fingers go home first, as at a reset, so the valve is not put
+        # into one. Close to the stopped run's state, not bit for bit.
         self._go_home()
         self.data.qpos[self._valve_qpos] = float(state["valve_angle"])
         self.data.qvel[self._valve_dof] = 0.0
@@ -219,6 +236,16 @@ class ValveSim:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+    def _set_physics(self, physics: list[float], setpoint: list[float], target_angle: float) -> None:
+        values = np.asarray(physics, dtype=np.float64)
+        size = mujoco.mj_stateSize(self.model, PHYSICS_STATE)
+        if values.shape != (size,):
+            raise ValueError(f"the gripper's physics state has {values.size} values, this model needs {size}")
+        mujoco.mj_setState(self.model, self.data, values, PHYSICS_STATE)
+        self._setpoint = np.asarray(setpoint, dtype=np.float64).copy()
+        self.target_angle = float(target_angle)
+        mujoco.mj_forward(self.model, self.data)
 
     # -- mechanics -----------------------------------------------------------------------------
     def _servo_substep(self, goal: np.ndarray) -> None:
