@@ -6,7 +6,7 @@ import argparse
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import tyro
 
@@ -16,6 +16,11 @@ from shared import run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.device import resolve_device
 from shared.service import EXIT_BAD_INPUT, bad_input_errors, parse_with_preset
+
+if TYPE_CHECKING:
+    from nasa.train import Trainer
+
+EXIT_INTERRUPTED = 130  # the shell's 128 + SIGINT
 
 
 @dataclass
@@ -73,7 +78,7 @@ def train(argv: list[str]) -> None:
     if cmd.resume is not None:
         with lock_run(cmd.resume, "nasa train --resume"):
             print(f"nasa train: resuming {cmd.resume}", flush=True)
-            Trainer.resume(cmd.resume, steps=steps).run()
+            run_until_stopped(Trainer.resume(cmd.resume, steps=steps), cmd.resume)
         return
     c = cmd.config
     check_update_device(c.agent, device)  # before the run folder is made
@@ -85,7 +90,21 @@ def train(argv: list[str]) -> None:
         flush=True,
     )
     with lock_run(out, "nasa train", "--out"):
-        Trainer.create(c, out).run()
+        run_until_stopped(Trainer.create(c, out), out)
+
+
+def run_until_stopped(trainer: Trainer, out: Path) -> None:
+    """Run to the step budget; on Ctrl-C (SIGINT), release the renderers and say how to continue."""
+    try:
+        trainer.run()
+    except KeyboardInterrupt:
+        trainer.close()
+        saved = trainer.last_checkpoint_step
+        where = (f"its last checkpoint holds step {saved}" if saved
+                 else "it has no checkpoint yet, so --resume starts it over")
+        print(f"\nnasa train: stopped at step {trainer.counters.env_steps}; {where}; "
+              f"continue with: nasa train --resume {out}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_INTERRUPTED)
 
 
 def up(argv: list[str]) -> None:

@@ -107,6 +107,7 @@ class Trainer:
         self.env.set_rng_state(state["env_rng"])
         self.eval_env.set_rng_state(state["eval_env_rng"])
         self.last_checkpoint_step = self.counters.env_steps
+        self.last_checkpoint_step = self.counters.env_steps
         self.store.truncate(int(state["replay_inserted"]))
 
     # -- the loop -----------------------------------------------------------------
@@ -135,6 +136,14 @@ class Trainer:
                 self.end_episode(progress, time.monotonic() - episode_started)
                 ts, episode_started = self.loop.reset(), time.monotonic()
         progress.close()
+        self.close()
+
+    def close(self) -> None:
+        """Release the environments' renderers and the run's files: at the end of a run, or when
+        it is stopped (the replay's log is safe however it stops; a resume starts from the last
+        checkpoint)."""
+        self.env.close()
+        self.eval_env.close()
         self.store.close()
         self.scalars.close()
 

@@ -315,6 +315,12 @@ class FrameStack:
     def set_rng_state(self, state: dict) -> None:
         self._env.set_rng_state(state)
 
+    def close(self) -> None:
+        """Release the layer below's renderer where it has one (the stand-in's GL context)."""
+        close = getattr(self._env, "close", None)
+        if close is not None:
+            close()
+
     def reset(self) -> TimeStep:
         frame, _, _, _ = self._env.reset()
         self._frames.extend([frame] * self.k)

@@ -1,7 +1,9 @@
 """The single-process trainer: run folder, determinism, exact resume, CLI errors."""
 
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -85,6 +87,35 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "nasa.cli", "train", *args], capture_output=True, text=True, timeout=300
     )
+
+
+@pytest.mark.system  # a `nasa train` process, stopped with Ctrl-C (SIGINT)
+def test_ctrl_c_stops_cleanly_and_says_how_to_continue(tmp_path):
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "nasa.cli", "train", "--task", "gripper-valve", "--preset", "cpu-small",
+         "--image-size", "32", "--steps", "100000", "--eval-episodes", "1", "--checkpoint-every", "1",
+         "--out", str(run)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while not (run / CHECKPOINT_FILE).exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert (run / CHECKPOINT_FILE).exists(), "no checkpoint within the deadline"
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "nasa train: stopped at step" in stderr and "its last checkpoint holds step" in stderr
+    assert f"continue with: nasa train --resume {run}" in stderr
+    assert "Traceback" not in stderr and "EGLError" not in stderr, stderr  # nor the renderer's teardown
+    trainer = Trainer.resume(run)  # the folder continues
+    try:
+        assert trainer.counters.env_steps == trainer.last_checkpoint_step > 0
+    finally:
+        trainer.close()
 
 
 @pytest.mark.parametrize(
