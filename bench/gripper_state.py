@@ -6,7 +6,9 @@ target's angles (cos, sin, and of their difference) and the four finger joints' 
 setpoints. `--without-difference` leaves the difference out: the state then holds what a frame
 shows (the valve, the target, the fingers), and the agent must relate the two angles itself, as a
 pixel agent must. `--angle-noise DEG` reads both angles with Gaussian noise of that many degrees
-at every step, as an encoder that holds them only approximately would. Settings are cpu-small's
+at every step, as an encoder that holds them only approximately would. `--valve-friction` and
+`--valve-damping` change the stand-in's valve joint (its friction loss in N m, its damping in
+N m s), to see how the task's physics sets the steps it takes to learn. Settings are cpu-small's
 for the gripper (hidden 256, batch 64, G = 1, warm-up 500, exploration noise 0.1, 20 evaluation
 episodes), with the encoder replaced by the state itself.
 Every `--eval-every` steps it evaluates on a separate stand-in (seed + 1,000,000).
@@ -17,8 +19,8 @@ a reward of -1/2 a step over 50 steps. A pixel agent is not expected to learn fa
 one: where this one needs N steps, a 30-minute pixel run of fewer steps says little about the method.
 
     python -m bench.gripper_state [--steps 50000] [--eval-every 2500] [--seed 0] [--without-difference]
-        [--angle-noise DEG] [--updates-per-step 1] [--gamma G] [--actor-lr LR]
-        [--exploration-noise S] [--threads N]
+        [--angle-noise DEG] [--valve-friction NM] [--valve-damping NMS] [--updates-per-step 1]
+        [--gamma G] [--actor-lr LR] [--exploration-noise S] [--threads N]
 
 The last line is one JSON object.
 """
@@ -49,14 +51,20 @@ class StateValve(ValveSim):
     """The stand-in without its camera: reset and step return `state()` where a frame would be;
     with `difference=False`, without the two elements of the target's angle from the valve; with
     `angle_noise` > 0, both angles read with Gaussian noise of that many degrees (its own draws,
-    from the seed, so the stand-in's draws do not change)."""
+    from the seed, so the stand-in's draws do not change); `valve_friction` and `valve_damping`,
+    where given, in place of the model's valve joint's."""
 
     def __init__(self, task: str, seed: int, *args, difference: bool = True,  # noqa: ANN002 (ValveSim's)
-                 angle_noise: float = 0.0, **kwargs) -> None:  # noqa: ANN003
+                 angle_noise: float = 0.0, valve_friction: float | None = None,
+                 valve_damping: float | None = None, **kwargs) -> None:  # noqa: ANN003
         self.difference = difference
         self.angle_noise = math.radians(angle_noise)
         self._noise = np.random.default_rng([seed, NOISE_STREAM])
         super().__init__(task, seed, *args, **kwargs)
+        if valve_friction is not None:
+            self.model.dof_frictionloss[self._valve_dof] = valve_friction
+        if valve_damping is not None:
+            self.model.dof_damping[self._valve_dof] = valve_damping
 
     @property
     def state_dim(self) -> int:
@@ -109,12 +117,14 @@ def evaluate(agent: PixelTD3, env: StateValve, episodes: int) -> float:
 
 def train(steps: int, eval_every: int, seed: int, eval_episodes: int | None = None,
           warmup: int | None = None, agent_settings: dict | None = None, updates_per_step: int = 1,
-          difference: bool = True, angle_noise: float = 0.0) -> dict:
+          difference: bool = True, angle_noise: float = 0.0, valve: dict | None = None) -> dict:
     """Learn from state for `steps` env steps, `updates_per_step` updates (each on its own
     minibatch) after each; the evaluations' means by step. Evaluation episodes and warm-up default
-    to cpu-small's gripper settings; `difference` and `angle_noise` as `StateValve`'s."""
-    env = StateValve(TASK, seed, difference=difference, angle_noise=angle_noise)
-    eval_env = StateValve(TASK, seed + EVAL_SEED_OFFSET, difference=difference, angle_noise=angle_noise)
+    to cpu-small's gripper settings; `difference`, `angle_noise` and `valve` (`valve_friction`,
+    `valve_damping`) as `StateValve`'s."""
+    options = {"difference": difference, "angle_noise": angle_noise, **(valve or {})}
+    env = StateValve(TASK, seed, **options)
+    eval_env = StateValve(TASK, seed + EVAL_SEED_OFFSET, **options)
     agent, config = state_agent(seed, agent_settings, env.state_dim)
     batch_size = config.batch_size
     eval_episodes = config.eval_episodes if eval_episodes is None else eval_episodes
@@ -161,6 +171,10 @@ def main() -> None:
                         help="leave the target's angle from the valve out of the state")
     parser.add_argument("--angle-noise", type=float, default=0.0, metavar="DEG",
                         help="read the valve's and the target's angles with Gaussian noise of DEG degrees")
+    parser.add_argument("--valve-friction", type=float, metavar="NM",
+                        help="the valve joint's friction loss, N m (the model's: 0.01)")
+    parser.add_argument("--valve-damping", type=float, metavar="NMS",
+                        help="the valve joint's damping, N m s (the model's: 0.005)")
     parser.add_argument("--updates-per-step", type=int, default=1, help="G (cpu-small: 1)")
     parser.add_argument("--gamma", type=float, help="the discount (cpu-small: 0.99)")
     parser.add_argument("--actor-lr", type=float, help="the actor's learning rate (cpu-small: 1e-4)")
@@ -173,6 +187,10 @@ def main() -> None:
         parser.error("--steps, --eval-every, --updates-per-step and --threads must be >= 1, --seed >= 0")
     if not 0.0 <= args.angle_noise <= 360.0:  # also refuses nan
         parser.error("--angle-noise must be between 0 and 360 degrees")
+    valve = {name: value for name in ("valve_friction", "valve_damping")
+             if (value := getattr(args, name)) is not None}
+    if not all(0.0 <= value < math.inf for value in valve.values()):  # also refuses nan
+        parser.error("--valve-friction and --valve-damping must be finite and >= 0")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     settings = {name: value for name in ("gamma", "actor_lr", "exploration_noise")
@@ -180,10 +198,10 @@ def main() -> None:
     result = {"task": TASK, "observation": "state", "steps": args.steps, "seed": args.seed,
               "ignores_target": IGNORES_TARGET, "updates_per_step": args.updates_per_step,
               "difference": not args.without_difference, "angle_noise_deg": args.angle_noise,
-              "agent_settings": settings, "threads": torch.get_num_threads()}
+              "agent_settings": settings, "valve": valve, "threads": torch.get_num_threads()}
     result |= train(args.steps, args.eval_every, args.seed, agent_settings=settings,
                     updates_per_step=args.updates_per_step, difference=not args.without_difference,
-                    angle_noise=args.angle_noise)
+                    angle_noise=args.angle_noise, valve=valve)
     evals = list(result["evals"].values())
     result["best"], result["last"] = max(evals), evals[-1]
     print(json.dumps(result))

@@ -57,6 +57,29 @@ def test_angle_noise_blurs_the_reading_of_both_angles_and_not_the_stand_in():
     noisy.close()
 
 
+def test_the_valve_joint_can_be_made_freer_or_stiffer_and_the_same_actions_turn_it_more_or_less():
+    def turned(**valve) -> float:
+        env = StateValve("gripper-valve", 5, **valve)
+        index = env._valve_dof
+        params = (float(env.model.dof_frictionloss[index]), float(env.model.dof_damping[index]))
+        env.reset()
+        total, before = 0.0, env.valve_angle
+        rng = np.random.default_rng(0)
+        for _ in range(50):
+            env.step(rng.uniform(-1, 1, 4))
+            total += abs(math.remainder(env.valve_angle - before, 2 * math.pi))
+            before = env.valve_angle
+        env.close()
+        return params, total
+
+    (friction, damping), as_built = turned()
+    assert (friction, damping) == (0.01, 0.005)  # the model's, as --help says
+    (friction, damping), free = turned(valve_friction=0.0005, valve_damping=0.001)
+    assert (friction, damping) == (0.0005, 0.001)
+    _, stiff = turned(valve_friction=0.2)
+    assert free > as_built > stiff
+
+
 def test_a_short_run_updates_after_the_warm_up_and_evaluates_on_schedule():
     result = train(steps=60, eval_every=30, seed=0, eval_episodes=1, warmup=20)
     assert list(result["evals"]) == ["0", "30", "60"]
@@ -76,7 +99,8 @@ def test_settings_over_cpu_small_reach_the_agent_and_g_updates_follow_each_step(
 
 BAD = [["--steps", "0"], ["--eval-every", "-5"], ["--seed", "-1"], ["--steps", "nan"],
        ["--updates-per-step", "0"], ["--gamma", "x"], ["--threads", "0"], ["--angle-noise", "-1"],
-       ["--angle-noise", "nan"]]
+       ["--angle-noise", "nan"], ["--valve-friction", "-0.01"], ["--valve-damping", "nan"],
+       ["--valve-friction", "inf"]]
 
 
 @pytest.mark.parametrize("bad", BAD)
