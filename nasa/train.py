@@ -107,7 +107,6 @@ class Trainer:
         self.env.set_rng_state(state["env_rng"])
         self.eval_env.set_rng_state(state["eval_env_rng"])
         self.last_checkpoint_step = self.counters.env_steps
-        self.last_checkpoint_step = self.counters.env_steps
         self.store.truncate(int(state["replay_inserted"]))
 
     # -- the loop -----------------------------------------------------------------

@@ -58,7 +58,7 @@ def test_angle_noise_blurs_the_reading_of_both_angles_and_not_the_stand_in():
 
 
 def test_the_valve_joint_can_be_made_freer_or_stiffer_and_the_same_actions_turn_it_more_or_less():
-    def turned(**valve) -> float:
+    def turned(**valve: float) -> tuple[tuple[float, float], float]:
         env = StateValve("gripper-valve", 5, **valve)
         index = env._valve_dof
         params = (float(env.model.dof_frictionloss[index]), float(env.model.dof_damping[index]))

@@ -88,6 +88,11 @@ def _episode(env: ValveSim, seed: int) -> tuple[list[np.ndarray], list[float]]:
     return frames, rewards
 
 
+def _angle_only(state: dict) -> dict:
+    """A state that says only where the valve stands (the draws and the angle, no physics)."""
+    return {k: v for k, v in state.items() if k not in ("physics", "setpoint", "target_angle")}
+
+
 def test_deterministic_under_a_seed() -> None:
     a = ValveSim("gripper-valve_reset", seed=11, render_quality="fast")
     b = ValveSim("gripper-valve_reset", seed=11, render_quality="fast")
@@ -137,7 +142,7 @@ def test_a_state_with_only_the_valve_angle_puts_the_valve_back_close() -> None:
     b = ValveSim("gripper-valve_reset", seed=11, render_quality="fast")
     try:
         _episode(a, 0)
-        state = {k: v for k, v in a.rng_state().items() if k not in ("physics", "setpoint", "target_angle")}
+        state = _angle_only(a.rng_state())
         a.reset()
         b.set_rng_state(state)
         b.reset()
@@ -218,7 +223,7 @@ def test_restoring_a_state_puts_the_valve_back_exactly_wherever_the_fingers_were
             action = rng.uniform(-1, 1, 4)
             for _ in range(10):
                 env.step(action)
-            state = {k: v for k, v in start.items() if k not in ("physics", "setpoint", "target_angle")}
+            state = _angle_only(start)
             state["valve_angle"] = float(rng.uniform(0.0, 2.0 * math.pi))
             env.set_rng_state(state)
             env.reset()
