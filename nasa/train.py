@@ -33,13 +33,15 @@ CHECKPOINT_FILE = "checkpoint.pt"
 
 
 class Trainer:
-    def __init__(self, config: TrainConfig, out: str | Path) -> None:
+    def __init__(self, config: TrainConfig, out: str | Path, state: dict | None = None) -> None:
         c = self.config = validate(config)
         self.out = Path(out)
         self.device = resolve_device(c.device)
         torch.manual_seed(c.seed)  # before any network is built
         self.env = envs.from_config(c.env, c.seed)
         self.eval_env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
+        if state is not None:  # before any file is opened: a state refused leaves the run as it was
+            self._restore_envs(state)
         self.restart_eval_draws = draws_restarter(self.eval_env, c.eval_same_episodes)
         self.run_config = run_config.RunConfig(c, self.env.spec)
         spec = self.env.spec
@@ -82,14 +84,14 @@ class Trainer:
             state = checkpoint.load(out / CHECKPOINT_FILE, resolve_device(config.device))
         if steps is not None:
             config.steps = steps
-        trainer = cls(config, out)
-        if steps is not None:
-            run_config.write_folder(out, trainer.run_config)
+        trainer = cls(config, out, state)
         if state is not None:
-            trainer.restore(state)
+            trainer._restore(state)
         else:  # killed before its first checkpoint: start over
             trainer.store.truncate(0)
             trainer.recorder.clear()
+        if steps is not None:
+            run_config.write_folder(out, trainer.run_config)
         return trainer
 
     def save_checkpoint(self) -> None:
@@ -101,13 +103,22 @@ class Trainer:
         )
         self.last_checkpoint_step = self.counters.env_steps
 
-    def restore(self, state: dict) -> None:
+    def _restore(self, state: dict) -> None:
+        """The rest of a checkpoint's state; the environments' came back at construction."""
         self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=True)
         self.scalars.purge_step = self.counters.env_steps  # the steps after the checkpoint are run again
-        self.env.set_rng_state(state["env_rng"])
-        self.eval_env.set_rng_state(state["eval_env_rng"])
         self.last_checkpoint_step = self.counters.env_steps
         self.store.truncate(int(state["replay_inserted"]))
+
+    def _restore_envs(self, state: dict) -> None:
+        for env, key in ((self.env, "env_rng"), (self.eval_env, "eval_env_rng")):
+            try:
+                env.set_rng_state(state[key])
+            except (KeyError, TypeError, ValueError, IndexError) as err:
+                raise checkpoint.CheckpointError(
+                    f"{self.out / CHECKPOINT_FILE}: its {key} does not fit task "
+                    f"{self.config.env.task}: {err!r}"
+                ) from err
 
     # -- the loop -----------------------------------------------------------------
 

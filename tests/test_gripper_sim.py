@@ -129,8 +129,14 @@ def test_a_stand_in_restored_from_its_state_takes_the_same_path_bit_for_bit(task
                 assert b.target_angle == a.target_angle
         finally:
             b.close()
+        before = a.rng_state()
         with pytest.raises(ValueError, match="physics state has 3 values"):
             a.set_rng_state(dict(state, physics=[0.0, 0.0, 0.0]))
+        with pytest.raises(ValueError, match="setpoints have shape"):
+            a.set_rng_state(dict(state, setpoint=[0.0]))
+        with pytest.raises(ValueError, match="not finite"):
+            a.set_rng_state(dict(state, target_angle=float("nan")))
+        assert a.rng_state() == before  # a refused state changes nothing
     finally:
         a.close()
 

@@ -144,6 +144,10 @@ def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, args, message):
     [
         (lambda state: {**state, "format": 1}, "has format 1 and this version reads format 3"),
         (None, "is not a readable checkpoint"),
+        (lambda state: {**state, "env_rng": {**state["env_rng"], "keys": [1, 2, 3]}},
+         "its env_rng does not fit task ball_in_cup-catch"),
+        (lambda state: {k: v for k, v in state.items() if k != "eval_env_rng"},
+         "its eval_env_rng does not fit task ball_in_cup-catch"),
     ],
 )
 @pytest.mark.system  # a `nasa train` process

@@ -186,11 +186,15 @@ class ValveSim:
         }
 
     def set_rng_state(self, state: dict) -> None:
+        """Restore a state from `rng_state`. A state that does not fit this model raises
+        ValueError before anything is changed."""
         keys = np.asarray(state["keys"], dtype=np.uint32)
-        self._random.set_state((state["name"], keys, state["pos"], state["has_gauss"], state["cached"]))
         physics = state.get("physics")
         if physics is not None:
-            self._set_physics(physics, state["setpoint"], state["target_angle"])
+            checked = self._check_physics(physics, state["setpoint"], state["target_angle"])
+        self._random.set_state((state["name"], keys, state["pos"], state["has_gauss"], state["cached"]))
+        if physics is not None:
+            self._set_physics(*checked)
             return
         # A state with only the valve's angle: put the valve back there, since scenario 1 starts
         # each episode from it; the fingers go home first, as at a reset, so the valve is not put
@@ -237,14 +241,27 @@ class ValveSim:
             self._renderer.close()
             self._renderer = None
 
-    def _set_physics(self, physics: list[float], setpoint: list[float], target_angle: float) -> None:
+    def _check_physics(
+        self, physics: list[float], setpoint: list[float], target_angle: float
+    ) -> tuple[np.ndarray, np.ndarray, float]:
         values = np.asarray(physics, dtype=np.float64)
         size = mujoco.mj_stateSize(self.model, PHYSICS_STATE)
         if values.shape != (size,):
             raise ValueError(f"the gripper's physics state has {values.size} values, this model needs {size}")
-        mujoco.mj_setState(self.model, self.data, values, PHYSICS_STATE)
-        self._setpoint = np.asarray(setpoint, dtype=np.float64).copy()
-        self.target_angle = float(target_angle)
+        goal = np.asarray(setpoint, dtype=np.float64)
+        if goal.shape != self._setpoint.shape:
+            raise ValueError(
+                f"the gripper's servo setpoints have shape {goal.shape}, expected {self._setpoint.shape}"
+            )
+        target = float(target_angle)
+        if not (np.all(np.isfinite(values)) and np.all(np.isfinite(goal)) and math.isfinite(target)):
+            raise ValueError("the gripper's physics state holds values that are not finite")
+        return values, goal.copy(), target
+
+    def _set_physics(self, physics: np.ndarray, setpoint: np.ndarray, target_angle: float) -> None:
+        mujoco.mj_setState(self.model, self.data, physics, PHYSICS_STATE)
+        self._setpoint = setpoint
+        self.target_angle = target_angle
         mujoco.mj_forward(self.model, self.data)
 
     # -- mechanics -----------------------------------------------------------------------------
