@@ -12,8 +12,8 @@ On the CPU it runs as a compiled kernel (`ssim_kernel`), elsewhere in torch
 
 Surprise needs Enc(next_obs). Transitions scored in the order they were stored
 chain: a row's next stack is a later row's obs stack, whose latent the scorer
-already has. `encode_next` takes those latents from Enc(obs) (`chained_rows`
-finds the pairs) and encodes only the rest.
+already has. `encode_with_next` takes those latents from Enc(obs) (`chained_rows`
+finds the pairs) and encodes only the rest, in the same pass as obs.
 """
 
 from __future__ import annotations
@@ -87,21 +87,33 @@ def ssim_torch(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return numerator.div_(denominator).mean(dim=(1, 2, 3))
 
 
-def encode_next(
-    encode: Callable[[torch.Tensor], torch.Tensor], obs: torch.Tensor, z: torch.Tensor, next_obs: torch.Tensor
-) -> torch.Tensor:
-    """Enc(next_obs), given z = Enc(obs) computed with the same weights by `encode`.
+def encode_with_next(
+    encode: Callable[[torch.Tensor], torch.Tensor],
+    obs: torch.Tensor,
+    next_obs: torch.Tensor,
+    z: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Enc(obs) and Enc(next_obs), in one call of `encode` (none for obs when `z`, Enc(obs)
+    computed with the same weights, is given).
 
     A row whose next stack equals another row's obs stack takes that row's latent;
-    the others are encoded. Rows in stored order chain that way (each next stack is
-    its successor's obs), so one encoder pass serves most of them; an i.i.d. batch
-    finds no chain and only pays the lookup."""
+    only the others are encoded, together with obs. Rows in stored order chain that
+    way (each next stack is its successor's obs), so one encoder pass serves them
+    all; an i.i.d. batch finds no chain and only pays the lookup."""
     source = chained_rows(obs, next_obs)
     unchained = source < 0
+    rest = next_obs[unchained]
+    if z is None:
+        # One pass: each call of a network pays its own fixed costs (under bf16 the
+        # weights' casts), a large share of encoding the one stack that ends a stored run.
+        both = encode(torch.cat([obs, rest])) if len(rest) else encode(obs)
+        z, z_rest = both[: len(obs)], both[len(obs) :]
+    else:
+        z_rest = encode(rest) if len(rest) else None
     z_next = z[source.clamp(min=0)]
-    if unchained.any():
-        z_next[unchained] = encode(next_obs[unchained])
-    return z_next
+    if z_rest is not None:
+        z_next[unchained] = z_rest
+    return z, z_next
 
 
 def chained_rows(obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:

@@ -191,7 +191,7 @@ def test_scoring_a_chained_batch_equals_scoring_each_transition_apart():
     assert sum(s >= 0 for s in successor) > len(obs) // 2  # the batch really chains
 
 
-def test_encode_next_encodes_only_the_rows_no_other_row_chains_to():
+def test_encode_with_next_encodes_only_the_rows_no_other_row_chains_to():
     agent = small_nasa_td3()
     obs, next_obs, successor = stored_rows()
     encoded = []
@@ -201,7 +201,14 @@ def test_encode_next_encodes_only_the_rows_no_other_row_chains_to():
         return agent.encoder(x)
 
     with torch.no_grad():
-        z = agent.encoder(obs)
-        z_next = intrinsic.encode_next(encode, obs, z, next_obs)
-        torch.testing.assert_close(z_next, agent.encoder(next_obs), rtol=1e-5, atol=1e-6)
-    assert encoded == [successor.count(-1)]
+        expected_z, expected_next = agent.encoder(obs), agent.encoder(next_obs)
+        z, z_next = intrinsic.encode_with_next(encode, obs, next_obs, expected_z)
+        assert z is expected_z
+        torch.testing.assert_close(z_next, expected_next, rtol=1e-5, atol=1e-6)
+        assert encoded == [successor.count(-1)]
+        # Without Enc(obs): the same latents from one call over obs and the unchained rows.
+        encoded.clear()
+        z, z_next = intrinsic.encode_with_next(encode, obs, next_obs)
+        torch.testing.assert_close(z, expected_z, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(z_next, expected_next, rtol=1e-5, atol=1e-6)
+    assert encoded == [len(obs) + successor.count(-1)]

@@ -64,10 +64,13 @@ class NaSATD3(TD3AE):
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """`score` (`latent`: Enc(obs) already computed with the current weights), and
         Enc(next_obs), which a fresh-timing update's TD target reuses. `chain`: reuse a row's
-        latent for the next stack that equals its obs (`intrinsic.encode_next`); the lookup reads
+        latent for the next stack that equals its obs (`intrinsic.encode_with_next`); the lookup reads
         the frames on the host, so a captured update encodes every next stack instead."""
-        z = self.encoder(obs) if latent is None else latent
-        z_next = intrinsic.encode_next(self.encoder, obs, z, next_obs) if chain else self.encoder(next_obs)
+        if chain:
+            z, z_next = intrinsic.encode_with_next(self.encoder, obs, next_obs, latent)
+        else:
+            z = self.encoder(obs) if latent is None else latent
+            z_next = self.encoder(next_obs)
         novelty = intrinsic.novelty(obs, self.decoder(z))
         surprise = intrinsic.surprise(self.ensemble(z, action), z_next)
         total = self.config.novelty_weight * novelty + self.config.surprise_weight * surprise
