@@ -40,22 +40,32 @@ def novelty(obs: torch.Tensor, reconstruction: torch.Tensor) -> torch.Tensor:
     return 1.0 - _ssim(obs, reconstruction, x_scale=1.0 / 255.0)
 
 
+def novelty_of_logits(obs: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+    """`novelty` with the reconstruction given as the decoder's logits (float32 or bfloat16):
+    on the CPU the kernel takes their sigmoid as it reads them, with no float32 copy."""
+    return 1.0 - _ssim(obs, logits, x_scale=1.0 / 255.0, y_logits=True)
+
+
 def surprise(predictions: torch.Tensor, next_latent: torch.Tensor) -> torch.Tensor:
     """MSE per sample between the ensemble-mean prediction (K, B, D) and the next latent (B, D)."""
     return (predictions.mean(dim=0) - next_latent).pow(2).mean(dim=1)
 
 
-def _ssim(x: torch.Tensor, y: torch.Tensor, x_scale: float) -> torch.Tensor:
+def _ssim(x: torch.Tensor, y: torch.Tensor, x_scale: float, y_logits: bool = False) -> torch.Tensor:
     if x.shape != y.shape or x.dim() != 4:
         raise ValueError(f"ssim needs two (B, C, H, W) tensors of one shape, got {x.shape}, {y.shape}")
     if min(x.shape[2:]) < WIN:
         raise ValueError(f"ssim needs images of at least {WIN}x{WIN}, got {tuple(x.shape[2:])}")
+    y = y.detach()
     if x.device.type != "cpu":
-        return ssim_torch(x.float() * x_scale, y.float())
+        y = y.float()
+        return ssim_torch(x.float() * x_scale, torch.sigmoid(y) if y_logits else y)
     if x.dtype != torch.uint8:
         x = x.float()
+    bf16 = y.dtype == torch.bfloat16
     values = ssim_kernel.batch_ssim(
-        x.detach().numpy(), y.detach().float().numpy(), x_scale, torch.get_num_threads()
+        x.detach().numpy(), y.view(torch.int16).numpy() if bf16 else y.float().numpy(), x_scale,
+        torch.get_num_threads(), y_bf16=bf16, y_logits=y_logits,
     )
     return torch.from_numpy(values).float()
 

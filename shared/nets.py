@@ -179,8 +179,10 @@ class Decoder(nn.Module):
         x = self.logits(z)
         return torch.sigmoid_(x) if self.sigmoid_output else x
 
-    def logits(self, z: torch.Tensor) -> torch.Tensor:
-        """The output before the sigmoid (all of it without one), float32."""
+    def logits(self, z: torch.Tensor, keep_precision: bool = False) -> torch.Tensor:
+        """The output before the sigmoid (all of it without one): float32, or with
+        `keep_precision` the dtype the layers computed it in (bfloat16 under `bf16`), for a
+        reader that widens it as it reads (`intrinsic.novelty_of_logits`)."""
         # Channels-last as in the encoder; in-place activations spare two image-sized
         # passes over memory (neither producer needs its output for its gradient).
         # fc's outputs are read in (h, w, c) order, so the view below is already the
@@ -188,7 +190,8 @@ class Decoder(nn.Module):
         channels, height, width = self.conv_shape
         with pixel_autocast(z, self.precision):
             h = torch.relu_(self.fc(z)).view(-1, height, width, channels).permute(0, 3, 1, 2)
-            return self.deconvs(h).float()
+            x = self.deconvs(h)
+        return x if keep_precision else x.float()
 
 
 class _SigmoidMSE(torch.autograd.Function):

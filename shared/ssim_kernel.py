@@ -7,6 +7,11 @@ input row: the horizontal 7-sums of x, y, x^2 + y^2 (SSIM needs only
 var_x + var_y) and xy go into a ring of the last seven rows, and the vertical
 window slides by adding the new row's sums and dropping the oldest. Rows are
 padded to whole vectors; a mask drops the padding.
+
+y may also be a decoder's logits, float32 or bfloat16 (as its raw bits in int16),
+with the sigmoid applied as each row is read: that spares the full-size float32
+copy and the sigmoid's pass over it. The sigmoid's exp is computed here in a form
+the compiler vectorises (numba's own `exp` is a scalar library call).
 """
 
 from __future__ import annotations
@@ -25,9 +30,50 @@ _FASTMATH = {"reassoc", "contract", "arcp", "nsz"}
 _JIT = dict(fastmath=_FASTMATH, boundscheck=False, error_model="numpy", cache=True)
 
 
+# exp(v) = 2^k e^r, k = round(v / ln 2), |r| <= ln(2) / 2, e^r by Cephes' expf polynomial
+# (relative error about 1e-7). ln 2 is split in two so that k ln 2 is exact enough.
+_LOG2E = np.float32(1.4426950408889634)
+_LN2_HI = np.float32(0.693359375)
+_LN2_LO = np.float32(-2.12194440e-4)
+_EXP_MAX = np.float32(87.0)  # e^87 is finite in float32, and 2^126 a normal number
+_P0, _P1, _P2 = np.float32(1.9875691500e-4), np.float32(1.3981999507e-3), np.float32(8.3334519073e-3)
+_P3, _P4, _P5 = np.float32(4.1665795894e-2), np.float32(1.6666665459e-1), np.float32(5.0000001201e-1)
+
+
 @numba.njit(**_JIT)
-def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid):
-    """Sum of the valid SSIM map of one (H, W) plane pair; x is multiplied by `scale`."""
+def _read_row(y, h, width, bf16, logits, out, bits, exps):
+    """Row h of y into out[:width] as float32: y's bfloat16 bits widened (`bf16`), and
+    through the sigmoid (`logits`). `bits` is an int32 buffer and `exps` its float32 view."""
+    if bf16:
+        for w in range(width):
+            bits[w] = np.int32(y[h, w]) << 16  # a bfloat16 is a float32's upper half
+        for w in range(width):
+            out[w] = exps[w]
+    else:
+        for w in range(width):
+            out[w] = y[h, w]
+    if not logits:
+        return
+    # sigmoid(v) = 1 / (1 + e^-v); a NaN stays NaN (every comparison with it is false).
+    for w in range(width):
+        v = -out[w]
+        if v > _EXP_MAX:
+            v = _EXP_MAX
+        if v < -_EXP_MAX:
+            v = -_EXP_MAX
+        k = np.floor(v * _LOG2E + np.float32(0.5))
+        r = v - k * _LN2_HI - k * _LN2_LO
+        p = (((((_P0 * r + _P1) * r + _P2) * r + _P3) * r + _P4) * r + _P5) * r * r + r + np.float32(1.0)
+        bits[w] = (np.int32(k) + 127) << 23  # 2^k
+        out[w] = p
+    for w in range(width):
+        out[w] = np.float32(1.0) / (np.float32(1.0) + out[w] * exps[w])
+
+
+@numba.njit(**_JIT)
+def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid, bf16, logits, bits, exps):
+    """Sum of the valid SSIM map of one (H, W) plane pair; x is multiplied by `scale`, and y
+    read by `_read_row`."""
     height, width = x.shape
     span = window.shape[1]
     n = WIN * WIN
@@ -40,8 +86,7 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid):
         # Three loops, so that the products vectorise even when y is strided.
         for w in range(width):
             row[0, w] = np.float32(x[h, w]) * scale
-        for w in range(width):
-            row[1, w] = y[h, w]
+        _read_row(y, h, width, bf16, logits, row[1], bits, exps)
         for w in range(width):
             a = row[0, w]
             b = row[1, w]
@@ -71,7 +116,7 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid):
 
 
 @numba.njit(parallel=True, **_JIT)
-def _batch_ssim(x, y, scale):
+def _batch_ssim(x, y, scale, bf16, logits):
     batch, channels, height, width = x.shape
     cols = width - WIN + 1
     span = (cols + _LANES - 1) // _LANES * _LANES
@@ -83,6 +128,8 @@ def _batch_ssim(x, y, scale):
         row = np.zeros((4, span + WIN - 1), np.float32)  # zero padding past the image
         ring = np.empty((WIN, 4, span), np.float32)
         window = np.empty((4, span), np.float32)
+        bits = np.empty(width, np.int32)
+        exps = bits.view(np.float32)
         pixels = x[b].ravel()  # one flat loop: the min/max reduction vectorises
         lo = pixels[0]
         hi = lo
@@ -94,7 +141,9 @@ def _batch_ssim(x, y, scale):
         c2 = (np.float32(0.03) * data_range) ** 2
         total = 0.0
         for c in range(channels):
-            total += _plane_ssim_sum(x[b, c], y[b, c], scale, c1, c2, row, ring, window, valid)
+            total += _plane_ssim_sum(
+                x[b, c], y[b, c], scale, c1, c2, row, ring, window, valid, bf16, logits, bits, exps
+            )
         out[b] = total / (channels * (height - WIN + 1) * cols)
     return out
 
@@ -103,9 +152,14 @@ def _batch_ssim(x, y, scale):
 _lock = threading.Lock()
 
 
-def batch_ssim(x: np.ndarray, y: np.ndarray, x_scale: float, threads: int) -> np.ndarray:
-    """Mean SSIM per sample of (B, C, H, W) arrays of any strides: x * x_scale and y in [0, 1]."""
+def batch_ssim(
+    x: np.ndarray, y: np.ndarray, x_scale: float, threads: int, y_bf16: bool = False, y_logits: bool = False
+) -> np.ndarray:
+    """Mean SSIM per sample of (B, C, H, W) arrays of any strides: x * x_scale and y in [0, 1].
+
+    `y_bf16`: y is int16, the bits of bfloat16 values. `y_logits`: y holds logits, and the
+    SSIM is taken with their sigmoid."""
     x = np.ascontiguousarray(x)
     with _lock:
         numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-        return _batch_ssim(x, y, x_scale)
+        return _batch_ssim(x, y, x_scale, y_bf16, y_logits)

@@ -11,7 +11,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from shared import envs, intrinsic
+from shared import envs, intrinsic, ssim_kernel
 from shared.agents import make_agent
 from shared.config import agent_defaults
 
@@ -54,6 +54,38 @@ def test_novelty_matches_scikit_image_on_rendered_frames_and_reconstructions(ren
         for o, r in zip(rendered_stacks, reconstruction.numpy(), strict=True)
     ]
     np.testing.assert_allclose(ours, expected, atol=1e-4)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_novelty_of_the_decoders_logits_matches_scikit_image_on_their_sigmoid(rendered_stacks, precision):
+    """Scoring hands the kernel the decoder's logits as computed (bfloat16 under bf16), and the
+    kernel takes their sigmoid as it reads them: the same novelty as the reference's call on
+    the sigmoid of those logits."""
+    config = agent_defaults("nasa_td3")
+    config.pixel_precision = precision
+    agent = make_agent("nasa_td3", (9, 84, 84), 6, config, torch.device("cpu"))
+    obs = torch.from_numpy(rendered_stacks)
+    with torch.no_grad():
+        logits = agent.decoder.logits(agent.encoder(obs), keep_precision=True)
+    assert logits.dtype == (torch.bfloat16 if precision == "bf16" else torch.float32)
+    ours = intrinsic.novelty_of_logits(obs, logits).numpy()
+    reconstruction = torch.sigmoid(logits.double()).numpy()
+    pairs = zip(rendered_stacks.astype(np.float64), reconstruction, strict=True)
+    expected = [reference_novelty(o, r) for o, r in pairs]
+    np.testing.assert_allclose(ours, expected, atol=1e-4)
+
+
+def test_the_kernels_sigmoid_matches_torchs_over_the_float_range():
+    values = torch.cat([torch.linspace(-120, 120, 480_001), torch.tensor([0.0, float("inf"), -float("inf")])])
+    row = values.numpy()[None]
+    out = np.empty(row.shape[1], np.float32)
+    bits = np.empty(row.shape[1], np.int32)
+    ssim_kernel._read_row(row, 0, row.shape[1], False, True, out, bits, bits.view(np.float32))
+    expected = torch.sigmoid(values.double()).numpy()
+    np.testing.assert_allclose(out, expected, rtol=1e-6, atol=1e-37)
+    nan = np.array([[np.nan]], np.float32)
+    ssim_kernel._read_row(nan, 0, 1, False, True, out, bits, bits.view(np.float32))
+    assert np.isnan(out[0])  # a NaN reconstruction is not hidden
 
 
 @pytest.mark.parametrize("ssim", [intrinsic.ssim, intrinsic.ssim_torch], ids=["cpu_kernel", "torch"])

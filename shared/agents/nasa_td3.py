@@ -71,7 +71,7 @@ class NaSATD3(TD3AE):
         else:
             z = self.encoder(obs) if latent is None else latent
             z_next = self.encoder(next_obs)
-        novelty = intrinsic.novelty(obs, self.decoder(z))
+        novelty = intrinsic.novelty_of_logits(obs, self.decoder.logits(z, keep_precision=True))
         surprise = intrinsic.surprise(self.ensemble(z, action), z_next)
         total = self.config.novelty_weight * novelty + self.config.surprise_weight * surprise
         return {"novelty": novelty, "surprise": surprise, "intrinsic": total}, z_next
