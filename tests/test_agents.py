@@ -9,7 +9,7 @@ import torch
 from shared.agents import SACAE, TD3, TD3AE, NaSATD3, PixelTD3, UnscoredBatchError, make_agent
 from shared.agents.base import float_pixels
 from shared.config import ALGOS, agent_defaults
-from shared.nets import float_channels_last, sigmoid_mse
+from shared.nets import float_channels_last, relu_, sigmoid_mse
 
 OBS_SHAPE = (9, 48, 48)
 ACTION_DIM = 2
@@ -425,6 +425,18 @@ def test_bf16_pixel_precision_runs_the_pixel_networks_in_bf16_and_keeps_the_rest
             r32, r16 = fp32.decoder(z32), bf16.decoder(z32)
             assert r16.dtype == torch.float32
             assert torch.allclose(r16, r32, atol=0.05) and not torch.equal(r16, r32)
+
+
+def test_the_bfloat16_relu_outside_autograd_gives_torchs_relu_for_every_bfloat16():
+    """`relu_` clamps untracked bfloat16 maps through their int16 bits; tracked ones take torch's
+    ReLU, with its gradient."""
+    values = torch.arange(-32768, 32768, dtype=torch.int32).to(torch.int16).view(torch.bfloat16)
+    numbers = ~torch.isnan(values)  # every finite and infinite bfloat16
+    got = relu_(values.clone())
+    assert torch.equal(got[numbers].float(), torch.relu(values[numbers].float()))
+    x = torch.randn(64).bfloat16().requires_grad_()
+    relu_(x * 1).sum().backward()
+    assert torch.equal(x.grad, (x > 0).to(torch.bfloat16))
 
 
 def test_an_unknown_pixel_precision_fails_when_the_agent_is_made():
