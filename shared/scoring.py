@@ -100,11 +100,19 @@ class IntrinsicScorer:
         _, first, inverse = np.unique(index[rows], return_index=True, return_inverse=True)
         sel = rows[first]  # one row per distinct transition
         d = self.agent.device
-        scores = self.agent.score(
-            torch.as_tensor(batch["obs"][sel], device=d),
-            torch.as_tensor(batch["action"][sel], device=d),
-            torch.as_tensor(batch["next_obs"][sel], device=d),
-        )
+        threads = torch.get_num_threads()
+        if len(sel) == 1 and d.type == "cpu":
+            # One row is no faster on more threads, and in `nasa up` on 2 cores each op would
+            # wait for the learner's second thread, which shares its core with other services.
+            torch.set_num_threads(1)
+        try:
+            scores = self.agent.score(
+                torch.as_tensor(batch["obs"][sel], device=d),
+                torch.as_tensor(batch["action"][sel], device=d),
+                torch.as_tensor(batch["next_obs"][sel], device=d),
+            )
+        finally:
+            torch.set_num_threads(threads)
         values = scores["intrinsic"].float().cpu().numpy()
         batch["intrinsic"][rows] = values[inverse]
         for i, v in zip(index[sel].tolist(), values.tolist(), strict=True):

@@ -136,3 +136,25 @@ def test_the_scorer_asks_the_replay_only_when_rows_were_stored_since_its_last_sc
               policy_version=0)
     assert scorer.score_new() == 1 and client.scans == scans + 1
     assert not np.isnan(store.get(np.arange(store.num_inserted))["intrinsic"]).any()
+
+
+def test_one_row_is_scored_on_one_thread_and_the_thread_count_comes_back():
+    store, agent = filled_store(WARMUP + 17), nasa_agent()
+    threads_seen = []
+    score = agent.score
+
+    def recording(obs, action, next_obs):  # noqa: ANN001, ANN202
+        threads_seen.append((len(obs), torch.get_num_threads()))
+        return score(obs, action, next_obs)
+
+    agent.score = recording
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        scorer = IntrinsicScorer(agent, LocalReplay(store, np.random.default_rng(0)), WARMUP, batch_size=16)
+        scorer.catch_up()  # the warm-up's zeros, then 16 rows, then the last one
+        after = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+    assert threads_seen == [(16, 2), (1, 1)]
+    assert after == 2
