@@ -27,6 +27,15 @@ TINY = [
 ]
 
 
+def assert_eval_steps(steps: list[int], total: int, every: int) -> None:
+    """A distributed run's evaluations: step 0 and the last eval step always, in order, each at a
+    multiple of `every`. The evaluator skips the steps between when it is slower than training
+    (by design: it plays the newest eval step's weights), which a loaded machine can make it."""
+    last = total // every * every
+    assert steps[0] == 0 and steps[-1] == last, steps
+    assert steps == sorted(set(steps)) and all(s % every == 0 for s in steps), steps
+
+
 def tail_logs(folder: Path, lines: int = 15) -> str:
     """The last lines of every service log in `folder`, for an assertion's message."""
     out = []
