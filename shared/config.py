@@ -93,6 +93,9 @@ class AgentConfig:
     `fp32` (the reference) or `bf16`, mixed precision (bfloat16 products, float32
     sums, parameters, heads, losses and optimizer states); faster where the hardware
     has bfloat16 units (recent x86 CPUs, GPUs from Ampere on), not the reference."""
+    random_shift: int = 0
+    """Pixels by which each frame stack of a batch is moved at random in an update (DrQ's random
+    shift augmentation, `shared.augment`); 0 (default, the reference): none."""
     cuda_graph: bool = False
     """Replay each update as a captured CUDA graph (CUDA only): one launch instead of hundreds of
     small kernels, each from Python; the same arithmetic, not the reference's way of running it."""
@@ -224,6 +227,12 @@ def validate(config: TrainConfig) -> TrainConfig:
     if agent.pixel_precision not in PIXEL_PRECISIONS:
         choices = ", ".join(PIXEL_PRECISIONS)
         raise ConfigError(f"agent.pixel_precision must be one of {choices}, got {agent.pixel_precision!r}")
+    shift = agent.random_shift
+    if isinstance(shift, bool) or not isinstance(shift, int) or not 0 <= shift <= config.env.image_size // 4:
+        raise ConfigError(
+            f"agent.random_shift must be a whole number of pixels from 0 to a quarter of the image "
+            f"({config.env.image_size // 4}), got {shift!r}"
+        )
     if config.env.render_quality not in RENDER_QUALITIES:
         choices = ", ".join(RENDER_QUALITIES)
         raise ConfigError(f"env.render_quality must be one of {choices}, got {config.env.render_quality!r}")

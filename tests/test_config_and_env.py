@@ -41,6 +41,10 @@ from shared.device import DeviceError, resolve_device
         ("agent.cuda_graph", "no", "agent.cuda_graph must be true or false, got 'no'"),
         ("agent.shared_encoder_pass", 1, "agent.shared_encoder_pass must be true or false"),
         ("eval_same_episodes", None, "eval_same_episodes must be true or false"),
+        ("agent.random_shift", -1, r"random_shift must be a whole number of pixels from 0 to .* \(21\), got -1"),
+        ("agent.random_shift", 22, r"random_shift .* got 22"),
+        ("agent.random_shift", 2.5, r"random_shift .* got 2.5"),
+        ("agent.random_shift", True, r"random_shift .* got True"),
     ],
 )
 def test_bad_values_are_rejected_with_a_clear_message(path, value, message):
@@ -69,6 +73,7 @@ def test_defaults_are_the_reference_settings():
         0.99, 0.005, 2, 0.2, 0.5,
     )
     assert a.intrinsic_timing == "collect" and c.env.time_limit == "bootstrap"
+    assert a.random_shift == 0  # the reference augments nothing
     sac = agent_defaults("sac_ae")
     assert (sac.latent_dim, sac.actor_lr, sac.tau, sac.encoder_tau, sac.init_temperature) == (
         50, 1e-3, 0.01, 0.05, 0.1,

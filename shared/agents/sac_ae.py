@@ -24,6 +24,7 @@ from shared.agents.base import (
     soft_update,
     to_obs_tensor,
 )
+from shared.augment import shifted_batch
 from shared.config import AgentConfig
 from shared.nets import Decoder, Encoder, GaussianActor, TwinQ
 
@@ -117,7 +118,7 @@ class SACAE(ModuleStateMixin):
         """One update in SAC-AE's order: critic, actor and alpha, targets, decoder."""
         c = self.config
         self.num_updates += 1
-        batch = float_pixels(batch, self.config.pixel_precision)
+        batch = shifted_batch(float_pixels(batch, self.config.pixel_precision), self.config.random_shift)
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward = batch["reward"].view(-1, 1)
         discount = batch["discount"].view(-1, 1)

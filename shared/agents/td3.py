@@ -32,6 +32,7 @@ from shared.agents.base import (
     soft_update,
     to_obs_tensor,
 )
+from shared.augment import shifted_batch
 from shared.config import AgentConfig
 from shared.nets import DeterministicActor, Encoder, TwinQ
 
@@ -90,7 +91,7 @@ class TD3(ModuleStateMixin):
     def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One update: reward, encoder losses (critic first), delayed actor and targets, auxiliaries."""
         c = self.config
-        batch = float_pixels(batch, self.config.pixel_precision)
+        batch = shifted_batch(float_pixels(batch, self.config.pixel_precision), self.config.random_shift)
         obs, next_obs, action = batch["obs"], batch["next_obs"], batch["action"]
         reward, latent, next_latent, metrics = self.reward(batch)  # first: it may refuse the batch
         self.num_updates += 1
