@@ -41,7 +41,7 @@ from shared.device import DeviceError, resolve_device
         ("agent.cuda_graph", "no", "agent.cuda_graph must be true or false, got 'no'"),
         ("agent.shared_encoder_pass", 1, "agent.shared_encoder_pass must be true or false"),
         ("eval_same_episodes", None, "eval_same_episodes must be true or false"),
-        ("agent.random_shift", -1, r"random_shift must be a whole number of pixels from 0 to .* \(21\), got -1"),
+        ("agent.random_shift", -1, r"random_shift must be a whole number of pixels .* \(21\), got -1"),
         ("agent.random_shift", 22, r"random_shift .* got 22"),
         ("agent.random_shift", 2.5, r"random_shift .* got 2.5"),
         ("agent.random_shift", True, r"random_shift .* got True"),
@@ -105,10 +105,15 @@ def test_a_preset_has_per_task_variants_and_flags_still_win():
     # its evaluations: more episodes (a random target each), half as often
     gripper = default_config("nasa_td3", "cpu-small", "gripper-valve")
     assert (gripper.eval_episodes, gripper.eval_every) == (20, 2_000)
+    # and smaller frames, shifted at random in each update (its pixel agent gains only so in 30 minutes)
+    assert (gripper.env.image_size, gripper.agent.random_shift) == (32, 2)
+    assert default_config("nasa_td3", "paper", "gripper-valve").agent.random_shift == 0
     suite = default_config("nasa_td3", "cpu-small", "ball_in_cup-catch")
     assert (suite.eval_episodes, suite.eval_every) == (5, 1_000)
     cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve"])
-    assert cmd.config.env.action_repeat == 1 and cmd.config.env.image_size == 64  # the rest is the preset's
+    assert cmd.config.env.action_repeat == 1 and cmd.config.agent.latent_dim == 50  # the rest is the preset's
+    cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve", "--random-shift", "0"])
+    assert cmd.config.agent.random_shift == 0 and cmd.config.env.image_size == 32
     cmd, _, _ = parse_train(["--preset", "cpu-small", "--task", "gripper-valve", "--action-repeat", "2"])
     assert cmd.config.env.action_repeat == 2
 
