@@ -95,6 +95,7 @@ def state_agent(seed: int, agent_settings: dict | None = None,
             raise ValueError(f"unknown agent setting {name!r}")
         setattr(config.agent, name, value)
     config.agent.latent_dim = state_dim
+    config.agent.random_shift = 0  # the variant shifts frames; a state has none
     agent = PixelTD3((3, 16, 16), 4, config.agent, torch.device("cpu"))
     agent.encoder = torch.nn.Identity()
     agent.critic_opt = adam(agent.critic.parameters(), config.agent.critic_lr)
