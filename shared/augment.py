@@ -17,13 +17,34 @@ def random_shift(stacks: torch.Tensor, pad: int, generator: torch.Generator | No
     axis, edges replicated; channels-last like the encoder's input. `pad` 0 returns `stacks`."""
     if pad == 0:
         return stacks
-    n, c, h, w = stacks.shape
     padded = F.pad(stacks, (pad, pad, pad, pad), mode="replicate")
-    offsets = torch.randint(0, 2 * pad + 1, (2, n, 1), device=stacks.device, generator=generator)
-    rows = (offsets[0] + torch.arange(h, device=stacks.device)).view(n, 1, h, 1)
-    cols = (offsets[1] + torch.arange(w, device=stacks.device)).view(n, 1, 1, w)
-    batch = torch.arange(n, device=stacks.device).view(n, 1, 1, 1)
-    channel = torch.arange(c, device=stacks.device).view(1, c, 1, 1)
+    offsets = torch.randint(0, 2 * pad + 1, (2, len(stacks), 1), device=stacks.device, generator=generator)
+    size = stacks.shape[-2:]
+    # A copy per stack is the faster on a CPU; one gather keeps a CUDA update free of host syncs.
+    crop = crops_by_copy if stacks.device.type == "cpu" else crops_by_index
+    return crop(padded, offsets, size)
+
+
+def crops_by_copy(padded: torch.Tensor, offsets: torch.Tensor, size: torch.Size) -> torch.Tensor:
+    """Stack i cropped to `size` from row offsets[0, i] and column offsets[1, i], one copy each."""
+    n, c = padded.shape[:2]
+    h, w = size
+    out = torch.empty((n, c, h, w), dtype=padded.dtype, device=padded.device,
+                      memory_format=torch.channels_last)
+    for i, (dy, dx) in enumerate(zip(offsets[0, :, 0].tolist(), offsets[1, :, 0].tolist(), strict=True)):
+        out[i] = padded[i, :, dy : dy + h, dx : dx + w]
+    return out
+
+
+def crops_by_index(padded: torch.Tensor, offsets: torch.Tensor, size: torch.Size) -> torch.Tensor:
+    """The same crops as `crops_by_copy`, as one advanced-indexing gather."""
+    n, c = padded.shape[:2]
+    h, w = size
+    device = padded.device
+    rows = (offsets[0] + torch.arange(h, device=device)).view(n, 1, h, 1)
+    cols = (offsets[1] + torch.arange(w, device=device)).view(n, 1, 1, w)
+    batch = torch.arange(n, device=device).view(n, 1, 1, 1)
+    channel = torch.arange(c, device=device).view(1, c, 1, 1)
     return padded[batch, channel, rows, cols].contiguous(memory_format=torch.channels_last)
 
 

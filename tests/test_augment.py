@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from shared.agents.base import float_pixels
-from shared.augment import random_shift, shifted_batch
+from shared.augment import crops_by_copy, crops_by_index, random_shift, shifted_batch
 from tests.test_agents import make, random_batch, snapshot
 
 
@@ -66,3 +66,12 @@ def test_an_update_with_random_shift_is_the_update_on_the_shifted_batch(algo):
     inside, outside, unshifted = critics
     assert all(torch.equal(inside[k], outside[k]) for k in inside)
     assert any(not torch.equal(inside[k], unshifted[k]) for k in inside)
+
+
+def test_the_cpu_copies_and_the_gather_crop_alike():
+    padded = torch.rand(16, 9, 14, 18).contiguous(memory_format=torch.channels_last)
+    offsets = torch.randint(0, 5, (2, 16, 1))
+    by_copy = crops_by_copy(padded, offsets, torch.Size((10, 14)))
+    by_index = crops_by_index(padded, offsets, torch.Size((10, 14)))
+    assert by_copy.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(by_copy, by_index)
