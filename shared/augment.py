@@ -12,13 +12,13 @@ import torch
 import torch.nn.functional as F
 
 
-def random_shift(stacks: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+def random_shift(stacks: torch.Tensor, pad: int) -> torch.Tensor:
     """(B, C, H, W) float stacks, each moved by its own uniform offset in [-pad, pad] pixels on each
     axis, edges replicated; channels-last like the encoder's input. `pad` 0 returns `stacks`."""
     if pad == 0:
         return stacks
     padded = F.pad(stacks, (pad, pad, pad, pad), mode="replicate")
-    offsets = torch.randint(0, 2 * pad + 1, (2, len(stacks), 1), device=stacks.device, generator=generator)
+    offsets = torch.randint(0, 2 * pad + 1, (2, len(stacks), 1), device=stacks.device)
     size = stacks.shape[-2:]
     # A copy per stack is the faster on a CPU; one gather keeps a CUDA update free of host syncs.
     crop = crops_by_copy if stacks.device.type == "cpu" else crops_by_index
