@@ -48,7 +48,7 @@ import tyro
 
 from nasa import layout
 from shared import envs, run_config
-from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig
+from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
 from shared.zenoh_auth import USERS_FILE
@@ -257,7 +257,8 @@ class UpCommand:
     gripper of --bridge-config; one actor and no evaluator, as there is one gripper). The evaluator
     gets a bridge of its own. `off`: the environment in each service's process."""
     bridge_config: Path | None = None
-    """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware."""
+    """The real gripper's TOML config (services/robot_bridge/example.toml), for --bridge hardware;
+    the run learns at its camera.image_size."""
     zenoh_auth: str = field(default_factory=lambda: os.environ.get("NASA_ZENOH_AUTH") or RUN_AUTH)
     """Zenoh logins per role and the ACL at the router: `run` (default), the run folder's auth/,
     made for this run when it holds no users.txt; a folder (`nasa auth init`; env NASA_ZENOH_AUTH);
@@ -276,6 +277,9 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
         if value < 0:
             raise ConfigError(f"{flag} must be >= 0 (0: chosen from the machine), got {value}")
     check_bridge(cmd)
+    if cmd.bridge == "hardware":
+        explicit = preset == "run" or any(a == "--image-size" or a.startswith("--image-size=") for a in argv)
+        take_camera_size(cmd, explicit)
     return cmd, preset
 
 
@@ -296,6 +300,26 @@ def check_bridge(cmd: UpCommand) -> None:
         raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
     if cmd.bridge == "hardware" and cmd.actors not in (0, 1):
         raise ConfigError(f"--bridge hardware drives one gripper: --actors 1, not {cmd.actors}")
+
+
+def take_camera_size(cmd: UpCommand, explicit: bool) -> None:
+    """--bridge hardware: the real camera's frames have its config's `camera.image_size`, so the run
+    learns at that size. A size the user chose (or the run's config holds) that differs is refused
+    here, before anything starts, rather than by the actor at its first frame."""
+    from services.robot_bridge.config import GripperConfigError, load
+
+    try:
+        camera = load(cmd.bridge_config).camera
+    except GripperConfigError as err:
+        raise ConfigError(f"--bridge-config: {err}") from None
+    env = cmd.config.env
+    if explicit and env.image_size != camera.image_size:
+        raise ConfigError(f"--bridge hardware: the run's image size is {env.image_size} but the camera of "
+                          f"{cmd.bridge_config} gives {camera.image_size}x{camera.image_size} frames "
+                          f"(camera.image_size); make them the same, or leave --image-size out to "
+                          f"take the camera's")
+    env.image_size = camera.image_size
+    validate(cmd.config)
 
 
 def bridge_id(run_id: str, i: int | str) -> str:

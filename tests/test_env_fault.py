@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import msgpack
 import pytest
 
@@ -15,6 +17,7 @@ from shared.config import ConfigError
 from shared.envs import FrameStack
 from shared.gripper.sim import ValveSim
 
+EXAMPLE_TOML = str(Path(__file__).parents[1] / "services" / "robot_bridge" / "example.toml")
 BUCKETS = len(wire.STEP_SECONDS_BUCKETS) + 1
 
 
@@ -101,15 +104,34 @@ def test_nasa_up_bridge_checks_its_flags() -> None:
     with pytest.raises(ConfigError, match="needs --bridge-config"):
         parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--actors", "1"])
     with pytest.raises(ConfigError, match="--actors 1"):
-        parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", "g.toml",
+        parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", EXAMPLE_TOML,
                   "--actors", "2"])
-    hardware, _ = parse_up(["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", "g.toml"])
+    hardware, _ = parse_up(["--task", "gripper-valve", "--bridge", "hardware",
+                            "--bridge-config", EXAMPLE_TOML])
     one = layout_of(hardware, gpu=True, cores=16)  # the machine's choice yields to one gripper
     assert one.actors == 1 and not one.evaluator
     with pytest.raises(ConfigError, match="--action-repeat 1"):
         parse_up(["--task", "gripper-valve", "--bridge", "stand-in", "--action-repeat", "8"])
     with pytest.raises(ConfigError, match="for --bridge hardware"):
         parse_up(["--task", "gripper-valve", "--bridge-config", "g.toml"])
+
+
+def test_nasa_up_with_the_real_gripper_learns_at_its_cameras_image_size(tmp_path) -> None:
+    hardware = ["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config", EXAMPLE_TOML]
+    cmd, preset = parse_up([*hardware, "--preset", "cpu-small"])  # the preset's gripper variant: 32
+    assert preset == "cpu-small" and cmd.config.env.image_size == 84  # example.toml's camera.image_size
+    assert cmd.config.agent.random_shift == 2  # the rest of the variant stays
+    for given in (["--image-size", "32"], ["--image-size=48"]):
+        with pytest.raises(ConfigError, match=r"image size is (32|48) but the camera .* gives 84x84"):
+            parse_up([*hardware, *given])
+    same, _ = parse_up([*hardware, "--image-size", "84"])
+    assert same.config.env.image_size == 84
+    with pytest.raises(ConfigError, match="(?s)--bridge-config: .*cannot read"):
+        parse_up([*hardware[:-1], str(tmp_path / "no.toml")])
+    bad = tmp_path / "bad.toml"
+    bad.write_text(Path(EXAMPLE_TOML).read_text().replace("image_size = 84", "image_size = 0"))
+    with pytest.raises(ConfigError, match="(?s)--bridge-config: .*camera.image_size: must be >= 1"):
+        parse_up([*hardware[:-1], str(bad)])
 
 
 def test_nasa_up_starts_a_bridge_per_actor_and_points_each_actor_at_its_own(tmp_path) -> None:
