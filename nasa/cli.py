@@ -125,17 +125,34 @@ def auth(argv: list[str]) -> None:
     run_auth(argv)
 
 
-COMMANDS = {"train": train, "reproduce": reproduce, "plot": plot, "up": up, "status": status, "auth": auth}
+# Each subcommand and its line in `nasa --help`, in the order a user meets them.
+COMMANDS = {
+    "up": (up, "the whole system on this host, each service its own process; status at http://127.0.0.1:8000"),
+    "train": (train, "one agent on one task in a single process (--resume DIR continues a run)"),
+    "reproduce": (reproduce, "the paper's protocol: a `nasa train` per task, algorithm and seed, resumable"),
+    "plot": (plot, "learning curves and a results table from the eval.csv files under a folder"),
+    "status": (status, "a running system's /status, or a stopped run's (--data DIR; --serve: its dashboard)"),
+    "auth": (auth, "Zenoh logins, access-control list and TLS certificates for a run across hosts"),
+}
+
+
+def usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = [f"  {name:<{width}}  {summary}" for name, (_, summary) in COMMANDS.items()]
+    return "\n".join([f"usage: nasa {{{', '.join(COMMANDS)}}} [--help]", "", "commands:", *lines, "",
+                      "`nasa COMMAND --help` lists a command's flags."])
 
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] not in COMMANDS:
-        names = ", ".join(COMMANDS)
-        print(f"usage: nasa {{{names}}} [--help]", file=sys.stderr)
-        sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
+        asked = bool(argv) and argv[0] in ("-h", "--help")
+        if argv and not asked:
+            print(f"nasa: unknown command {argv[0]!r}", file=sys.stderr)
+        print(usage(), file=sys.stdout if asked else sys.stderr)
+        sys.exit(0 if asked else EXIT_BAD_INPUT)
     try:
-        COMMANDS[argv[0]](argv[1:])
+        COMMANDS[argv[0]][0](argv[1:])
     except (*bad_input_errors(), FileExistsError) as err:
         print(f"nasa {argv[0]}: error: {err}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)

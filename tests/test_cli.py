@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -161,3 +163,23 @@ def test_nasa_up_rejects_an_unknown_task_before_writing_anything(tmp_path, capsy
     code, err = up_in_process(["--task", "cartpole-juggle", "--data", str(tmp_path / "run")], capsys)
     assert code == 2 and "unknown task 'cartpole-juggle'; valid tasks are" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_nasa_help_lists_every_command_with_what_it_does(capsys) -> None:
+    with pytest.raises(SystemExit) as done:
+        cli.main(["--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    for name in cli.COMMANDS:
+        line = next(x for x in out.splitlines() if x.strip().startswith(name + " "))
+        assert len(line.split()) > 3, line  # the name and a sentence
+    with pytest.raises(SystemExit) as done:
+        cli.main(["trian"])
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and "unknown command 'trian'" in err and "commands:" in err
+
+
+def test_python_dash_m_nasa_is_the_nasa_command() -> None:
+    run = subprocess.run([sys.executable, "-m", "nasa", "--help"], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0 and "usage: nasa {up, train," in run.stdout
