@@ -16,10 +16,19 @@ the compiler vectorises (numba's own `exp` is a scalar library call).
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numba
 import numpy as np
+
+# numba's `omp` threading layer loads the system's libgomp, a second OpenMP runtime beside torch's,
+# which reads the same OMP_WAIT_POLICY: under `nasa up`'s ACTIVE for the learner its worker, once
+# started by a two-thread SSIM, spins for the rest of the process on a core the learner's own
+# threads need. The plain pool sleeps between calls, on every machine alike (numba would otherwise
+# pick `omp` or not by whether a libgomp is installed). A layer the user names is kept.
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
 
 WIN = 7
 _LANES = 16  # float32 lanes of an AVX-512 vector: rows are padded to a multiple

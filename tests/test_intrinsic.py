@@ -140,6 +140,34 @@ def test_novelty_from_several_threads_at_once_with_numbas_plain_thread_pool():
     assert run.returncode == 0, run.stderr[-2000:]
 
 
+IDLE_AFTER_NOVELTY = """
+import resource, time
+import numba, torch
+from shared import intrinsic
+obs = torch.randint(0, 256, (8, 9, 84, 84), dtype=torch.uint8)
+torch.set_num_threads(2)
+intrinsic.novelty(obs, torch.rand(obs.shape))  # on two threads
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+before = cpu()
+time.sleep(1.0)
+print(numba.threading_layer(), cpu() - before)
+"""
+
+
+def test_no_ssim_thread_spins_after_scoring_under_active_openmp_waits():
+    # `nasa up` gives its learner OMP_WAIT_POLICY=ACTIVE on small machines; numba's OpenMP layer
+    # would read it too, and its worker would then spin on a core for the rest of the process.
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_THREADING_LAYER"}
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    run = subprocess.run([sys.executable, "-c", IDLE_AFTER_NOVELTY], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    layer, busy_s = run.stdout.split()
+    assert layer == "workqueue"
+    assert float(busy_s) < 0.3, f"{busy_s} s of CPU in a 1 s sleep: a thread is spinning"
+
+
 def test_surprise_is_mse_of_the_ensemble_mean():
     predictions = torch.tensor([[[1.0, 2.0]], [[3.0, 4.0]]])  # K=2, B=1, D=2; mean (2, 3)
     next_latent = torch.tensor([[0.0, 0.0]])
