@@ -278,7 +278,9 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
             raise ConfigError(f"{flag} must be >= 0 (0: chosen from the machine), got {value}")
     check_bridge(cmd)
     if cmd.bridge == "hardware":
-        explicit = preset == "run" or any(a == "--image-size" or a.startswith("--image-size=") for a in argv)
+        # tyro takes --image-size, --image_size, and either with `=VALUE`
+        given = {a.split("=", 1)[0].replace("_", "-") for a in argv}
+        explicit = preset == "run" or "--image-size" in given
         take_camera_size(cmd, explicit)
     return cmd, preset
 

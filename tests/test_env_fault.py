@@ -121,8 +121,8 @@ def test_nasa_up_with_the_real_gripper_learns_at_its_cameras_image_size(tmp_path
     cmd, preset = parse_up([*hardware, "--preset", "cpu-small"])  # the preset's gripper variant: 32
     assert preset == "cpu-small" and cmd.config.env.image_size == 84  # example.toml's camera.image_size
     assert cmd.config.agent.random_shift == 2  # the rest of the variant stays
-    for given in (["--image-size", "32"], ["--image-size=48"]):
-        with pytest.raises(ConfigError, match=r"image size is (32|48) but the camera .* gives 84x84"):
+    for given in (["--image-size", "32"], ["--image-size=48"], ["--image_size", "40"], ["--image_size=32"]):
+        with pytest.raises(ConfigError, match=r"image size is (32|48|40) but the camera .* gives 84x84"):
             parse_up([*hardware, *given])
     same, _ = parse_up([*hardware, "--image-size", "84"])
     assert same.config.env.image_size == 84
