@@ -23,11 +23,11 @@ import numba
 import numpy as np
 
 # numba's `omp` threading layer loads the system's libgomp, a second OpenMP runtime beside torch's,
-# which reads the same OMP_WAIT_POLICY: under `nasa up`'s ACTIVE for the learner its worker, once
-# started by a two-thread SSIM, spins for the rest of the process on a core the learner's own
-# threads need. The plain pool sleeps between calls, on every machine alike (numba would otherwise
-# pick `omp` or not by whether a libgomp is installed). A layer the user names is kept.
-if "NUMBA_THREADING_LAYER" not in os.environ:
+# which reads the same OMP_WAIT_POLICY: under ACTIVE (`nasa up`'s learner on a small machine) its
+# worker, once started by a two-thread SSIM, spins for the rest of the process on a core the
+# learner's own threads need. There the plain pool, which sleeps between calls, is used; elsewhere
+# numba's own choice stays, the faster where it is `omp`. A layer the user names is kept.
+if "NUMBA_THREADING_LAYER" not in os.environ and os.environ.get("OMP_WAIT_POLICY", "").upper() == "ACTIVE":
     numba.config.THREADING_LAYER = "workqueue"
 
 WIN = 7

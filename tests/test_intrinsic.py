@@ -133,8 +133,8 @@ assert all(torch.equal(r, expected) for r in results)
 
 
 def test_novelty_from_several_threads_at_once_with_numbas_plain_thread_pool():
-    # Any thread may score. numba's plain thread pool (workqueue, the SSIM kernel's layer)
-    # aborts the process when two threads enter it at once.
+    # Any thread may score. numba's plain thread pool (workqueue: the SSIM kernel's layer under
+    # ACTIVE OpenMP waits, and numba's fallback) aborts the process when two threads enter it at once.
     env = os.environ | {"NUMBA_THREADING_LAYER": "workqueue"}
     run = subprocess.run([sys.executable, "-c", CONCURRENT_NOVELTY], env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
