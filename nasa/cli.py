@@ -81,7 +81,10 @@ def train(argv: list[str]) -> None:
             run_until_stopped(Trainer.resume(cmd.resume, steps=steps), cmd.resume)
         return
     c = cmd.config
-    check_update_device(c.agent, device)  # before the run folder is made
+    from shared.envs import check_task
+
+    check_task(c.env.task)  # before the first line names it and before the run folder is made
+    check_update_device(c.agent, device)
     out = cmd.out or Path("runs") / f"{c.env.task}-{c.algo}-s{c.seed}"
     how = f"{preset} (auto: {device.type})" if cmd.preset == "auto" else preset
     print(

@@ -44,7 +44,12 @@ def load(path: str | Path, device: torch.device | str = "cpu") -> dict:
     try:
         state = torch.load(Path(path), map_location=device, weights_only=True)
     except (RuntimeError, EOFError, pickle.UnpicklingError) as err:
-        raise CheckpointError(f"{path} is not a readable checkpoint: {err}") from err
+        # torch's own text for a foreign or truncated file suggests weights_only=False, which would
+        # run whatever the file holds: name the cause in one line instead.
+        text = str(err)
+        why = ("not a checkpoint this project wrote (truncated, or another kind of file)"
+               if not text.strip() or "Weights only load failed" in text else text.splitlines()[0])
+        raise CheckpointError(f"{path} is not a readable checkpoint: {why}") from err
     found = state.get("format") if isinstance(state, dict) else None
     if found != CHECKPOINT_FORMAT:
         raise CheckpointError(

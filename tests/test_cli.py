@@ -183,3 +183,25 @@ def test_python_dash_m_nasa_is_the_nasa_command() -> None:
     run = subprocess.run([sys.executable, "-m", "nasa", "--help"], capture_output=True, text=True,
                          timeout=120)
     assert run.returncode == 0 and "usage: nasa {up, train," in run.stdout
+
+
+def test_nasa_train_rejects_an_unknown_task_before_announcing_the_run(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--task", "cartpole-juggle", "--out", str(tmp_path / "run")])
+    out, err = capsys.readouterr()
+    assert exit_.value.code == 2 and "unknown task 'cartpole-juggle'; valid tasks are" in err
+    assert "cartpole-juggle" not in out  # no "nasa train: nasa_td3 on cartpole-juggle ..." line
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("content", [b"", b"\x80\x02garbage", b"not a checkpoint" * 64])
+def test_a_file_that_is_not_a_checkpoint_is_named_in_one_line(tmp_path, content):
+    from shared.checkpoint import CheckpointError, load
+
+    path = tmp_path / "checkpoint.pt"
+    path.write_bytes(content)
+    with pytest.raises(CheckpointError) as err:
+        load(path)
+    message = str(err.value)
+    assert message.startswith(f"{path} is not a readable checkpoint: ") and "\n" not in message
+    assert "weights_only" not in message  # torch's advice to unpickle anything is not ours to give
