@@ -102,27 +102,33 @@ def run_identity(folder: Path) -> tuple[str, str, int] | None:
 
 
 def find_runs(results_dir: Path) -> list[SeedCurve]:
-    """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed."""
+    """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed. A run
+    whose files cannot be read (a damaged file, a row cut short) is named and skipped, so one bad
+    folder does not hide the others' curves."""
     runs: list[SeedCurve] = []
     seen: dict[tuple[str, str, int, str], Path] = {}
     for path in sorted(Path(results_dir).rglob("eval.csv")):
-        identity = run_identity(path.parent)
-        rows = read_rows(path)
-        if identity is None:
-            print(f"nasa plot: skipping {path}: no config.json and not under <task>/<algo>/seed<S>",
-                  file=sys.stderr)
+        try:
+            identity = run_identity(path.parent)
+            if identity is None:
+                print(f"nasa plot: skipping {path}: no config.json and not under <task>/<algo>/seed<S>",
+                      file=sys.stderr)
+                continue
+            rows = read_rows(path)
+            if not rows:
+                continue  # a run that has not evaluated yet
+            steps = np.array([int(float(r["step"])) for r in rows])
+            means = np.array([float(r["mean"]) for r in rows])
+            walls = eval_walls(path.parent, steps.tolist())
+        except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError, AttributeError) as err:
+            print(f"nasa plot: skipping {path}: unreadable ({type(err).__name__}: {err})", file=sys.stderr)
             continue
-        if not rows:
-            continue  # a run that has not evaluated yet
         runner = "up" if (path.parent / "learner").is_dir() else "train"
         if (*identity, runner) in seen:
             print(f"nasa plot: skipping {path}: same task/algo/seed/runner as {seen[(*identity, runner)]}",
                   file=sys.stderr)
             continue
         seen[(*identity, runner)] = path
-        steps = np.array([int(float(r["step"])) for r in rows])
-        means = np.array([float(r["mean"]) for r in rows])
-        walls = eval_walls(path.parent, steps.tolist())
         runs.append(SeedCurve(*identity, steps=steps, means=means, path=path, runner=runner,
                               walls=np.array([walls.get(int(s), np.nan) for s in steps])))
     return runs

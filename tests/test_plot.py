@@ -177,3 +177,25 @@ def test_a_distributed_run_is_its_own_curve_and_minutes_come_from_train_csv(tmp_
     assert lines["nasa_td3, nasa up (n=1)"].get_xdata().tolist() == [0.0, 2.0, 4.0]
     assert lines["untrained (5)"].get_ydata()[0] == 5.0
     assert ax.get_xlabel() == "wall-clock minutes"
+
+
+@pytest.mark.parametrize(
+    ("spoil", "reason"),
+    [
+        (lambda f: (f / "eval.csv").write_bytes(b"step,mean\n0,\xff\xfe\n"), "UnicodeDecodeError"),
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n10,abc\n"), "ValueError"),
+        (lambda f: (f / "config.json").write_text("{not json"), "JSONDecodeError"),
+        (lambda f: (f / "config.json").write_text("[1, 2]"), "AttributeError"),
+        (lambda f: (f / "train.csv").write_text("step,wall_s\nten,1.0\n"), "ValueError"),
+    ],
+)
+def test_a_damaged_run_is_named_and_skipped_and_the_others_still_plot(
+    results: tuple[Path, dict], capsys: pytest.CaptureFixture[str], spoil, reason: str
+) -> None:
+    root, data = results
+    damaged = root / "other" / "nasa_td3-1"  # a cheetah-run run named by its config.json
+    spoil(damaged)
+    runs = find_runs(root)
+    assert {(r.task, r.algo, r.seed) for r in runs} == set(data) - {("cheetah-run", "nasa_td3", 1)}
+    err = capsys.readouterr().err
+    assert f"nasa plot: skipping {damaged / 'eval.csv'}: unreadable ({reason}" in err
