@@ -520,13 +520,19 @@ def status(argv: list[str]) -> None:
         response = httpx.get(cmd.url, timeout=5.0)
         response.raise_for_status()
     except httpx.HTTPError as err:
-        saved = cmd.data / "learner" / "status.json" if cmd.data else None
-        if saved is None or not saved.exists():
-            hint = f" and there is no {saved}" if saved else " (a stopped run: --data DIR)"
-            print(f"nasa status: cannot read {cmd.url}: {err}{hint}", file=sys.stderr)
+        if cmd.data is None:
+            print(f"nasa status: cannot read {cmd.url}: {err} (a stopped run: --data DIR)", file=sys.stderr)
             sys.exit(1)
+        from services.learner.status_api import StoppedRunError, read_final_status
+
+        try:
+            final = read_final_status(cmd.data)
+        except StoppedRunError as stopped:
+            print(f"nasa status: cannot read {cmd.url}: {err}; and {stopped}", file=sys.stderr)
+            sys.exit(1)
+        saved = cmd.data / "learner" / "status.json"
         print(f"nasa status: the learner is not running; its last status, from {saved}:", file=sys.stderr)
-        print(saved.read_text().rstrip())
+        print(json.dumps(final, indent=2))
         return
     print(json.dumps(response.json(), indent=2))
 
@@ -535,11 +541,11 @@ def serve_stopped(data: Path, host: str, port: int) -> None:
     """A stopped run's dashboard, status, history and media from its folder, until Ctrl-C."""
     import uvicorn
 
-    from services.learner.status_api import folder_app
+    from services.learner.status_api import StoppedRunError, folder_app
 
     try:
         app = folder_app(data)
-    except FileNotFoundError as err:
+    except StoppedRunError as err:
         print(f"nasa status: {err}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
     print(f"nasa status: the dashboard of {data} on http://{host}:{port}/ (Ctrl-C ends it)", flush=True)

@@ -16,7 +16,7 @@ from nasa.train import Trainer
 from services.evaluator.media import AutoencoderTap, EvalMedia
 from services.learner.history import History
 from services.learner.metrics import ACTOR_FIGURES, INFO, SCALARS, LearnerMetrics
-from services.learner.status_api import folder_app, make_app
+from services.learner.status_api import StoppedRunError, folder_app, make_app
 from shared.agents import make_agent
 from shared.service import Log
 from shared.video import count_frames
@@ -231,3 +231,38 @@ def test_structured_logs(monkeypatch, capsys):
     line = json.loads(capsys.readouterr().err)
     assert line["service"] == "actor" and line["actor_id"] == 3 and line["run_id"] == "run7"
     assert line["msg"] == "hello" and line["time"].endswith("Z")
+
+
+@pytest.mark.parametrize("content", [b"{bad", b"\xff\xfe", b"[1, 2]"])
+def test_a_damaged_last_status_is_named_not_a_traceback(tmp_path, capsys, content):
+    from nasa.up import status as print_status
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_bytes(content)
+    with pytest.raises(StoppedRunError, match="status.json is unreadable"):
+        folder_app(tmp_path)
+    dead = "http://127.0.0.1:9/status"  # the discard port: nothing answers
+    with pytest.raises(SystemExit) as done:
+        print_status(["--url", dead, "--data", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert done.value.code == 1 and "status.json is unreadable" in err and "Traceback" not in err
+
+
+def test_a_stopped_runs_status_is_printed_as_json(tmp_path, capsys):
+    from nasa.up import status as print_status
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    print_status(["--url", "http://127.0.0.1:9/status", "--data", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert json.loads(out) == STATUS and "the learner is not running" in err
+
+
+def test_a_damaged_history_leaves_the_stopped_dashboard_up_without_its_series(tmp_path, capsys):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    (tmp_path / "learner" / "history.json").write_text('{"points": 3}')
+    client = TestClient(folder_app(tmp_path))
+    assert client.get("/status").json() == STATUS
+    assert client.get("/history").json()["points"] == []
+    assert "history.json is unreadable" in capsys.readouterr().err

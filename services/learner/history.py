@@ -76,7 +76,19 @@ class History:
         os.replace(tmp, path)
 
 
+class HistoryError(ValueError):
+    """A history.json that cannot be read (damaged, or not one the learner wrote)."""
+
+
 def load(data: Path) -> list[dict]:
     """A stopped run's series (empty if the learner left none)."""
     path = Path(data) / HISTORY_FILE
-    return json.loads(path.read_text())["points"] if path.exists() else []
+    if not path.exists():
+        return []
+    try:
+        points = json.loads(path.read_bytes())["points"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise HistoryError(f"{path} is unreadable ({type(err).__name__}: {err})") from err
+    if not isinstance(points, list) or not all(isinstance(p, dict) for p in points):
+        raise HistoryError(f"{path} is unreadable: its points are not a list of objects")
+    return points

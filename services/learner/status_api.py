@@ -23,6 +23,7 @@ import ipaddress
 import json
 import math
 import os
+import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -170,13 +171,35 @@ def media(data: Path | None) -> dict | None:
         return None
 
 
+class StoppedRunError(ValueError):
+    """A run folder whose learner left no readable last status."""
+
+
+def read_final_status(data: Path) -> dict:
+    """The last /status the learner left in <data>/learner/status.json."""
+    saved = Path(data) / "learner" / "status.json"
+    if not Path(data).is_dir():
+        raise StoppedRunError(f"there is no run folder {data}")
+    if not saved.exists():
+        raise StoppedRunError(f"there is no {saved}: the learner of this run never stopped cleanly")
+    try:
+        final = json.loads(saved.read_bytes())
+    except (OSError, ValueError) as err:
+        raise StoppedRunError(f"{saved} is unreadable ({type(err).__name__}: {err})") from err
+    if not isinstance(final, dict):
+        raise StoppedRunError(f"{saved} is unreadable: not a JSON object")
+    return final
+
+
 def folder_app(data: Path) -> FastAPI:
     """The dashboard of a stopped run: its last status, history, evaluations and media."""
-    saved = Path(data) / "learner" / "status.json"
-    if not saved.exists():
-        raise FileNotFoundError(f"{saved} is missing: the learner of this run never stopped cleanly")
-    final = json.loads(saved.read_text())
-    points = run_history.load(data)
+    final = read_final_status(data)
+    try:
+        points = run_history.load(data)
+    except run_history.HistoryError as err:
+        # The status and evaluations still tell the run; only the series' charts stay empty.
+        print(f"nasa status: {err}; the dashboard shows no series", file=sys.stderr, flush=True)
+        points = []
     return make_app(lambda: final, lambda: ["the run has stopped"], lambda: points, data=data)
 
 
