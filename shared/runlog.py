@@ -10,6 +10,8 @@ import csv
 import math
 from pathlib import Path
 
+from shared.config import ConfigError
+
 TRAIN_FIELDS = (
     "step", "episode", "return", "length", "novelty_mean", "surprise_mean",
     "critic_loss", "actor_loss", "ae_loss", "ensemble_loss", "updates", "steps_per_s", "wall_s",
@@ -20,15 +22,36 @@ def eval_fields(episodes: int) -> list[str]:
     return ["step", "mean", "std", *(f"return_{i}" for i in range(episodes))]
 
 
+class RunLogError(ConfigError):
+    """A run's CSV file that cannot be continued: damaged, or not the one these settings write."""
+
+
 class CsvLog:
-    """An append-only CSV with a fixed header; rows are flushed at once."""
+    """An append-only CSV with a fixed header; rows are flushed at once.
+
+    An existing file is continued only if it starts with this header: a damaged or foreign file is
+    refused, named, and left as it is, so resuming never writes rows under another header.
+    """
 
     def __init__(self, path: str | Path, fields: list[str] | tuple[str, ...]) -> None:
         self.path = Path(path)
         self.fields = list(fields)
-        if not self.path.exists():
+        if not self.path.exists() or self.path.stat().st_size == 0:  # empty: nothing to lose
             with open(self.path, "w", newline="") as f:
                 csv.writer(f).writerow(self.fields)
+            return
+        with open(self.path, "rb") as f:
+            first = f.readline()
+        try:
+            header = next(csv.reader([first.decode("utf-8")]), [])
+        except UnicodeDecodeError:
+            header = None
+        if header != self.fields:
+            raise RunLogError(
+                f"{self.path} does not start with the header this run writes "
+                f"({','.join(self.fields)}): it is damaged or from other settings; "
+                "move it aside to continue the run without it"
+            )
 
     def append(self, row: dict) -> None:
         unknown = set(row) - set(self.fields)
@@ -37,15 +60,17 @@ class CsvLog:
         with open(self.path, "a", newline="") as f:
             csv.writer(f).writerow([_format(row.get(k)) for k in self.fields])
 
+    # Lines are counted and cut as bytes: a damaged byte in a row must not stop a resume that
+    # drops that row anyway.
     def rows(self) -> int:
-        with open(self.path) as f:
+        with open(self.path, "rb") as f:
             return sum(1 for _ in f) - 1
 
     def truncate(self, rows: int) -> None:
         """Keep the header and the first `rows` rows (a resumed run drops what came after its checkpoint)."""
-        with open(self.path) as f:
+        with open(self.path, "rb") as f:
             lines = f.readlines()
-        with open(self.path, "w") as f:
+        with open(self.path, "wb") as f:
             f.writelines(lines[: rows + 1])
 
 

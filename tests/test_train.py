@@ -171,3 +171,42 @@ def test_resume_refuses_a_checkpoint_it_cannot_continue_and_leaves_the_run_as_it
     after = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
     after = {name: data for name, data in after.items() if name.name != ".lock"}  # the run's lock
     assert after == before
+
+
+@pytest.mark.parametrize("damage", [b"\xff\xfe\x00 not text", b"a,b,c\n0,1,2\n"])
+@pytest.mark.system  # a `nasa train` process
+def test_resume_refuses_a_damaged_eval_csv_and_leaves_the_run_as_it_was(tmp_path, damage):
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=40), run).run()
+    (run / "eval.csv").write_bytes(damage)
+    before = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    result = run_cli("--resume", str(run), "--steps", "80")
+    assert result.returncode == 2, result.stderr
+    assert f"{run / 'eval.csv'} does not start with the header this run writes" in result.stderr
+    assert "Traceback" not in result.stderr
+    after = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    assert {name: data for name, data in after.items() if name.name != ".lock"} == before
+
+
+def test_a_run_log_is_continued_only_under_its_own_header(tmp_path):
+    from shared.runlog import CsvLog, RunLogError
+
+    fields = ["step", "mean"]
+    empty = tmp_path / "empty.csv"
+    empty.write_bytes(b"")  # a file created and never written: nothing to lose, so it is started
+    CsvLog(empty, fields).append({"step": 0, "mean": 1.5})
+    assert read_rows(empty) == [{"step": "0", "mean": "1.5"}]
+
+    foreign = tmp_path / "foreign.csv"
+    foreign.write_bytes(b"step,return\n0,1\n")
+    with pytest.raises(RunLogError, match="foreign.csv does not start with the header"):
+        CsvLog(foreign, fields)
+    assert foreign.read_bytes() == b"step,return\n0,1\n"
+
+    # A damaged byte in a row does not stop counting or cutting the rows (a resume drops it anyway).
+    damaged = tmp_path / "damaged.csv"
+    damaged.write_bytes(b"step,mean\r\n0,1\r\n1,\xff\r\n2,3\r\n")
+    log = CsvLog(damaged, fields)
+    assert log.rows() == 3
+    log.truncate(1)
+    assert damaged.read_bytes() == b"step,mean\r\n0,1\r\n"
