@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from shared import checkpoint, envs, run_config
 from shared.agents import Agent, batch_to_device, collect_action, make_agent
-from shared.config import EVAL_SEED_OFFSET, TrainConfig, validate
+from shared.config import EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
 from shared.evaluation import draws_restarter, evaluate
@@ -83,6 +83,11 @@ class Trainer:
         if (out / CHECKPOINT_FILE).exists():
             state = checkpoint.load(out / CHECKPOINT_FILE, resolve_device(config.device))
         if steps is not None:
+            held = int(state["env_steps"]) if state is not None else 0
+            if steps <= held:
+                # Nothing would run, and the rows written after the checkpoint would be dropped.
+                raise ConfigError(f"--steps {steps}: the run's checkpoint already holds step {held}; "
+                                  "give a larger total")
             config.steps = steps
         trainer = cls(config, out, state)
         if state is not None:

@@ -210,3 +210,16 @@ def test_a_run_log_is_continued_only_under_its_own_header(tmp_path):
     assert log.rows() == 3
     log.truncate(1)
     assert damaged.read_bytes() == b"step,mean\r\n0,1\r\n"
+
+
+def test_resume_to_a_total_the_checkpoint_already_holds_is_refused_and_keeps_the_rows(tmp_path):
+    from shared.config import ConfigError
+
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=40), run).run()  # 40-step episodes: its checkpoint holds step 40
+    before = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    for steps in (20, 40):
+        with pytest.raises(ConfigError, match=f"--steps {steps}: the run's checkpoint already holds step 40"):
+            Trainer.resume(run, steps=steps)
+    after = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    assert after == before
