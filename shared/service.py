@@ -217,7 +217,7 @@ def run_service(
     """A service's main: parse its flags, `check` them (a bad value is refused before the service
     connects, so it is the first error even with no router), stop on SIGINT/SIGTERM, run it on a
     client session."""
-    from shared.zenoh_session import open_client  # zenoh only for services, not `nasa train`
+    from shared.zenoh_session import RouterUnreachable, open_client  # zenoh only for services
 
     try:
         args, _ = parse(cls, argv, prog)
@@ -231,3 +231,6 @@ def run_service(
     except bad_input_errors() as err:
         print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
+    except RouterUnreachable as err:  # not the input's fault: exit 1, so a supervisor retries
+        print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(1)

@@ -44,12 +44,17 @@ def _base_config(mode: str) -> zenoh.Config:
     return config
 
 
+class RouterUnreachable(zenoh.ZError):
+    """No router accepted this session in time. A zenoh.ZError, so callers that retry on one still
+    do; a service's main names it in one line and exits non-zero, for its supervisor to retry."""
+
+
 def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
                 auth: Path | None = None) -> zenoh.Session:
     """A client session to the router(s) in `connect` (comma-separated endpoints), retried until up.
 
     With an auth folder (`auth`, else env NASA_ZENOH_AUTH) it logs in as `role`; a router that
-    refuses the login looks like one that is not up, so this raises zenoh.ZError after `timeout_s`."""
+    refuses the login looks like one that is not up, so this raises RouterUnreachable after `timeout_s`."""
     endpoints = [e.strip() for e in connect.split(",") if e.strip()]
     if not endpoints:
         raise ValueError("no Zenoh endpoint to connect to (set --connect or NASA_ZENOH_CONNECT)")
@@ -70,9 +75,13 @@ def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
     while True:
         try:
             return zenoh.open(config)
-        except zenoh.ZError:
+        except zenoh.ZError as err:
             if time.monotonic() >= deadline:
-                raise
+                login = f"; or it refused {role!r}'s login from {folder}" if folder is not None else ""
+                raise RouterUnreachable(
+                    f"no Zenoh router answered at {connect} within {timeout_s:g} s (is it up? `nasa up` "
+                    f"starts one; alone: python -m services.router{login}): {err}"
+                ) from err
             time.sleep(0.2)
 
 

@@ -216,3 +216,22 @@ def test_a_rewind_replays_the_bridges_draws_from_where_it_started(sessions) -> N
             assert [t for t, _ in evaluation()] != [t for t, _ in first]  # no rewind: new draws
     finally:
         sim.close()
+
+
+def test_no_router_is_named_in_one_line_within_the_timeout(endpoint: str) -> None:
+    from shared.zenoh_session import RouterUnreachable
+
+    began = time.monotonic()
+    with pytest.raises(RouterUnreachable, match=f"no Zenoh router answered at {endpoint} within 0.5 s"):
+        open_client(endpoint, timeout_s=0.5)
+    assert time.monotonic() - began < 10.0
+
+
+def test_an_estop_that_cannot_go_out_says_so_and_exits_1(endpoint: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "services.robot_bridge.operate", "estop", "--bridge-id", "g1",
+         "--connect", endpoint], capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 1
+    assert result.stderr.startswith(f"NOT sent: estop to bridge g1: no Zenoh router answered at {endpoint}")
+    assert "Traceback" not in result.stderr and "sent estop" not in result.stdout

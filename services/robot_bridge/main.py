@@ -60,7 +60,7 @@ def build_env(args: BridgeArgs):
 
 def main(argv: list[str] | None = None) -> None:
     from services.robot_bridge.server import BridgeServer
-    from shared.zenoh_session import open_client
+    from shared.zenoh_session import RouterUnreachable, open_client
 
     die_with_parent()
     args = tyro.cli(BridgeArgs, args=sys.argv[1:] if argv is None else argv, prog="robot_bridge")
@@ -82,5 +82,8 @@ def main(argv: list[str] | None = None) -> None:
                     pass
                 server.estop(f"{stop.reason}: bridge stopping")  # torque off before the process goes
             log(f"stopped ({stop.reason})")
+    except RouterUnreachable as err:  # exit 1: its supervisor retries
+        print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(1)
     finally:
         env.close()

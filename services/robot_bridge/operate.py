@@ -21,7 +21,8 @@ from shared.zenoh_session import env_connect
 def send_estop(bridge_id: str, engage: bool, reason: str, connect: str) -> None:
     from shared.zenoh_session import open_client
 
-    with open_client(connect, role="operator") as session:
+    # An operator waiting on an e-stop must hear within seconds that it did not go out.
+    with open_client(connect, timeout_s=5.0, role="operator") as session:
         session.put(wire.BridgeKeys(bridge_id).estop, wire.encode(wire.BridgeEStop(engage, reason)))
 
 
@@ -71,7 +72,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--source", default=None, help="a video file instead of the configured camera")
     args = parser.parse_args(argv)
     if args.command in ("estop", "rearm"):
-        send_estop(args.bridge_id, args.command == "estop", args.reason, args.connect)
+        from shared.zenoh_session import RouterUnreachable
+
+        try:
+            send_estop(args.bridge_id, args.command == "estop", args.reason, args.connect)
+        except RouterUnreachable as err:
+            print(f"NOT sent: {args.command} to bridge {args.bridge_id}: {err}", file=sys.stderr, flush=True)
+            sys.exit(1)
         print(f"sent {args.command} to bridge {args.bridge_id}")
         return
     raw = raw_reading(args.config, args.samples, args.source)
