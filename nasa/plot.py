@@ -263,17 +263,20 @@ def plot(argv: list[str]) -> None:
     if not runs:
         _fail(f"no run with an evaluation under {cmd.results}")
     out = cmd.out or cmd.results
-    out.mkdir(parents=True, exist_ok=True)
     fig = plot_curves(runs, cmd.x)
-    fig.savefig(out / "curves.png", dpi=150)
-    fig.savefig(out / "curves.svg")
     table = results_table(summarize(runs))
     note = (
         "Final return: mean ± std over seeds (population std) of each seed's last evaluation. "
         "Best return: mean over seeds of each seed's best evaluation. "
         "Paper: approximate final return at 1M steps read off the reference's figure.\n"
     )
-    (out / "results.md").write_text(f"# Results: {cmd.results}\n\n{table}\n{note}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out / "curves.png", dpi=150)
+        fig.savefig(out / "curves.svg")
+        (out / "results.md").write_text(f"# Results: {cmd.results}\n\n{table}\n{note}")
+    except OSError as err:
+        _fail(f"cannot write to {out}: {err}")
     print(table, end="")
     written = ", ".join(str(out / name) for name in ("curves.png", "curves.svg", "results.md"))
     print(f"nasa plot: {len(runs)} runs; wrote {written}")

@@ -60,10 +60,13 @@ def run_state(out: Path, steps: int | None) -> Action:
     started = config_path.exists() or (out / "checkpoint.pt").exists()
     if not started:
         return "start"
-    total = steps
-    if total is None and config_path.exists():
-        total = int(json.loads(config_path.read_text())["steps"])
-    last = last_eval_step(out)
+    try:
+        total = steps
+        if total is None and config_path.exists():
+            total = int(json.loads(config_path.read_bytes())["steps"])
+        last = last_eval_step(out)
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        return "resume"  # a damaged file: `nasa train --resume` names it, and that run fails alone
     if total is not None and last is not None and last >= total:
         return "skip"
     # A config.json without a checkpoint is a run killed before its first checkpoint;
@@ -202,6 +205,8 @@ def reproduce(argv: list[str]) -> None:
     if parallel < 1:
         raise ConfigError(f"--parallel must be >= 1, got {parallel}")
 
+    if cmd.results.exists() and not cmd.results.is_dir():
+        raise ConfigError(f"--results {cmd.results} is a file, not a folder")
     runs = plan_runs(cmd.results, tasks, algos, list(range(cmd.seeds)), cmd.steps)
     counts = {a: sum(r.action == a for r in runs) for a in ("start", "resume", "skip")}
     print(

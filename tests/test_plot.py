@@ -199,3 +199,14 @@ def test_a_damaged_run_is_named_and_skipped_and_the_others_still_plot(
     assert {(r.task, r.algo, r.seed) for r in runs} == set(data) - {("cheetah-run", "nasa_td3", 1)}
     err = capsys.readouterr().err
     assert f"nasa plot: skipping {damaged / 'eval.csv'}: unreadable ({reason}" in err
+
+
+def test_an_out_folder_that_cannot_be_written_is_a_clear_error(
+    results: tuple[Path, dict], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root, _ = results
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(SystemExit) as exc:
+        plot([str(root), "--out", str(tmp_path / "a-file" / "plots")])
+    assert exc.value.code == 2
+    assert f"nasa plot: error: cannot write to {tmp_path / 'a-file' / 'plots'}" in capsys.readouterr().err

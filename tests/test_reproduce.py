@@ -179,3 +179,22 @@ def test_second_invocation_skips_what_the_first_finished(
     main(args)
     assert launched == []
     assert "0 to start, 0 to resume, 2 finished" in capsys.readouterr().out
+
+
+def test_a_damaged_run_folder_is_planned_for_resume_not_a_traceback(results: Path) -> None:
+    broken = run_folder(results, "cartpole-balance", "nasa_td3", 0)  # finished, until its files broke
+    (broken / "config.json").write_text("{not json")
+    assert actions(plan_runs(results, TASKS, ALGOS, SEEDS, steps=None))["cartpole-balance", "nasa_td3", 0] \
+        == "resume"  # `nasa train --resume` then names the file, and only this run fails
+    (broken / "config.json").write_text(json.dumps({"steps": 1000}))
+    (broken / "eval.csv").write_bytes(b"step,mean\n\xff,1\n")
+    assert actions(plan_runs(results, TASKS, ALGOS, SEEDS, steps=None))["cartpole-balance", "nasa_td3", 0] \
+        == "resume"
+
+
+def test_results_that_name_a_file_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "results").write_text("")
+    with pytest.raises(SystemExit) as exc:
+        main([*base_args(tmp_path / "results"), "--dry-run"])
+    assert exc.value.code == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
