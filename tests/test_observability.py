@@ -266,3 +266,12 @@ def test_a_damaged_history_leaves_the_stopped_dashboard_up_without_its_series(tm
     assert client.get("/status").json() == STATUS
     assert client.get("/history").json()["points"] == []
     assert "history.json is unreadable" in capsys.readouterr().err
+
+
+def test_a_damaged_eval_csv_leaves_the_history_without_evaluations(tmp_path):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    (tmp_path / "eval.csv").write_bytes(b"step,mean,std\n0,\xff,0\n")
+    client = TestClient(folder_app(tmp_path))
+    response = client.get("/history")
+    assert response.status_code == 200 and response.json()["evals"] == []

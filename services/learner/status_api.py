@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import csv
 import hmac
 import ipaddress
 import json
@@ -149,8 +150,12 @@ def evaluations(data: Path | None) -> list[dict]:
     """Every evaluation in <data>/eval.csv: step, mean, std (a row being written is skipped)."""
     if data is None or not (Path(data) / "eval.csv").exists():
         return []
+    try:
+        rows = read_rows(Path(data) / "eval.csv")
+    except (OSError, UnicodeDecodeError, csv.Error):  # a damaged file: the page shows no curve
+        return []
     out = []
-    for row in read_rows(Path(data) / "eval.csv"):
+    for row in rows:
         try:
             e = {"step": int(row["step"]), "mean": float(row["mean"]), "std": float(row["std"])}
         except (KeyError, TypeError, ValueError):
