@@ -168,6 +168,9 @@ def check_algo(algo: str) -> None:
         raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
 
 
+MAX_IMAGE_SIZE = 480
+
+
 def validate(config: TrainConfig) -> TrainConfig:
     """Reject values that cannot work, naming the field and the rule."""
     check_algo(config.algo)
@@ -200,6 +203,11 @@ def validate(config: TrainConfig) -> TrainConfig:
             raise ConfigError(f"{name} must be >= 1, got {value}")
     if config.warmup_steps < 0:
         raise ConfigError(f"warmup_steps must be >= 0, got {config.warmup_steps}")
+    if not 0 <= config.seed < 2**32:  # numpy's and MuJoCo's seeds are unsigned 32-bit
+        raise ConfigError(f"seed must be in [0, 2**32 - 1], got {config.seed}")
+    if config.env.image_size > MAX_IMAGE_SIZE:
+        raise ConfigError(f"env.image_size must be <= {MAX_IMAGE_SIZE} (the height of the suite's "
+                          f"offscreen frame buffer), got {config.env.image_size}")
     if config.env.image_size < 2 * config.agent.num_conv_layers + 8:
         raise ConfigError(
             f"env.image_size {config.env.image_size} is too small for "
