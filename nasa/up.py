@@ -265,6 +265,11 @@ class UpCommand:
     `off`: no authentication, any local process may talk to the run."""
 
 
+# Far above what any layout chooses, far below what brings a machine down (a process of a few
+# hundred MB each).
+MAX_ACTORS_PER_CORE = 8
+
+
 def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
     """`nasa up`'s flags, through the parser every service uses; returns them and the preset used.
     A `--` (older command lines put config flags after it) is dropped."""
@@ -276,6 +281,14 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
                         ("--publish-every", cmd.publish_every), ("--actor-lead", cmd.actor_lead)):
         if value < 0:
             raise ConfigError(f"{flag} must be >= 0 (0: chosen from the machine), got {value}")
+    cores = layout.usable_cores()
+    if cmd.actors > MAX_ACTORS_PER_CORE * cores:
+        raise ConfigError(
+            f"--actors {cmd.actors} on {cores} core(s): at most {MAX_ACTORS_PER_CORE * cores} on this host "
+            f"({MAX_ACTORS_PER_CORE} a core); each actor is a process with its own simulator, renderer and "
+            "torch, and hundreds of them exhaust the machine's memory; more actors go on other hosts "
+            "(docs/deployment.md)"
+        )
     check_bridge(cmd)
     if cmd.bridge == "hardware":
         # tyro takes --image-size, --image_size, and either with `=VALUE`

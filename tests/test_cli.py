@@ -205,3 +205,14 @@ def test_a_file_that_is_not_a_checkpoint_is_named_in_one_line(tmp_path, content)
     message = str(err.value)
     assert message.startswith(f"{path} is not a readable checkpoint: ") and "\n" not in message
     assert "weights_only" not in message  # torch's advice to unpickle anything is not ours to give
+
+
+def test_nasa_up_refuses_more_actors_than_the_host_can_hold(tmp_path, capsys, monkeypatch):
+    from nasa import layout
+
+    monkeypatch.setattr(layout, "usable_cores", lambda: 2)
+    started = []
+    monkeypatch.setattr("nasa.up.Supervisor.add", lambda *a, **k: started.append(a))
+    code, err = up_in_process(["--actors", "500", "--data", str(tmp_path / "run")], capsys)
+    assert code == 2 and "--actors 500 on 2 core(s): at most 16 on this host" in err
+    assert started == [] and not (tmp_path / "run").exists()
