@@ -281,6 +281,10 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
                         ("--publish-every", cmd.publish_every), ("--actor-lead", cmd.actor_lead)):
         if value < 0:
             raise ConfigError(f"{flag} must be >= 0 (0: chosen from the machine), got {value}")
+    if not 1 <= cmd.port <= 65535:
+        raise ConfigError(f"--port must be a TCP port, 1-65535, got {cmd.port}")
+    if not 0 <= cmd.router_port <= 65535:
+        raise ConfigError(f"--router-port must be a TCP port, 1-65535 (0: a free one), got {cmd.router_port}")
     cores = layout.usable_cores()
     if cmd.actors > MAX_ACTORS_PER_CORE * cores:
         raise ConfigError(

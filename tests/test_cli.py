@@ -216,3 +216,11 @@ def test_nasa_up_refuses_more_actors_than_the_host_can_hold(tmp_path, capsys, mo
     code, err = up_in_process(["--actors", "500", "--data", str(tmp_path / "run")], capsys)
     assert code == 2 and "--actors 500 on 2 core(s): at most 16 on this host" in err
     assert started == [] and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("flag", "value"), [("--port", "99999"), ("--port", "-1"), ("--port", "0"),
+                                             ("--router-port", "65536")])
+def test_nasa_up_refuses_a_port_that_is_not_one(tmp_path, capsys, flag, value):
+    code, err = up_in_process([flag, value, "--data", str(tmp_path / "run")], capsys)
+    assert code == 2 and f"{flag} must be a TCP port" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
