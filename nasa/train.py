@@ -100,13 +100,15 @@ class Trainer:
         return trainer
 
     def save_checkpoint(self) -> None:
-        self.store.flush()
-        self.recorder.checkpoint(
-            self.out / CHECKPOINT_FILE, self.agent, self.rng, self.counters,
-            env_rng=self.env.rng_state(), eval_env_rng=self.eval_env.rng_state(),
-            replay_inserted=self.store.num_inserted,
-        )
-        self.last_checkpoint_step = self.counters.env_steps
+        # A Ctrl-C here waits for the checkpoint, so the message it prints names the one on disk.
+        with checkpoint.sigint_deferred():
+            self.store.flush()
+            self.recorder.checkpoint(
+                self.out / CHECKPOINT_FILE, self.agent, self.rng, self.counters,
+                env_rng=self.env.rng_state(), eval_env_rng=self.eval_env.rng_state(),
+                replay_inserted=self.store.num_inserted,
+            )
+            self.last_checkpoint_step = self.counters.env_steps
 
     def _restore(self, state: dict) -> None:
         """The rest of a checkpoint's state; the environments' came back at construction."""

@@ -8,9 +8,13 @@ of one.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import random
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +27,26 @@ CHECKPOINT_FORMAT = 3
 
 class CheckpointError(ValueError):
     """A checkpoint this version cannot continue from (another format, or not a checkpoint)."""
+
+
+@contextlib.contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) until the block ends, then deliver it to the handler it would have met.
+
+    A KeyboardInterrupt inside torch.save leaves its zip writer half done, which then raises an error
+    of its own instead; around a checkpoint, the checkpoint lands first and the interrupt follows.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signals reach only the main thread
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            signal.raise_signal(signal.SIGINT)
 
 
 def save(path: str | Path, state: dict) -> None:

@@ -223,3 +223,21 @@ def test_resume_to_a_total_the_checkpoint_already_holds_is_refused_and_keeps_the
             Trainer.resume(run, steps=steps)
     after = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
     assert after == before
+
+
+def test_a_ctrl_c_during_a_checkpoint_waits_for_it_and_then_interrupts(tmp_path):
+    import os
+
+    from shared import checkpoint
+
+    path = tmp_path / "checkpoint.pt"
+    with pytest.raises(KeyboardInterrupt), checkpoint.sigint_deferred():
+        os.kill(os.getpid(), signal.SIGINT)  # arrives while the checkpoint is being written
+        time.sleep(0.05)
+        checkpoint.save(path, {"step": 7})
+    assert checkpoint.load(path)["step"] == 7
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+
+    with checkpoint.sigint_deferred():  # no Ctrl-C: nothing is raised afterwards
+        checkpoint.save(path, {"step": 8})
+    assert checkpoint.load(path)["step"] == 8
