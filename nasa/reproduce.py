@@ -11,7 +11,6 @@ running the command again after an interruption continues where it stopped:
 
 from __future__ import annotations
 
-import json
 import shlex
 import subprocess
 import sys
@@ -24,6 +23,7 @@ import tyro
 
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_task
+from shared.run_config import read_json_object
 from shared.runlog import read_rows
 
 Action = Literal["start", "resume", "skip"]
@@ -63,7 +63,7 @@ def run_state(out: Path, steps: int | None) -> Action:
     try:
         total = steps
         if total is None and config_path.exists():
-            total = int(json.loads(config_path.read_bytes())["steps"])
+            total = int(read_json_object(config_path)["steps"])
         last = last_eval_step(out)
     except (OSError, ValueError, KeyError, TypeError, IndexError):
         return "resume"  # a damaged file: `nasa train --resume` names it, and that run fails alone

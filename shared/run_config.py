@@ -123,7 +123,7 @@ def resolve(config: TrainConfig) -> RunConfig:
 
 def read_config(path: Path) -> TrainConfig:
     """The TrainConfig of a config.json file (a RunConfig's, or one `nasa train` wrote without a spec)."""
-    body = _read_json(Path(path))
+    body = read_json_object(Path(path))
     body.pop("spec", None)
     return config_from_dict(body)
 
@@ -131,16 +131,18 @@ def read_config(path: Path) -> TrainConfig:
 def read_folder(data: Path) -> dict | None:
     """The run folder's config.json as a dict, or None when there is none."""
     path = Path(data) / CONFIG_FILE
-    return _read_json(path) if path.exists() else None
+    return read_json_object(path) if path.exists() else None
 
 
-def _read_json(path: Path) -> dict:
+def read_json_object(path: Path, error: type[Exception] = ConfigError, what: str = "a config") -> dict:
+    """The JSON object in `path`; a file that cannot be read or parsed, or holds something else,
+    raises `error` naming it."""
     try:
-        body = json.loads(path.read_text())
+        body = json.loads(Path(path).read_bytes())
     except (OSError, ValueError) as err:
-        raise ConfigError(f"{path} is unreadable: {err}") from err
+        raise error(f"{path} is unreadable: {err}") from err
     if not isinstance(body, dict):
-        raise ConfigError(f"{path} does not hold a config")
+        raise error(f"{path} is unreadable: it does not hold {what}")
     return body
 
 

@@ -35,6 +35,7 @@ from fastapi.responses import FileResponse, PlainTextResponse, Response
 
 from services.learner import history as run_history
 from services.learner.metrics import status_metrics
+from shared.run_config import read_json_object
 from shared.runlog import read_rows
 
 DASHBOARD = Path(__file__).resolve().parent / "dashboard"
@@ -187,13 +188,7 @@ def read_final_status(data: Path) -> dict:
         raise StoppedRunError(f"there is no run folder {data}")
     if not saved.exists():
         raise StoppedRunError(f"there is no {saved}: the learner of this run never stopped cleanly")
-    try:
-        final = json.loads(saved.read_bytes())
-    except (OSError, ValueError) as err:
-        raise StoppedRunError(f"{saved} is unreadable ({type(err).__name__}: {err})") from err
-    if not isinstance(final, dict):
-        raise StoppedRunError(f"{saved} is unreadable: not a JSON object")
-    return final
+    return read_json_object(saved, StoppedRunError, "a status")
 
 
 def folder_app(data: Path) -> FastAPI:
