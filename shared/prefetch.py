@@ -111,8 +111,6 @@ class DevicePrefetcher:
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="device-prefetch", daemon=True)
-        self.produced = 0
-        self.consumed = 0
         self.waited_s = 0.0
 
     def start(self) -> DevicePrefetcher:
@@ -139,7 +137,6 @@ class DevicePrefetcher:
             raise PrefetchError(f"the prefetch thread failed: {item!r}") from item
         if item is None:
             return None
-        self.consumed += 1
         host, device_batch, event = item
         if self.cuda:
             current = torch.cuda.current_stream(self.device)
@@ -147,10 +144,6 @@ class DevicePrefetcher:
             for tensor in device_batch.values():
                 tensor.record_stream(current)
         return Prefetched(host, device_batch)
-
-    def queued(self) -> int:
-        """Batches sampled but not yet handed to the learner (staged or waiting in the queue)."""
-        return self.produced - self.consumed
 
     def close(self, timeout: float = 5.0) -> None:
         self._stop.set()
@@ -174,7 +167,6 @@ class DevicePrefetcher:
                     continue
                 item = self._stage(batch, self._slots[slot])
                 slot = (slot + 1) % len(self._slots)
-                self.produced += 1
                 self._put(item)
         except BaseException as err:  # handed to the consumer, who raises it
             self._put(err)

@@ -3,6 +3,7 @@ Zenoh client's handling of bad or missing replies (fake session), and the Prefet
 
 from __future__ import annotations
 
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -172,3 +173,38 @@ def test_prefetcher_keeps_batches_ready_and_counts_misses():
     assert all(b is not None and b["obs"].shape[0] == 6 for b in batches)
     assert prefetch.misses >= 1 and prefetch.last_miss is not None
     assert all(not t.is_alive() for t in prefetch._threads)  # closed on exit
+
+
+class Gated:
+    """A replay whose every request waits for the test to release it; counts what it served."""
+
+    def __init__(self) -> None:
+        self.local = LocalReplay(filled(20), np.random.default_rng(0))
+        self.asked, self.served = threading.Semaphore(0), 0
+        self.release = threading.Semaphore(0)
+
+    def sample(self, batch_size, wait_s):
+        self.asked.release()
+        self.release.acquire()
+        self.served += 1
+        return self.local.sample(batch_size)
+
+
+def test_prefetcher_counts_every_batch_served_even_one_held_by_a_thread_with_the_queue_full():
+    source = Gated()
+    with Prefetcher(source, batch_size=4, threads=2, stop=StopFlag()) as prefetch:
+        for _ in range(3):  # two fill the queue, the third waits in its thread's hands
+            assert source.asked.acquire(timeout=10.0)
+            source.release.release()
+        assert source.asked.acquire(timeout=10.0)  # the fourth request is in flight
+        with prefetch.paused(timeout=0.5) as quiet:
+            assert not quiet  # the fourth is still unanswered
+        source.release.release()
+        with prefetch.paused(timeout=10.0) as quiet:
+            assert quiet
+            assert prefetch.drawn == source.served == 4  # not the queue's two
+            assert not source.asked.acquire(timeout=0.5)  # no request is sent while paused
+        taken = [prefetch.get(timeout=10.0) for _ in range(4)]
+        assert all(b is not None for b in taken)
+        for _ in range(10):  # let the threads finish and stop
+            source.release.release()

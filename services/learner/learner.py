@@ -215,7 +215,7 @@ class Learner:
         while not self.stop and not self.client.sync_samples(core.agent.num_updates):
             self.stop.wait(0.5)
         wall_start, wall0 = time.monotonic(), self.wall_s
-        finished, done_at, resynced = False, None, False
+        finished, done_at, resynced, used = False, None, False, 0
         with ExitStack() as stack:
             prefetcher = Prefetcher(self.client, c.batch_size, self.args.prefetch, self.stop)
             stack.enter_context(prefetcher)
@@ -240,8 +240,12 @@ class Learner:
                 if starved and not core.done() and not resynced:
                     # Short of the target: samples were counted that no update used (a replay restart
                     # counts G per stored step; a dead learner's requests served after it died).
-                    ahead = prefetcher.queued() + (staged.queued() if staged is not None else 0)
-                    resynced = self.client.sync_samples(core.agent.num_updates + ahead)
+                    # Those served and not used yet (queued, staged, or in a thread's hands) still
+                    # count; with no request in flight that number is exact.
+                    with prefetcher.paused(timeout=self.client.timeout_s) as quiet:
+                        if quiet:
+                            ahead = prefetcher.drawn - used
+                            resynced = self.client.sync_samples(core.agent.num_updates + ahead)
                     done_at = time.monotonic()
                     continue
                 if core.done() or starved:
@@ -261,6 +265,7 @@ class Learner:
                     raise faults.WorkerDied(f"learner thread(s) {', '.join(dead)} died")
                 if batch is None:
                     continue
+                used += 1
                 began = time.perf_counter()
                 core.train_on(batch, on_device)
                 self.metrics.batch_wait_seconds.observe(began - waited)

@@ -20,6 +20,8 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -257,6 +259,9 @@ class Prefetcher:
     Use as a context manager: it starts the threads, and on exit stops and joins them. `misses`
     counts requests answered with no batch; `last_miss` is when the latest one came
     (time.monotonic()), so the caller can tell that the replay ran dry after it was done.
+    `drawn` counts the batches the replay served, from the moment each reply arrives: a caller
+    that counts the batches it took knows exactly how many the replay has counted that it has
+    not used yet, wherever they wait (see `paused`).
     """
 
     def __init__(self, client: ReplayClient, batch_size: int, threads: int, stop: StopFlag,
@@ -267,7 +272,11 @@ class Prefetcher:
         self.wait_s = wait_s
         self.misses = 0
         self.last_miss: float | None = None
+        self.drawn = 0
         self._closed = threading.Event()
+        self._state = threading.Condition()
+        self._paused = False
+        self._in_flight = 0
         self._queue: queue.Queue[Batch] = queue.Queue(maxsize=max(1, threads))
         self._threads = [threading.Thread(target=self._loop, name=f"prefetch{i}", daemon=True)
                          for i in range(max(1, threads))]
@@ -292,19 +301,41 @@ class Prefetcher:
     def _running(self) -> bool:
         return not self.stop and not self._closed.is_set()
 
-    def queued(self) -> int:
-        """Batches drawn and waiting for the learner."""
-        return self._queue.qsize()
-
     def dead(self) -> list[str]:
         """Names of prefetch threads that ended while the prefetcher runs (none should)."""
         if not self._running():
             return []
         return [t.name for t in self._threads if t.ident is not None and not t.is_alive()]
 
+    @contextmanager
+    def paused(self, timeout: float) -> Iterator[bool]:
+        """No new request is sent inside the block. Yields True once every request in flight has
+        been answered (so `drawn` is final until the block ends), False if some still were after
+        `timeout` seconds."""
+        with self._state:
+            self._paused = True
+            quiet = self._state.wait_for(lambda: self._in_flight == 0, timeout)
+        try:
+            yield quiet
+        finally:
+            with self._state:
+                self._paused = False
+                self._state.notify_all()
+
     def _loop(self) -> None:
         while self._running():
-            batch = self.client.sample(self.batch_size, self.wait_s)
+            with self._state:
+                while self._paused and self._running():
+                    self._state.wait(0.2)
+                self._in_flight += 1
+            batch = None
+            try:
+                batch = self.client.sample(self.batch_size, self.wait_s)
+            finally:
+                with self._state:
+                    self._in_flight -= 1
+                    self.drawn += batch is not None
+                    self._state.notify_all()
             if batch is None:
                 self.misses += 1
                 self.last_miss = time.monotonic()
