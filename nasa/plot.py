@@ -22,7 +22,6 @@ Finds every eval.csv under a results folder, names each run by its config.json
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from dataclasses import dataclass
@@ -32,8 +31,9 @@ from typing import TYPE_CHECKING, Literal, NoReturn
 import numpy as np
 import tyro
 
-from shared.config import ALGOS
+from shared.config import ALGOS, ConfigError
 from shared.envs import PAPER_TASKS
+from shared.run_config import read_json_object
 from shared.runlog import eval_walls, read_rows
 
 if TYPE_CHECKING:
@@ -92,8 +92,9 @@ def run_identity(folder: Path) -> tuple[str, str, int] | None:
     """(task, algo, seed) of a run folder: from config.json, else from <task>/<algo>/seed<S>."""
     config_path = folder / "config.json"
     if config_path.exists():
-        config = json.loads(config_path.read_text())
-        task = config.get("env", {}).get("task")
+        config = read_json_object(config_path, what="a run's config")
+        env = config.get("env")
+        task = env.get("task") if isinstance(env, dict) else None
         if task is not None and "algo" in config and "seed" in config:
             return task, config["algo"], int(config["seed"])
     if folder.name.startswith("seed") and folder.name[4:].isdigit():
@@ -120,7 +121,10 @@ def find_runs(results_dir: Path) -> list[SeedCurve]:
             steps = np.array([int(float(r["step"])) for r in rows])
             means = np.array([float(r["mean"]) for r in rows])
             walls = eval_walls(path.parent, steps.tolist())
-        except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError, AttributeError) as err:
+        except ConfigError as err:
+            print(f"nasa plot: skipping {path}: {err}", file=sys.stderr)
+            continue
+        except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError) as err:
             print(f"nasa plot: skipping {path}: unreadable ({type(err).__name__}: {err})", file=sys.stderr)
             continue
         runner = "up" if (path.parent / "learner").is_dir() else "train"
