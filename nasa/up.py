@@ -559,11 +559,13 @@ def serve_stopped(data: Path, host: str, port: int) -> None:
     import uvicorn
 
     from services.learner.status_api import StoppedRunError, folder_app
+    from shared.faults import check_port_free
 
     try:
         app = folder_app(data)
     except StoppedRunError as err:
         print(f"nasa status: {err}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
+    check_port_free(host, port, "the dashboard's")
     print(f"nasa status: the dashboard of {data} on http://{host}:{port}/ (Ctrl-C ends it)", flush=True)
     uvicorn.run(app, host=host, port=port, log_level="warning", access_log=False)

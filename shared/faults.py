@@ -125,7 +125,10 @@ def _writable(data: Path, what: str) -> None:
 
 
 def check_port_free(host: str, port: int, what: str) -> None:
-    """RunFolderError if `port` on `host` cannot be listened on (another process has it)."""
+    """RunFolderError if `port` on `host` cannot be listened on (another process has it, or it is
+    not a TCP port)."""
+    if not 1 <= port <= 65535:
+        raise RunFolderError(f"{what} port must be a TCP port, 1-65535, got {port}")
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn and Zenoh bind
         try:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -275,3 +278,18 @@ def test_a_damaged_eval_csv_leaves_the_history_without_evaluations(tmp_path):
     client = TestClient(folder_app(tmp_path))
     response = client.get("/history")
     assert response.status_code == 200 and response.json()["evals"] == []
+
+
+@pytest.mark.parametrize("port", ["99999", "busy"])
+def test_a_stopped_dashboard_on_a_port_it_cannot_have_is_one_line_and_exit_2(tmp_path, port):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        if port == "busy":
+            port = str(busy.getsockname()[1])
+        done = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--data", str(tmp_path), "--serve",
+                               "--port", port], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"port {port} on 127.0.0.1 is in use" in done.stderr or "1-65535, got 99999" in done.stderr
