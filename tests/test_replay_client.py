@@ -4,6 +4,7 @@ Zenoh client's handling of bad or missing replies (fake session), and the Prefet
 from __future__ import annotations
 
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -208,3 +209,36 @@ def test_prefetcher_counts_every_batch_served_even_one_held_by_a_thread_with_the
         assert all(b is not None for b in taken)
         for _ in range(10):  # let the threads finish and stop
             source.release.release()
+
+
+def test_the_replays_sampler_threads_never_draw_more_batches_than_the_limiter_allows():
+    class Preempted(SampleToInsertRatio):
+        """Every call returns late, as if its thread lost the CPU right after it."""
+
+        def await_sample(self, *args, **kwargs):
+            allowed = super().await_sample(*args, **kwargs)
+            time.sleep(0.002)
+            return allowed
+
+        def take_sample(self, *args, **kwargs):
+            taken = super().take_sample(*args, **kwargs)
+            time.sleep(0.002)
+            return taken
+
+    store = filled(20)
+    limiter = Preempted(samples_per_insert=1.0, min_size_to_sample=1, error_buffer=1.0)
+    limiter.insert(30)  # exactly 30 batches allowed
+    start, drawn = threading.Barrier(4), []
+
+    def sampler(seed: int) -> None:
+        local = LocalReplay(store, np.random.default_rng(seed), limiter)
+        start.wait()
+        while (batch := local.draw(4, wait_s=0.05)[0]) is not None:
+            drawn.append(batch)
+
+    threads = [threading.Thread(target=sampler, args=(seed,)) for seed in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert len(drawn) == limiter.stats()["samples"] == 30

@@ -91,9 +91,8 @@ class LocalReplay:
         if not self.replace and len(self.store) < batch_size:
             return None, f"fewer than {batch_size} rows stored (sampling without replacement)"
         if self.limiter is not None:
-            if not self.limiter.await_sample(1, timeout=wait_s):
+            if not self.limiter.take_sample(1, timeout=wait_s):
                 return None, "rate limited"
-            self.limiter.sample(1)
         elif len(self.store) == 0:
             return None, "empty"
         return self.store.sample(batch_size, self.rng, replace=self.replace), ""

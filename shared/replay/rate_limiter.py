@@ -7,10 +7,12 @@ runs ahead blocks. Before min_size, inserts never block and samples always do.
 With G updates per env step, count one sample per update and one insert per env
 step (over all writers) and set samples_per_insert = G.
 
-Checks and commits are separate calls (await_* then insert/sample), so
+Inserts check and commit in separate calls (await_insert then insert), so
 concurrent writers can overshoot the bound by one call each; the error buffer
-absorbs that. close() wakes every waiter: a waiter returns by raising
-RateLimiterClosed, so shutdown never deadlocks.
+absorbs that. Samples check and count in one call (take_sample): the replay's
+sampler threads never both take the last allowed sample, so a run ends with
+exactly G samples per insert after the warm-up. close() wakes every waiter: a
+waiter returns by raising RateLimiterClosed, so shutdown never deadlocks.
 """
 
 from __future__ import annotations
@@ -61,13 +63,16 @@ class SampleToInsertRatio:
             return False
         return self._diff() - n >= self.min_diff
 
-    def _await(self, ok, timeout: float | None) -> bool:
+    def _await(self, ok, timeout: float | None, then=None) -> bool:  # noqa: ANN001
+        """Wait until ok(); then run `then` (if given) under the same lock and return True."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cv:
             while True:
                 if self.closed:
                     raise RateLimiterClosed("rate limiter closed")
                 if ok():
+                    if then is not None:
+                        then()
                     return True
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
@@ -81,6 +86,16 @@ class SampleToInsertRatio:
     def await_sample(self, n: int = 1, timeout: float | None = None) -> bool:
         """Block until n samples are allowed; False on timeout, RateLimiterClosed if closed."""
         return self._await(lambda: self.can_sample(n), timeout)
+
+    def take_sample(self, n: int = 1, timeout: float | None = None) -> bool:
+        """Block until n samples are allowed and count them, atomically; False on timeout,
+        RateLimiterClosed if closed."""
+
+        def count() -> None:
+            self.samples += n
+            self._cv.notify_all()
+
+        return self._await(lambda: self.can_sample(n), timeout, count)
 
     def insert(self, n: int = 1) -> None:
         with self._cv:
