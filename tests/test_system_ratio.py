@@ -38,9 +38,27 @@ def test_a_learner_killed_after_its_checkpoint_makes_up_the_updates_it_lost(tmp_
         assert learner.restarts == 1 and learner.exited == 0, system.logs()
         final = json.loads((data / "learner" / "status.json").read_text())
         assert final["resumed"] and final["env_steps"] == steps
-        assert final["updates"] == steps - WARMUP  # G = 1: every update the kill cost was made up
+        # G = 1: every update the kill cost was made up, and none more
+        assert final["updates"] == steps - WARMUP, system.logs()
         # With no evaluator in the run, the learner does not wait out the final evaluation's timeout.
         learner_log = (data / "logs" / "learner.log").read_text()
         assert "no evaluator is running: eval step 0 is left unevaluated" in learner_log, system.logs()
+    finally:
+        system.close()
+
+
+@pytest.mark.timeout(300)
+def test_a_learner_that_has_made_every_update_waits_for_the_replays_last_step_and_makes_no_more(tmp_path):
+    # The replay's stats, whose `done` ends the run, come once a minute here, and the limiter's
+    # slack allows a few samples beyond G x inserts: a learner that kept drawing until it saw `done`
+    # made those extra updates once it caught up with the actor's last step.
+    data, steps = tmp_path / "run", 160
+    system = System(data, actors=1, steps=steps, evaluator=False, extra=["--eval-every", "100000"],
+                    replay_extra=["--error-buffer", "4", "--stats-every-s", "60"])
+    try:
+        system.wait_exit(timeout=240)
+        final = json.loads((data / "learner" / "status.json").read_text())
+        assert final["env_steps"] == steps
+        assert final["updates"] == steps - WARMUP, system.logs()
     finally:
         system.close()

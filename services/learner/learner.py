@@ -246,11 +246,19 @@ class Learner:
                         if quiet:
                             ahead = prefetcher.drawn - used
                             resynced = self.client.sync_samples(core.agent.num_updates + ahead)
+                            self.log(f"the replay ran dry at {core.agent.num_updates} of "
+                                     f"{core.target_updates} updates ({ahead} drawn, not used yet): "
+                                     f"limiter {'resynced' if resynced else 'not resynced'}")
                     done_at = time.monotonic()
                     continue
                 if core.done() or starved:
                     finished = True
                     break
+                if core.agent.num_updates >= core.target_updates:
+                    # Every update due is made; the limiter's slack would allow more until the
+                    # replay's stats say its last env step landed, so wait for them instead.
+                    self.stop.wait(0.05)
+                    continue
                 waited = time.perf_counter()
                 on_device = None
                 if staged is not None:

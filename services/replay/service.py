@@ -279,9 +279,10 @@ class ReplayService:
             raise wire.WireError(f"batch_size {req.batch_size}")
         if req.sync_samples is not None:  # a learner's start: count the samples it has used
             if self.limiter is not None:
+                counted = self.limiter.stats()["samples"]
                 self.limiter.lower_samples(req.sync_samples)
-                self.log(f"a learner with {req.sync_samples} updates started: limiter at "
-                         f"{self.limiter.stats()['samples']:.0f} samples")
+                self.log(f"a learner has used {req.sync_samples} samples: the limiter had counted "
+                         f"{counted:.0f}, now {self.limiter.stats()['samples']:.0f}")
             return wire.SampleReply(False, "synced", self.store.num_inserted)
         wait = float(req.wait_s)
         wait = min(max(wait, 0.0), 10.0) if math.isfinite(wait) else 0.0  # NaN compares false: not min/max
