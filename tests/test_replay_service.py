@@ -134,3 +134,14 @@ def test_sampling_without_replacement_waits_for_a_full_batch_and_never_repeats(t
         index = decode_reply(svc.sample(wire.SampleRequest(8, wait_s=0.0)), SPEC)["index"]
         assert len(set(index.tolist())) == 8
     svc.store.close()
+
+
+def test_transitions_past_the_step_budget_are_dropped_without_calling_them_orphans(tmp_path, capsys):
+    svc = make_service(tmp_path, steps=5)
+    assert svc.insert_batch(batch(n=3)[0]) == 3
+    assert svc.insert_batch(batch(start=3, n=3, seed=1)[0]) == 2  # the budget cuts this one
+    assert svc.insert_batch(batch(start=6, n=2, seed=2)[0]) == 0  # and every one after it
+    assert svc.dropped == 3 and svc.store.num_inserted == 5
+    out, err = capsys.readouterr()
+    assert "dropped" not in out + err
+    svc.store.close()

@@ -224,3 +224,14 @@ def test_store_adder_writes_unscored_rows_in_order():
     assert np.allclose(b["discount"], 0.99) and store.stats()["open_episodes"] == 0
     with pytest.raises(RuntimeError, match="add_first"):  # the episode ended with its last step
         adder.add(np.zeros(2), 0.0, 1.0, f[1], False, 0)
+
+
+def test_an_ack_that_reaches_the_step_budget_ends_the_acting_before_the_replays_stats_say_so():
+    writer, _ = make_writer(max_in_flight=2)
+    writer.budget = 100
+    writer.window.acquire(writer.stop)
+    writer._on_ack(ack(4, 9, 99))
+    assert not writer.replay_done
+    writer.window.acquire(writer.stop)
+    writer._on_ack(ack(4, 9, 100))
+    assert writer.replay_done and not writer.window.replay_done  # no stats yet

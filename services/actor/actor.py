@@ -146,7 +146,8 @@ class ActorService:
                                 updates=False)
         self.weights = WeightsSubscriber(self.agent, self._invalid)
         self.writer = ZenohWriter(session, self.keys, self.actor_id, self.incarnation, spec.frame_shape,
-                                  args.send_batch, args.max_in_flight, stop, self.log)
+                                  args.send_batch, args.max_in_flight, stop, self.log,
+                                  budget=self.config.steps)
         self.invalid = 0
         self.episodes = 0
         self._finished: list[list[float]] = []

@@ -198,6 +198,9 @@ class ReplayService:
         frames, actions, rewards = arrays["frames"], arrays["action"], arrays["reward"]
         discounts, lasts, versions = arrays["discount"], arrays["last"], arrays["policy_version"]
         key = (msg.actor_id, msg.incarnation)
+        if self.store.num_inserted >= self.config.steps:
+            self.dropped += n  # past the step budget: the actors stop once they hear of it
+            return 0
         if msg.start == 0:
             first = arrays["first_frame"]
             store_id = self._durably(lambda: self.store.begin_episode(first, msg.actor_id, msg.incarnation))

@@ -191,8 +191,9 @@ class ZenohWriter:
 
     def __init__(self, session, keys: wire.Keys, actor_id: int, incarnation: int,
                  frame_shape: tuple[int, int, int], send_batch: int, max_in_flight: int,
-                 stop: StopFlag, log: Log) -> None:
+                 stop: StopFlag, log: Log, budget: int | None = None) -> None:
         self.session, self.keys, self.stop, self.log = session, keys, stop, log
+        self.budget = budget  # the run's step budget: an ack that reaches it ends the acting
         self.actor_id, self.incarnation = actor_id, incarnation
         self.frame_shape = tuple(frame_shape)
         self.send_batch = max(1, send_batch)
@@ -213,7 +214,10 @@ class ZenohWriter:
 
     @property
     def replay_done(self) -> bool:
-        return self.window.replay_done
+        """The step budget is reached: the replay's stats say so, or an ack's count reached it
+        (sooner: stats come every half second, and steps past the budget are dropped)."""
+        reached = self.budget is not None and self.window.global_steps >= self.budget
+        return self.window.replay_done or reached
 
     @property
     def broken(self) -> bool:
