@@ -49,12 +49,12 @@ def test_a_learner_killed_after_its_checkpoint_makes_up_the_updates_it_lost(tmp_
 
 @pytest.mark.timeout(300)
 def test_a_learner_that_has_made_every_update_waits_for_the_replays_last_step_and_makes_no_more(tmp_path):
-    # The replay's stats, whose `done` ends the run, come once a minute here, and the limiter's
+    # The replay's stats, whose `done` ends the run, come every 30 s here, and the limiter's
     # slack allows a few samples beyond G x inserts: a learner that kept drawing until it saw `done`
     # made those extra updates once it caught up with the actor's last step.
-    data, steps = tmp_path / "run", 160
+    data, steps = tmp_path / "run", 100
     system = System(data, actors=1, steps=steps, evaluator=False, extra=["--eval-every", "100000"],
-                    replay_extra=["--error-buffer", "4", "--stats-every-s", "60"])
+                    replay_extra=["--error-buffer", "4", "--stats-every-s", "30"])
     try:
         system.wait_exit(timeout=240)
         final = json.loads((data / "learner" / "status.json").read_text())
