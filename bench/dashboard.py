@@ -24,7 +24,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench.system import Cluster, cpu_seconds
+from bench.system import WARM, Cluster, cpu_seconds
 
 GOAL = 0.98  # the polled learner keeps at least 98% of its updates/s
 
@@ -51,10 +51,9 @@ def measure(args: argparse.Namespace) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp))
-        warm = ["--warmup-steps", "100000000"]  # every row a warm-up one: no scoring
         try:
-            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *warm])
-            cluster.start("actor-0", "actor", ["--actor-id", "0", *warm])
+            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *WARM])
+            cluster.start("actor-0", "actor", ["--actor-id", "0", *WARM])
             deadline = time.monotonic() + 180
             while not (cluster.inserted and cluster.inserted[-1][1] >= args.fill):
                 if time.monotonic() > deadline:
@@ -66,7 +65,7 @@ def measure(args: argparse.Namespace) -> dict:
             cluster.sup.stopping = False
             port = free_port()
             cluster.start("learner", "learner", ["--data", tmp, "--port", str(port),
-                                                 "--threads", str(args.learner_threads), *warm])
+                                                 "--threads", str(args.learner_threads), *WARM])
             url = f"http://127.0.0.1:{port}"
 
             def updates() -> int:

@@ -33,6 +33,10 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+# Every stored transition a warm-up one (intrinsic 0): no scoring on either side. The step budget
+# (Cluster.common) is twice it, so the learner, which makes no update past G x (steps - warm-up),
+# has as many to make.
+WARM = ["--warmup-steps", "100000000"]
 GOALS = {"actor_vs_inprocess": 0.90, "two_actor_scaling": 1.7, "learner_vs_inprocess": 0.95,
          "auth_vs_open_actor": 0.95, "auth_vs_open_learner": 0.95}
 
@@ -139,7 +143,7 @@ class Cluster:
         self.sup = Supervisor(env, data / "logs", cwd=str(REPO))
         self.data = data
         self.common = ["--preset", "cpu-small", "--task", args.task, "--algo", args.algo,
-                       "--render-quality", "fast", "--steps", "100000000"]
+                       "--render-quality", "fast", "--steps", "200000000"]
         self.inserted: list[tuple[float, int]] = []
         self.session = open_client(self.endpoint, role="evaluator", auth=folder)  # reads replay stats
         keys = wire.Keys(run_id)
@@ -245,11 +249,9 @@ def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
 
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp), auth)
-        # every stored transition is a warm-up one (intrinsic 0): no scoring on either side
-        warm = ["--warmup-steps", "100000000"]
         try:
-            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *warm])
-            cluster.start("actor-0", "actor", ["--actor-id", "0", *warm])
+            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *WARM])
+            cluster.start("actor-0", "actor", ["--actor-id", "0", *WARM])
             deadline = time.monotonic() + 180
             while not (cluster.inserted and cluster.inserted[-1][1] >= args.fill):
                 if time.monotonic() > deadline:
@@ -263,7 +265,7 @@ def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
             port = free_port()
             cluster.start("learner", "learner", [
                 "--data", tmp, "--device", args.device, "--port", str(port),
-                "--threads", str(args.learner_threads), *warm,
+                "--threads", str(args.learner_threads), *WARM,
             ])
             url = f"http://127.0.0.1:{port}/status"
 
