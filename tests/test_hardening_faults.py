@@ -213,7 +213,7 @@ def test_a_dead_prefetch_thread_is_noticed():
 def test_a_starting_learner_sets_the_limiters_sample_count_to_its_updates(tmp_path):
     svc = make_service(tmp_path, warmup=4, steps=100)
     assert svc.insert_batch(batch(n=8)[0]) == 8  # within the limiter's window: none waits
-    svc.limiter.sample(6)  # drawn by a learner that died before checkpointing them
+    assert svc.limiter.take_sample(6, timeout=0)  # drawn by a learner that died before checkpointing them
     reply = svc.sample(wire.SampleRequest(1, 0.0, sync_samples=2))  # the restarted learner made 2
     assert reply.reason == "synced" and svc.limiter.stats()["samples"] == 2
     svc.sample(wire.SampleRequest(1, 0.0, sync_samples=50))  # never more than counted

@@ -215,11 +215,6 @@ def test_the_replays_sampler_threads_never_draw_more_batches_than_the_limiter_al
     class Preempted(SampleToInsertRatio):
         """Every call returns late, as if its thread lost the CPU right after it."""
 
-        def await_sample(self, *args, **kwargs):
-            allowed = super().await_sample(*args, **kwargs)
-            time.sleep(0.002)
-            return allowed
-
         def take_sample(self, *args, **kwargs):
             taken = super().take_sample(*args, **kwargs)
             time.sleep(0.002)

@@ -12,11 +12,11 @@ from shared.replay import RateLimiterClosed, SampleToInsertRatio
 
 def test_min_size_blocks_samples_not_inserts() -> None:
     rl = SampleToInsertRatio(samples_per_insert=2.0, min_size_to_sample=3, error_buffer=2.0)
-    assert not rl.await_sample(timeout=0.01)
+    assert not rl.take_sample(timeout=0.01)
     for _ in range(3):
         assert rl.await_insert(timeout=0.01)
         rl.insert()
-    assert rl.await_sample(timeout=0.01)
+    assert rl.take_sample(timeout=0.01)
 
 
 def test_inserts_block_when_ahead_and_release_on_sample() -> None:
@@ -34,7 +34,7 @@ def test_inserts_block_when_ahead_and_release_on_sample() -> None:
     t.start()
     time.sleep(0.05)
     assert not released.is_set()
-    rl.sample(2)  # diff = 2: room for one more insert
+    assert rl.take_sample(2, timeout=0)  # diff = 2: room for one more insert
     t.join(2)
     assert released.is_set()
 
@@ -42,11 +42,10 @@ def test_inserts_block_when_ahead_and_release_on_sample() -> None:
 def test_samples_block_when_ahead_and_release_on_insert() -> None:
     rl = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=2, error_buffer=1.0)
     rl.insert(2)  # diff 2 = center, min 1
-    assert rl.await_sample(timeout=0.01)
-    rl.sample()
-    assert not rl.await_sample(timeout=0.02)  # diff 1 - 1 < min
+    assert rl.take_sample(timeout=0.01)
+    assert not rl.take_sample(timeout=0.02)  # diff 1 - 1 < min
     got = []
-    t = threading.Thread(target=lambda: got.append(rl.await_sample(timeout=5)))
+    t = threading.Thread(target=lambda: got.append(rl.take_sample(timeout=5)))
     t.start()
     time.sleep(0.05)
     assert not got
@@ -69,8 +68,7 @@ def test_ratio_is_kept_by_concurrent_sides() -> None:
 
     def learner() -> None:
         while not stop.is_set():
-            if rl.await_sample(timeout=0.05):
-                rl.sample()
+            if rl.take_sample(timeout=0.05):
                 s = rl.stats()
                 worst[0] = max(worst[0], abs(s["diff"] - g * 10))
 
@@ -100,7 +98,7 @@ def test_close_releases_all_waiters() -> None:
     rl.insert(6)  # diff 6 > max 6? max = 5 + 1 = 6: one more insert blocks
     threads = [threading.Thread(target=waiter, args=(rl.await_insert,)) for _ in range(3)]
     rl2 = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
-    threads += [threading.Thread(target=waiter, args=(rl2.await_sample,)) for _ in range(3)]
+    threads += [threading.Thread(target=waiter, args=(rl2.take_sample,)) for _ in range(3)]
     for t in threads:
         t.start()
     time.sleep(0.05)
@@ -112,7 +110,7 @@ def test_close_releases_all_waiters() -> None:
         assert not t.is_alive()
     assert results == ["closed"] * 6
     with pytest.raises(RateLimiterClosed):
-        rl.await_sample(timeout=0)
+        rl.take_sample(timeout=0)
 
 
 def test_rejects_window_that_could_deadlock() -> None:

@@ -83,10 +83,6 @@ class SampleToInsertRatio:
         """Block until n inserts are allowed; False on timeout, RateLimiterClosed if closed."""
         return self._await(lambda: self.can_insert(n), timeout)
 
-    def await_sample(self, n: int = 1, timeout: float | None = None) -> bool:
-        """Block until n samples are allowed; False on timeout, RateLimiterClosed if closed."""
-        return self._await(lambda: self.can_sample(n), timeout)
-
     def take_sample(self, n: int = 1, timeout: float | None = None) -> bool:
         """Block until n samples are allowed and count them, atomically; False on timeout,
         RateLimiterClosed if closed."""
@@ -100,11 +96,6 @@ class SampleToInsertRatio:
     def insert(self, n: int = 1) -> None:
         with self._cv:
             self.inserts += n
-            self._cv.notify_all()
-
-    def sample(self, n: int = 1) -> None:
-        with self._cv:
-            self.samples += n
             self._cv.notify_all()
 
     def restore(self, inserts: int, samples: int) -> None:
