@@ -31,6 +31,7 @@ from typing import TypeVar
 
 import tyro
 
+from shared import wire
 from shared.config import (
     DEFAULT_PRESET,
     PRESET_NAMES,
@@ -208,6 +209,27 @@ class Log:
         if now - self._last.get(key, -1e9) >= seconds:
             self._last[key] = now
             self(msg)
+
+
+class MessageGuard:
+    """What a service does with a message it cannot use, and with the run's stop message.
+
+    A bad message is counted (`invalid`) and logged, one line every 5 s at most, and the service
+    goes on: no message ends a Zenoh callback with an exception. Needs `log` and `stop`."""
+
+    invalid: int = 0
+    log: Log
+    stop: StopFlag
+
+    def _invalid(self, what: str) -> None:
+        self.invalid += 1
+        self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
+
+    def _on_stop(self, sample) -> None:  # noqa: ANN001 -- a zenoh.Sample
+        try:
+            self.stop.set("stop message: " + wire.decode(sample.payload.to_bytes(), wire.Stop).reason)
+        except Exception as err:  # noqa: BLE001
+            self._invalid(f"stop: {err}")
 
 
 def run_service(

@@ -196,3 +196,13 @@ def test_an_actor_status_with_bad_entries_does_not_crash_the_learner():
     assert learner.core.board.invalid == 6 and learner._episodes.empty()
     learner._on_actor_status(_sample(wire.encode(good)))
     assert learner._episodes.get_nowait() == (12.5, 10)
+
+
+def test_a_bad_stop_message_is_counted_and_a_good_one_stops_the_service(tmp_path):
+    svc = make_service(tmp_path)
+    svc._on_stop(_sample(b"\xc1 not msgpack"))
+    svc._on_stop(_sample(_with(wire.Stop("done"), reason=7)))  # a reason that is not a string
+    assert svc.invalid == 2 and not svc.stop
+    svc._on_stop(_sample(wire.encode(wire.Stop("operator"))))
+    assert svc.stop.reason == "stop message: operator" and svc.invalid == 2
+    svc.store.close()

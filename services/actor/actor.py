@@ -46,7 +46,7 @@ from shared import envs, run_config, wire
 from shared.agents import collect_action, make_agent
 from shared.env_loop import EnvLoop
 from shared.replay.adder import SEND_BATCH, ZenohWriter
-from shared.service import Log, StopFlag
+from shared.service import Log, MessageGuard, StopFlag
 from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs
 
@@ -117,7 +117,7 @@ class StepRate:
         return (steps - s0) / (now - t0) if now > t0 else 0.0
 
 
-class ActorService:
+class ActorService(MessageGuard):
     def __init__(self, args: ActorArgs, session: zenoh.Session, stop: StopFlag,
                  run: run_config.RunConfig) -> None:
         c = self.config = run.config
@@ -148,20 +148,9 @@ class ActorService:
         self.writer = ZenohWriter(session, self.keys, self.actor_id, self.incarnation, spec.frame_shape,
                                   args.send_batch, args.max_in_flight, stop, self.log,
                                   budget=self.config.steps)
-        self.invalid = 0
         self.episodes = 0
         self._finished: list[list[float]] = []
         self._rate = StepRate(time.monotonic())
-
-    def _invalid(self, what: str) -> None:
-        self.invalid += 1
-        self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
-
-    def _on_stop(self, sample: zenoh.Sample) -> None:
-        try:
-            self.stop.set("stop message: " + wire.decode(sample.payload.to_bytes(), wire.Stop).reason)
-        except wire.WireError as err:
-            self._invalid(f"stop: {err}")
 
     @property
     def policy_version(self) -> int:

@@ -43,7 +43,7 @@ from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
 from shared.env_loop import EnvLoop
 from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
-from shared.service import Log, StopFlag
+from shared.service import Log, MessageGuard, StopFlag
 from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs
@@ -68,7 +68,7 @@ class EvaluatorArgs(ServiceArgs):
     """Evaluate through the robot bridge of this id (a gripper task) instead of in this process."""
 
 
-class EvaluatorService:
+class EvaluatorService(MessageGuard):
     def __init__(self, args: EvaluatorArgs, session: zenoh.Session, stop: StopFlag,
                  run: run_config.RunConfig) -> None:
         c = self.config = run.config
@@ -92,18 +92,7 @@ class EvaluatorService:
         self.weights = WeightsSubscriber(self.tap, self._invalid)  # type: ignore[arg-type]
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
         self.evaluations = 0
-        self.invalid = 0
         self.done = first_done(c)  # the newest step evaluated
-
-    def _invalid(self, what: str) -> None:
-        self.invalid += 1
-        self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
-
-    def _on_stop(self, sample: zenoh.Sample) -> None:
-        try:
-            self.stop.set("stop message: " + wire.decode(sample.payload.to_bytes(), wire.Stop).reason)
-        except wire.WireError as err:
-            self._invalid(f"stop: {err}")
 
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every the learner's weights

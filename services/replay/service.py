@@ -49,7 +49,7 @@ from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import open_store
 from shared.run_config import RunConfig
-from shared.service import Log, StopFlag
+from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -79,7 +79,7 @@ def default_error_buffer(updates_per_step: int) -> float:
     return 2.0 * updates_per_step * 16 + 8
 
 
-class ReplayService:
+class ReplayService(MessageGuard):
     def __init__(self, args: ReplayArgs, session: zenoh.Session, stop: StopFlag, run: RunConfig) -> None:
         c = run.config
         self.args, self.run_config, self.config = args, run, c
@@ -101,7 +101,6 @@ class ReplayService:
         self.replace = not c.sample_without_replacement
         # Sampling through the client's in-process side; each sampler thread has its own rng.
         self.local = LocalReplay(self.store, np.random.default_rng(0), self.limiter, self.replace)
-        self.invalid = 0
         self.dropped = 0
         self.write_error = ""  # why the log cannot be written now ("" when it can)
         self.samples_served = 0
@@ -152,16 +151,6 @@ class ReplayService:
             self.write_error = f"{type(err).__name__}: {err}"
         except Exception as err:  # noqa: BLE001 -- out-of-range indices (ValueError) and the unforeseen
             self._invalid(f"set_intrinsic: {err}")
-
-    def _on_stop(self, sample: zenoh.Sample) -> None:
-        try:
-            self.stop.set("stop message: " + wire.decode(sample.payload.to_bytes(), wire.Stop).reason)
-        except Exception as err:  # noqa: BLE001
-            self._invalid(f"stop: {err}")
-
-    def _invalid(self, what: str) -> None:
-        self.invalid += 1
-        self.log.every("invalid", 5.0, f"invalid message ({self.invalid} so far): {what}")
 
     def _reject(self, query: zenoh.Query, err: Exception) -> None:
         """Counts and answers a bad request (a malformed message or impossible values)."""
