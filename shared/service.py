@@ -1,4 +1,4 @@
-"""The thin shell every service shares: typed flags with presets, stop signals, logging.
+"""The thin shell every service shares: typed flags with presets, stop signals, logging, bad messages.
 
 Each service (`python -m services.<role>`) is configured by flags (a
 `TrainConfig` under the same names as `nasa train`, with a preset) and by
