@@ -24,7 +24,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench.system import WARM, Cluster, cpu_seconds
+from bench.system import Cluster, cpu_seconds
 
 GOAL = 0.98  # the polled learner keeps at least 98% of its updates/s
 
@@ -52,20 +52,8 @@ def measure(args: argparse.Namespace) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp))
         try:
-            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *WARM])
-            cluster.start("actor-0", "actor", ["--actor-id", "0", *WARM])
-            deadline = time.monotonic() + 180
-            while not (cluster.inserted and cluster.inserted[-1][1] >= args.fill):
-                if time.monotonic() > deadline:
-                    raise RuntimeError("replay did not fill")
-                time.sleep(0.2)
-            cluster.sup.stopping = True
-            cluster.sup.children["actor-0"].proc.terminate()
-            cluster.sup.children["actor-0"].proc.wait(timeout=30)
-            cluster.sup.stopping = False
             port = free_port()
-            cluster.start("learner", "learner", ["--data", tmp, "--port", str(port),
-                                                 "--threads", str(args.learner_threads), *WARM])
+            cluster.learner_on_a_filled_replay(args.fill, port, ["--threads", str(args.learner_threads)])
             url = f"http://127.0.0.1:{port}"
 
             def updates() -> int:

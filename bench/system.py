@@ -157,6 +157,24 @@ class Cluster:
     def start(self, name: str, role: str, extra: list[str]) -> None:
         self.sup.add(name, role, [*self.common, *extra])
 
+    def learner_on_a_filled_replay(self, fill: int, port: int, extra: list[str]) -> None:
+        """The replay (no rate limit) filled to `fill` rows by one actor, the actor stopped, and
+        the learner started on it, its status API on `port`: a learner with nothing to wait on."""
+        data = str(self.data)
+        self.start("replay", "replay", ["--data", data, "--no-rate-limit", *WARM])
+        self.start("actor-0", "actor", ["--actor-id", "0", *WARM])
+        deadline = time.monotonic() + 180
+        while not (self.inserted and self.inserted[-1][1] >= fill):
+            if time.monotonic() > deadline:
+                raise RuntimeError("replay did not fill")
+            time.sleep(0.2)
+        actor = self.sup.children["actor-0"]
+        self.sup.stopping = True
+        actor.proc.terminate()
+        actor.proc.wait(timeout=30)
+        self.sup.stopping = False
+        self.start("learner", "learner", ["--data", data, "--port", str(port), *extra, *WARM])
+
     def insert_rate(self, seconds: float, settle_s: float = 3.0, timeout: float = 120.0,
                     pids: dict[str, int] | None = None) -> tuple[float, dict[str, float]]:
         """Steps/s into the replay over `seconds`, after inserts start and `settle_s` more; and the
@@ -250,23 +268,9 @@ def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp), auth)
         try:
-            cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", *WARM])
-            cluster.start("actor-0", "actor", ["--actor-id", "0", *WARM])
-            deadline = time.monotonic() + 180
-            while not (cluster.inserted and cluster.inserted[-1][1] >= args.fill):
-                if time.monotonic() > deadline:
-                    raise RuntimeError("replay did not fill")
-                time.sleep(0.2)
-            actor = cluster.sup.children["actor-0"]
-            cluster.sup.stopping = True
-            actor.proc.terminate()
-            actor.proc.wait(timeout=30)
-            cluster.sup.stopping = False
             port = free_port()
-            cluster.start("learner", "learner", [
-                "--data", tmp, "--device", args.device, "--port", str(port),
-                "--threads", str(args.learner_threads), *WARM,
-            ])
+            cluster.learner_on_a_filled_replay(args.fill, port, [
+                "--device", args.device, "--threads", str(args.learner_threads)])
             url = f"http://127.0.0.1:{port}/status"
 
             def updates() -> int | None:
