@@ -45,7 +45,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def service_pids(launcher: int) -> dict[str, int]:
-    """The live services `nasa up` process `launcher` started, by module (they carry NASA_PARENT_PID)."""
+    """The live services `nasa up` process `launcher` started, by module: the processes run as
+    `-m services.<role>` that carry NASA_PARENT_PID. A service's own children inherit that
+    variable too (the evaluator's ffmpeg, while it writes a video): they are not services."""
     found: dict[str, int] = {}
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
@@ -58,7 +60,11 @@ def service_pids(launcher: int) -> dict[str, int]:
                 continue
         except OSError:
             continue
-        module = argv[argv.index("-m") + 1].removeprefix("services.") if "-m" in argv else "?"
+        i = argv.index("-m") if "-m" in argv else len(argv)
+        module = argv[i + 1] if i + 1 < len(argv) else ""
+        if not module.startswith("services."):
+            continue
+        module = module.removeprefix("services.")
         name, n = module, 1
         while name in found:
             name, n = f"{module}-{n}", n + 1

@@ -1,8 +1,12 @@
 """bench.up_profile's arithmetic: the histograms it reads back and the shares it reports."""
 
+import os
+import subprocess
+import sys
+
 from prometheus_client import CollectorRegistry, Histogram, generate_latest
 
-from bench.up_profile import histogram_sums, measure
+from bench.up_profile import histogram_sums, measure, service_pids
 
 
 def test_histogram_sums_read_prometheus_text():
@@ -30,3 +34,18 @@ def test_measure_splits_the_window():
                                        "scoring_in_updating": 0.2}
     assert (r["env_steps_per_s"], r["updates_per_s"], r["updates_per_env_step"]) == (5.0, 6.0, 1.2)
     assert r["wire"]["cpu_s_in_window"] == 0.65  # 60 batches and 50 frames
+
+
+def test_a_services_own_children_are_not_counted_as_services():
+    launcher = 2**22 + 12345  # no such process: only the variable ties these to it
+    env = {**os.environ, "NASA_PARENT_PID": str(launcher)}
+    sleep = "import time; time.sleep(30)"
+    # As /proc shows them: a service (`-m services.<role>`) and a child it spawned (ffmpeg, say).
+    service = subprocess.Popen([sys.executable, "-c", sleep, "-m", "services.replay"], env=env)
+    child = subprocess.Popen([sys.executable, "-c", sleep], env=env)
+    try:
+        assert service_pids(launcher) == {"replay": service.pid}
+    finally:
+        for p in (service, child):
+            p.kill()
+            p.wait()
