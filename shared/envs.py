@@ -48,6 +48,9 @@ class EnvUnavailable(RuntimeError):
     """A remote environment (a robot bridge) is gone or refuses for now: the episode under way
     is abandoned, and the caller starts a new one once the environment is back."""
 
+ACTION_BOUND = 1.0
+"""Every task's actions lie in [-ACTION_BOUND, ACTION_BOUND]; the wire and the replay refuse others."""
+
 
 @dataclass(frozen=True)
 class EnvSpec:
@@ -215,8 +218,8 @@ def _load_suite_task(task: str, seed: int):  # noqa: ANN202 (a dm_control enviro
     domain, task_name = parse_task(task)
     env = suite.load(domain, task_name, task_kwargs={"random": seed})
     bounds = env.action_spec()
-    if not (np.all(bounds.minimum == -1.0) and np.all(bounds.maximum == 1.0)):
-        raise ValueError(f"task {task} has actions outside [-1, 1]: {bounds}")
+    if not (np.all(bounds.minimum == -ACTION_BOUND) and np.all(bounds.maximum == ACTION_BOUND)):
+        raise ValueError(f"task {task} has actions outside [-{ACTION_BOUND:g}, {ACTION_BOUND:g}]: {bounds}")
     return env
 
 

@@ -50,6 +50,8 @@ import msgpack
 import numpy as np
 import zstandard as zstd
 
+from shared.envs import ACTION_BOUND
+
 # 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
 # key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read
 SCHEMA_VERSION = 3
@@ -448,7 +450,6 @@ MAX_INT = 2**62
 MAX_TEXT = 4096
 MAX_BATCH = 4096
 MAX_LIST = 10_000
-ACTION_BOUND = 1.0
 TENSOR_DTYPES = frozenset({"<f2", "<f4", "<f8", "|u1", "|i1", "<i2", "<i4", "<i8", "|b1"})
 
 

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from shared.envs import ACTION_BOUND
 from shared.replay import log as rlog
 from shared.replay.codec import FrameCodec
 
@@ -47,7 +48,6 @@ _BEGIN, _STEP, _INTRINSIC, _TRUNCATE, _CLOSE = 1, 2, 3, 4, 5
 _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
-ACTION_BOUND = 1.0  # actions are stored as the policy emits them, in [-1, 1]
 
 
 @dataclass
