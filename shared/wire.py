@@ -23,7 +23,7 @@ services count and log it and carry on.
 | actor/status/<actor_id>      | ActorStatus      | actor (1 Hz)         | learner                       |
 | eval/result                  | EvalResult       | evaluator (BLOCK)    | learner (writes eval.csv)     |
 | control/stop                 | Stop             | learner (run done), operator | every service         |
-| alive/<role>/<id>[/<inc>]    | liveliness token | every service        | learner (actors', evaluators') |
+| alive/<role>/<id>[/<inc>]    | liveliness token | every service        | learner; each actor, its id's |
 
 `routes()` holds the same wiring as data (who puts, answers or declares on each key, and who
 listens): the router's access-control list (shared/zenoh_auth.py) is made from it.
@@ -746,7 +746,8 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         Route(k.eval_result, PUT, ("evaluator",), ("learner",)),
         # The learner ends a finished run; an operator may stop one. No other role can.
         Route(k.stop, PUT, ("learner", "operator"), services),
-        Route(k.alive("actor", "**"), TOKEN, ("actor",), ("learner",)),
+        # An actor watches its own id's tokens: a newer incarnation of it takes the id over.
+        Route(k.alive("actor", "**"), TOKEN, ("actor",), ("learner", "actor")),
         # The replay's own container healthcheck asks for its token, under the replay's credentials.
         Route(k.alive("replay", "**"), TOKEN, ("replay",), ("actor", "replay")),
         Route(k.alive("learner", "**"), TOKEN, ("learner",), ()),

@@ -200,6 +200,18 @@ def test_liveliness_tokens_follow_the_routes(router: str, auth_dir: Path) -> Non
         token.undeclare()
 
 
+def test_an_actor_sees_the_tokens_of_its_own_id(router: str, auth_dir: Path) -> None:
+    """A second launch of an actor id is told apart by the first through the id's tokens."""
+    k = wire.Keys(RUN)
+    with login(router, auth_dir, "actor") as first, login(router, auth_dir, "actor") as again:
+        token = again.liveliness().declare_token(k.alive("actor", 0, 2))
+        deadline = time.monotonic() + 10.0
+        same_id = k.alive("actor", 0) + "/*"
+        while not any(r.ok is not None for r in first.liveliness().get(same_id, timeout=2.0)):
+            assert time.monotonic() < deadline, "an actor never saw the token of its own id"
+        token.undeclare()
+
+
 def test_the_learner_sees_the_evaluators_token_and_an_actor_does_not(router: str, auth_dir: Path) -> None:
     """At the end of a run the learner waits for the last evaluation while an evaluator is alive."""
     k = wire.Keys(RUN)

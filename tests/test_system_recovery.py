@@ -80,3 +80,33 @@ def test_actor_learner_and_replay_survive_sigkill(tmp_path):
         system.close()
     assert all(c.proc.poll() is not None for c in system.sup.children.values())
     assert system.leftover_pids() == []
+
+
+@pytest.mark.timeout(240)
+def test_a_second_launch_of_an_actor_id_takes_it_over_and_the_first_stops(tmp_path):
+    """The same actor id started twice (a copy-pasted command, a replacement while the first was cut
+    off): the replay takes only the newest incarnation's episodes, so the older process stops with
+    exit code 2 and a message naming the id, is not restarted, and the run goes on with the newer."""
+    data = tmp_path / "run"
+    system = System(data, actors=1, steps=1_000_000, evaluator=False, extra=["--eval-every", "100000"])
+    try:
+        first = system.wait_for("actor 0 acting", lambda s: any(a["env_steps"] > 20 for a in s["actors"]))
+        old = first["actors"][0]["incarnation"]
+        original = system.sup.children["actor-0"]
+        again = system.sup.add("actor-0-again", "actor", original.argv, env=original.env)
+        system.wait_for("the original actor to stop for good", lambda s: original.exited is not None)
+        assert original.exited == 2 and original.restarts == 0, system.logs()
+        took_over = system.wait_for(
+            "the second launch acting as actor 0",
+            lambda s: [(a["id"], a["alive"]) for a in s["actors"]] == [(0, True)]
+            and s["actors"][0]["incarnation"] > old and s["actors"][0]["env_steps"] > 20,
+        )
+        system.wait_for("learning to go on", lambda s: s["updates"] > took_over["updates"] + 5)
+        assert again.exited is None and again.restarts == 0
+        log = (data / "logs" / "actor-0.log").read_text()
+        assert "actor id 0 was started again" in log and "give each actor its own --actor-id" in log
+        again_log = (data / "logs" / "actor-0-again.log").read_text()
+        assert "still running: it stops, this one goes on" in again_log
+    finally:
+        system.close()
+    assert system.leftover_pids() == []

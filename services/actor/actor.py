@@ -13,6 +13,11 @@
   exploration seeds derive from (config.seed, actor_id, incarnation). A
   liveliness token alive/actor/<id>/<incarnation> announces it; a status
   heartbeat every second carries the episodes finished since the last.
+- One process per actor id: an actor watches its id's tokens, and when a newer
+  incarnation of its id appears (the same id started a second time, or a
+  replacement started while this one was cut off) it stops with exit code 2,
+  so no supervisor restarts it. The replay takes only the newest incarnation's
+  episodes, so the older one would otherwise wait on acknowledgements for ever.
 - Replay loss: while the replay is gone the actor does not act; the episode
   under way is abandoned (the writer marks it broken), so the first batch
   after the replay's return starts a new episode.
@@ -44,6 +49,7 @@ import zenoh
 from services.robot_bridge.client import BRIDGE_LOST, BridgePresence
 from shared import envs, run_config, wire
 from shared.agents import collect_action, make_agent
+from shared.config import ConfigError
 from shared.env_loop import EnvLoop
 from shared.replay.adder import SEND_BATCH, ZenohWriter
 from shared.service import Log, MessageGuard, StopFlag
@@ -151,6 +157,8 @@ class ActorService(MessageGuard):
         self.episodes = 0
         self._finished: list[list[float]] = []
         self._rate = StepRate(time.monotonic())
+        self.superseded_by: int | None = None
+        self._older_seen: set[int] = set()
 
     @property
     def policy_version(self) -> int:
@@ -191,6 +199,8 @@ class ActorService(MessageGuard):
             self.weights.subscribe(s, k.weights, k.weights_latest),
             s.declare_subscriber(k.stop, self._on_stop),
             s.liveliness().declare_token(k.alive("actor", self.actor_id, self.incarnation)),
+            s.liveliness().declare_subscriber(k.alive("actor", self.actor_id) + "/*", self._on_same_id,
+                                              history=True),
             self.bridge if self.bridge is not None else contextlib.nullcontext(),
         ):
             where = f" through bridge {self.args.bridge}" if self.bridge is not None else ""
@@ -203,6 +213,27 @@ class ActorService(MessageGuard):
             self._publish_status()
             self.log(f"stopping after {self.env_steps} steps ({self.stop.reason})")
             status.join(timeout=2.0)
+        if self.superseded_by is not None:
+            raise ConfigError(
+                f"actor id {self.actor_id} was started again (incarnation {self.superseded_by}); this "
+                f"incarnation ({self.incarnation}) stops: give each actor its own --actor-id")
+
+    def _on_same_id(self, sample: zenoh.Sample) -> None:
+        """Another process's token for this actor id: the newer incarnation keeps the id."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        try:
+            _, _, other = self.keys.parse_alive(str(sample.key_expr))
+        except (wire.WireError, ValueError) as err:
+            return self._invalid(f"actor token: {err}")
+        if other is None or other == self.incarnation:
+            return
+        if other > self.incarnation:
+            self.superseded_by = other
+            self.stop.set(f"a newer incarnation ({other}) of actor id {self.actor_id} started")
+        elif other not in self._older_seen:
+            self._older_seen.add(other)
+            self.log(f"incarnation {other} of this actor id is still running: it stops, this one goes on")
 
     def _status_loop(self) -> None:
         while not self.stop.wait(self.args.status_every_s):
