@@ -36,7 +36,8 @@ REPO = Path(__file__).resolve().parents[1]
 # Every stored transition a warm-up one (intrinsic 0): no scoring on either side. The step budget
 # (Cluster.common) is twice it, so the learner, which makes no update past G x (steps - warm-up),
 # has as many to make.
-WARM = ["--warmup-steps", "100000000"]
+WARMUP = 100_000_000
+WARM = ["--warmup-steps", str(WARMUP)]
 GOALS = {"actor_vs_inprocess": 0.90, "two_actor_scaling": 1.7, "learner_vs_inprocess": 0.95,
          "auth_vs_open_actor": 0.95, "auth_vs_open_learner": 0.95}
 
@@ -143,7 +144,7 @@ class Cluster:
         self.sup = Supervisor(env, data / "logs", cwd=str(REPO))
         self.data = data
         self.common = ["--preset", "cpu-small", "--task", args.task, "--algo", args.algo,
-                       "--render-quality", "fast", "--steps", "200000000"]
+                       "--render-quality", "fast", "--steps", str(2 * WARMUP)]
         self.inserted: list[tuple[float, int]] = []
         self.session = open_client(self.endpoint, role="evaluator", auth=folder)  # reads replay stats
         keys = wire.Keys(run_id)
