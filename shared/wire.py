@@ -757,5 +757,6 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         Route(b.reset, QUERY, ("bridge",), ("actor",)),
         Route(b.step, QUERY, ("bridge",), ("actor",)),
         Route(b.estop, PUT, ("operator",), ("bridge",)),
-        Route(b.alive, TOKEN, ("bridge",), ("actor",)),
+        # A bridge starting looks for one already serving its id.
+        Route(b.alive, TOKEN, ("bridge",), ("actor", "bridge")),
     )

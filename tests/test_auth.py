@@ -212,6 +212,18 @@ def test_an_actor_sees_the_tokens_of_its_own_id(router: str, auth_dir: Path) -> 
         token.undeclare()
 
 
+def test_a_bridge_sees_the_token_of_a_bridge_already_serving_its_id(router: str, auth_dir: Path) -> None:
+    """A second bridge process for one id refuses to serve only if it can see the first's token."""
+    from services.robot_bridge.client import bridge_alive
+
+    with login(router, auth_dir, "bridge") as first, login(router, auth_dir, "bridge") as again:
+        token = first.liveliness().declare_token(wire.BridgeKeys("g1").alive)
+        deadline = time.monotonic() + 10.0
+        while not bridge_alive(again, "g1", timeout_s=2.0):
+            assert time.monotonic() < deadline, "a bridge never saw the token of its own id"
+        token.undeclare()
+
+
 def test_the_learner_sees_the_evaluators_token_and_an_actor_does_not(router: str, auth_dir: Path) -> None:
     """At the end of a run the learner waits for the last evaluation while an evaluator is alive."""
     k = wire.Keys(RUN)

@@ -13,7 +13,7 @@ import pytest
 
 from nasa.up import free_port
 from services.robot_bridge import operate
-from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
+from services.robot_bridge.client import BridgeEnv, BridgeUnavailable, bridge_alive
 from services.robot_bridge.server import BridgeServer
 from shared import wire
 from shared.envs import FrameStack
@@ -115,11 +115,6 @@ def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions, endpo
         sim.close()
 
 
-def alive(session, bridge_id: str) -> bool:
-    keys = wire.BridgeKeys(bridge_id)
-    return any(r.ok is not None for r in session.liveliness().get(keys.alive, timeout=2.0))
-
-
 def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str) -> None:
     _, actor_session = sessions
     argv = ["--bridge-id", "p1", "--task", TASK, "--connect", endpoint]
@@ -128,12 +123,19 @@ def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str
         stderr=subprocess.PIPE, text=True, env={**os.environ, "MUJOCO_GL": "egl"},
     )
     try:
-        wait_until(lambda: alive(actor_session, "p1"), deadline_s=120.0)
+        wait_until(lambda: bridge_alive(actor_session, "p1", timeout_s=2.0), deadline_s=120.0)
         env = BridgeEnv(actor_session, "p1", timeout_s=60.0)
         frame, _, _, _ = env.reset()
         assert frame.shape == (3, 84, 84)
         _, reward, _, last = env.step(np.zeros(4, np.float32))
         assert -1.0 <= reward <= 0.0 and not last
+        # A second process for the same bridge id would answer every step too (two grippers, one
+        # policy): it refuses to serve, and the first serves on.
+        again = subprocess.run([sys.executable, "-m", "services.robot_bridge", *argv], capture_output=True,
+                               text=True, timeout=120, env={**os.environ, "MUJOCO_GL": "egl"})
+        assert again.returncode == 2, again.stderr
+        assert "bridge p1 is already served by another process" in again.stderr
+        env.step(np.zeros(4, np.float32))
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
         assert proc.returncode == 0, err

@@ -30,6 +30,12 @@ class BridgeUnavailable(EnvUnavailable):
     """The bridge did not answer, or refused (e-stop, fault, waiting for an operator)."""
 
 
+def bridge_alive(session: zenoh.Session, bridge_id: str | int, timeout_s: float = 5.0) -> bool:
+    """Whether a bridge of this id has its liveliness token up (a process serves it)."""
+    key = wire.BridgeKeys(bridge_id).alive
+    return any(r.ok is not None for r in session.liveliness().get(key, timeout=timeout_s))
+
+
 def fault_state(info: dict) -> str:
     """The bridge's safety state (a reply's info map) in one word: `ok`, the interlocks' state
     (`estop`, `recovering`, `waiting_for_operator`), `torque_off` (the watchdog's), or the first
@@ -89,6 +95,7 @@ class BridgeEnv:
     def __init__(self, session: zenoh.Session, bridge_id: str | int, client: str = "actor",
                  timeout_s: float = 30.0) -> None:
         self.session = session
+        self.bridge_id = bridge_id
         self.keys = wire.BridgeKeys(bridge_id)
         self.client = client
         self.timeout_s = timeout_s
@@ -116,7 +123,7 @@ class BridgeEnv:
 
     def alive(self) -> bool:
         """Whether the bridge's liveliness token is up."""
-        return any(r.ok is not None for r in self.session.liveliness().get(self.keys.alive, timeout=5.0))
+        return bridge_alive(self.session, self.bridge_id)
 
     def wait_alive(self, stop: Callable[[], bool], poll_s: float = 0.5) -> bool:
         """Block until the bridge is up again (True) or `stop()` (False): how an actor pauses."""

@@ -59,6 +59,7 @@ def build_env(args: BridgeArgs):
 
 
 def main(argv: list[str] | None = None) -> None:
+    from services.robot_bridge.client import bridge_alive
     from services.robot_bridge.server import BridgeServer
     from shared.zenoh_session import RouterUnreachable, open_client
 
@@ -74,6 +75,12 @@ def main(argv: list[str] | None = None) -> None:
     stop.install_signal_handlers()
     try:
         with open_client(args.connect, role="bridge") as session:
+            if bridge_alive(session, args.bridge_id, timeout_s=2.0):
+                # Both would answer every step: an actor would drive two grippers with one policy.
+                print(f"robot_bridge: error: bridge {args.bridge_id} is already served by another "
+                      "process; stop that one first, or give this one its own --bridge-id",
+                      file=sys.stderr, flush=True)
+                sys.exit(EXIT_BAD_INPUT)
             server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
             with server.serve():
                 kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
