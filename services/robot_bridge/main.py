@@ -10,6 +10,7 @@ e-stops it without ending the process, until a re-arm message.
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -58,8 +59,27 @@ def build_env(args: BridgeArgs):
     return GripperHardware(load(args.config), args.task, args.seed)
 
 
-def main(argv: list[str] | None = None) -> None:
+TOKEN_LEASE_S = 12.0
+"""Longer than Zenoh's default lease (10 s): the token of a bridge whose link died without a close
+(a crashed host) is gone by then."""
+
+
+def _id_free(session, bridge_id: str, stop: StopFlag, log: Log) -> bool:  # noqa: ANN001 (a zenoh.Session)
+    """No other process serves this bridge id: its token is not up, or went within TOKEN_LEASE_S (a
+    bridge that died just before this restart)."""
     from services.robot_bridge.client import bridge_alive
+
+    deadline = time.monotonic() + TOKEN_LEASE_S
+    if not bridge_alive(session, bridge_id, timeout_s=2.0):
+        return True
+    log(f"bridge {bridge_id}'s token is up: waiting {TOKEN_LEASE_S:.0f} s in case its process just died")
+    while time.monotonic() < deadline and not stop.wait(1.0):
+        if not bridge_alive(session, bridge_id, timeout_s=2.0):
+            return True
+    return False
+
+
+def main(argv: list[str] | None = None) -> None:
     from services.robot_bridge.server import BridgeServer
     from shared.zenoh_session import RouterUnreachable, open_client
 
@@ -75,7 +95,11 @@ def main(argv: list[str] | None = None) -> None:
     stop.install_signal_handlers()
     try:
         with open_client(args.connect, role="bridge") as session:
-            if bridge_alive(session, args.bridge_id, timeout_s=2.0):
+            free = _id_free(session, args.bridge_id, stop, log)
+            if stop:
+                log(f"stopped ({stop.reason})")
+                return
+            if not free:
                 # Both would answer every step: an actor would drive two grippers with one policy.
                 print(f"robot_bridge: error: bridge {args.bridge_id} is already served by another "
                       "process; stop that one first, or give this one its own --bridge-id",
