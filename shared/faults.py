@@ -14,6 +14,12 @@ A run folder belongs to one run at a time (PostgreSQL's pid file, with `fcntl.fl
 The kernel drops a lock when its process dies (kill -9 included): a stale lock file never blocks a
 restart. A held lock, a read-only folder or a busy port is a `RunFolderError` (a ConfigError: one
 line, exit 2, never restarted).
+
+A file lock covers one host. Across hosts the replay, the learner, the evaluator and a robot bridge
+are each one process per run (per id for a bridge): before serving, each looks for its role's
+liveliness token (`claim_role`) and, if another process holds it, refuses with `RoleTaken` (a
+RunFolderError). Two replays would each take every insert and answer every sample; two learners
+would publish two policies; two bridges would both move for every step.
 """
 
 from __future__ import annotations
@@ -22,15 +28,57 @@ import errno
 import fcntl
 import os
 import socket
+import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from shared.config import ConfigError
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from shared import wire
+    from shared.service import Log, StopFlag
 
 LOCK = ".lock"
 
 
 class RunFolderError(ConfigError):
     """The run folder or a port cannot be had: another run holds it, or it cannot be written."""
+
+
+class RoleTaken(RunFolderError):
+    """Another process already serves this role of the run (its liveliness token is up)."""
+
+
+TOKEN_LEASE_S = 12.0
+"""Longer than Zenoh's default lease (10 s): by then the token of a process that died without
+closing its link (a crashed host) is gone."""
+
+
+def claim_role(session: zenoh.Session, key: str, stop: StopFlag, log: Log, what: str, hint: str) -> bool:
+    """True once no other process holds the liveliness token `key` of `what`: at once, or within
+    TOKEN_LEASE_S (a process that died just before this one's restart). False if `stop` came first.
+    RoleTaken, with `hint`, if it is still held then."""
+    def held() -> bool:
+        return any(r.ok is not None for r in session.liveliness().get(key, timeout=2.0))
+
+    if not held():
+        return True
+    log(f"{what} has a live token already: waiting {TOKEN_LEASE_S:.0f} s in case its process just died")
+    deadline = time.monotonic() + TOKEN_LEASE_S
+    while time.monotonic() < deadline:
+        if stop.wait(1.0):
+            return False
+        if not held():
+            return True
+    raise RoleTaken(f"{what} is served by another process already ({key} is up): {hint}")
+
+
+def claim_run_role(session: zenoh.Session, keys: wire.Keys, role: str, stop: StopFlag, log: Log) -> bool:
+    """`claim_role` for a run's one replay, learner or evaluator."""
+    hint = f"one {role} serves a run; stop that one first"
+    return claim_role(session, keys.alive(role, 0), stop, log, f"run {keys.run_id}'s {role}", hint)
 
 
 class WorkerDied(RuntimeError):

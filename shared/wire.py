@@ -750,9 +750,10 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         Route(k.alive("actor", "**"), TOKEN, ("actor",), ("learner", "actor")),
         # The replay's own container healthcheck asks for its token, under the replay's credentials.
         Route(k.alive("replay", "**"), TOKEN, ("replay",), ("actor", "replay")),
-        Route(k.alive("learner", "**"), TOKEN, ("learner",), ()),
+        # A replay, learner or evaluator starting looks for one already serving the run.
+        Route(k.alive("learner", "**"), TOKEN, ("learner",), ("learner",)),
         # The learner waits for the last evaluation only while an evaluator is alive.
-        Route(k.alive("evaluator", "**"), TOKEN, ("evaluator",), ("learner",)),
+        Route(k.alive("evaluator", "**"), TOKEN, ("evaluator",), ("learner", "evaluator")),
         Route(b.spec, QUERY, ("bridge",), ("actor",)),
         Route(b.reset, QUERY, ("bridge",), ("actor",)),
         Route(b.step, QUERY, ("bridge",), ("actor",)),

@@ -212,15 +212,16 @@ def test_an_actor_sees_the_tokens_of_its_own_id(router: str, auth_dir: Path) -> 
         token.undeclare()
 
 
-def test_a_bridge_sees_the_token_of_a_bridge_already_serving_its_id(router: str, auth_dir: Path) -> None:
-    """A second bridge process for one id refuses to serve only if it can see the first's token."""
-    from services.robot_bridge.client import bridge_alive
-
-    with login(router, auth_dir, "bridge") as first, login(router, auth_dir, "bridge") as again:
-        token = first.liveliness().declare_token(wire.BridgeKeys("g1").alive)
+@pytest.mark.parametrize("role", ["replay", "learner", "evaluator", "bridge"])
+def test_a_service_sees_the_token_of_another_serving_its_role(router: str, auth_dir: Path, role: str) -> None:
+    """A second replay, learner, evaluator or bridge (of one id) refuses to serve only if it can
+    see the first one's token (shared.faults.claim_role)."""
+    key = wire.BridgeKeys("g1").alive if role == "bridge" else wire.Keys(RUN).alive(role, 0)
+    with login(router, auth_dir, role) as first, login(router, auth_dir, role) as again:
+        token = first.liveliness().declare_token(key)
         deadline = time.monotonic() + 10.0
-        while not bridge_alive(again, "g1", timeout_s=2.0):
-            assert time.monotonic() < deadline, "a bridge never saw the token of its own id"
+        while not any(r.ok is not None for r in again.liveliness().get(key, timeout=2.0)):
+            assert time.monotonic() < deadline, f"a {role} never saw the token of another {role}"
         token.undeclare()
 
 

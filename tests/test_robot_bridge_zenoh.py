@@ -134,7 +134,7 @@ def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str
         again = subprocess.run([sys.executable, "-m", "services.robot_bridge", *argv], capture_output=True,
                                text=True, timeout=120, env={**os.environ, "MUJOCO_GL": "egl"})
         assert again.returncode == 2, again.stderr
-        assert "bridge p1 is already served by another process" in again.stderr
+        assert "bridge p1 is served by another process already" in again.stderr
         env.step(np.zeros(4, np.float32))
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)

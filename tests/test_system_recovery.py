@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 
 import pytest
 import torch
 from system_harness import System
+
+from nasa.up import free_port
 
 
 @pytest.mark.timeout(300)
@@ -107,6 +110,37 @@ def test_a_second_launch_of_an_actor_id_takes_it_over_and_the_first_stops(tmp_pa
         assert "actor id 0 was started again" in log and "give each actor its own --actor-id" in log
         again_log = (data / "logs" / "actor-0-again.log").read_text()
         assert "still running: it stops, this one goes on" in again_log
+    finally:
+        system.close()
+    assert system.leftover_pids() == []
+
+
+@pytest.mark.timeout(240)
+def test_a_second_replay_or_learner_of_a_run_refuses_to_serve_it(tmp_path):
+    """A replay or a learner started again for a running run from another folder (another host, as far
+    as file locks know): each finds its role's liveliness token up, waits out a Zenoh lease in case
+    the holder just died, then exits with code 2 and says why; the run goes on."""
+    data = tmp_path / "run"
+    system = System(data, actors=1, steps=1_000_000, evaluator=False, extra=["--eval-every", "100000"])
+    try:
+        before = system.wait_for("learning", lambda s: s["updates"] > 5)
+        for role in ("replay", "learner"):
+            other = tmp_path / f"other-{role}"
+            other.mkdir()
+            shutil.copy(data / "config.json", other / "config.json")
+            argv = [a.replace(str(data), str(other)) for a in system.sup.children[role].argv]
+            if role == "learner":
+                argv[argv.index("--port") + 1] = str(free_port())
+            system.sup.add(f"{role}-again", role, argv)
+        for role in ("replay", "learner"):
+            again = system.sup.children[f"{role}-again"]
+            system.wait_for(f"the second {role} to exit", lambda s, c=again: c.exited is not None, timeout=60)
+            assert again.exited == 2 and again.restarts == 0, system.logs()
+            log = (data / "logs" / f"{role}-again.log").read_text()
+            assert f"{role} is served by another process already" in log, log
+            assert "waiting 12 s in case its process just died" in log, log
+        system.wait_for("learning to go on", lambda s: s["updates"] > before["updates"] + 20)
+        assert all(system.sup.children[r].exited is None for r in ("replay", "learner", "actor-0"))
     finally:
         system.close()
     assert system.leftover_pids() == []

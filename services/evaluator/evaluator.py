@@ -38,7 +38,7 @@ import zenoh
 
 from services.evaluator.media import AutoencoderTap, EvalMedia
 from services.robot_bridge.client import BridgePresence
-from shared import envs, run_config, wire
+from shared import envs, faults, run_config, wire
 from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
 from shared.env_loop import EnvLoop
@@ -163,6 +163,8 @@ class EvaluatorService(MessageGuard):
 
     def run(self) -> None:
         s, k, c = self.session, self.keys, self.config
+        if not faults.claim_run_role(s, k, "evaluator", self.stop, self.log):
+            return
         with (
             self.weights.subscribe(s, k.eval_weights, k.eval_weights_latest),
             s.declare_subscriber(k.stop, self._on_stop),

@@ -172,6 +172,8 @@ class Learner:
         from services.learner.status_api import StatusServer, api_token, is_loopback, make_app
 
         s, k = self.session, self.keys
+        if not faults.claim_run_role(s, k, "learner", self.stop, self.log):
+            return
         token = api_token(self.args.api_token_file)
         if token is None and not is_loopback(self.args.host):
             self.log(f"warning: the status API binds {self.args.host} with no token: anyone who reaches it "

@@ -318,6 +318,8 @@ class ReplayService(MessageGuard):
 
     def run(self) -> None:
         s, k = self.session, self.keys
+        if not faults.claim_run_role(s, k, "replay", self.stop, self.log):
+            return
         with (
             s.declare_subscriber(k.insert_all, self._on_insert),
             s.declare_subscriber(k.intrinsic, self._on_intrinsic),

@@ -10,7 +10,6 @@ e-stops it without ending the process, until a re-arm message.
 from __future__ import annotations
 
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -18,6 +17,7 @@ from typing import Literal
 import tyro
 
 from services.robot_bridge.config import GripperConfigError
+from shared import faults, wire
 from shared.gl import RenderQuality
 from shared.gripper.sim import UnknownGripperTask
 from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
@@ -59,26 +59,6 @@ def build_env(args: BridgeArgs):
     return GripperHardware(load(args.config), args.task, args.seed)
 
 
-TOKEN_LEASE_S = 12.0
-"""Longer than Zenoh's default lease (10 s): the token of a bridge whose link died without a close
-(a crashed host) is gone by then."""
-
-
-def _id_free(session, bridge_id: str, stop: StopFlag, log: Log) -> bool:  # noqa: ANN001 (a zenoh.Session)
-    """No other process serves this bridge id: its token is not up, or went within TOKEN_LEASE_S (a
-    bridge that died just before this restart)."""
-    from services.robot_bridge.client import bridge_alive
-
-    deadline = time.monotonic() + TOKEN_LEASE_S
-    if not bridge_alive(session, bridge_id, timeout_s=2.0):
-        return True
-    log(f"bridge {bridge_id}'s token is up: waiting {TOKEN_LEASE_S:.0f} s in case its process just died")
-    while time.monotonic() < deadline and not stop.wait(1.0):
-        if not bridge_alive(session, bridge_id, timeout_s=2.0):
-            return True
-    return False
-
-
 def main(argv: list[str] | None = None) -> None:
     from services.robot_bridge.server import BridgeServer
     from shared.zenoh_session import RouterUnreachable, open_client
@@ -95,16 +75,12 @@ def main(argv: list[str] | None = None) -> None:
     stop.install_signal_handlers()
     try:
         with open_client(args.connect, role="bridge") as session:
-            free = _id_free(session, args.bridge_id, stop, log)
-            if stop:
+            # Two bridges of one id would both answer every step: one policy would drive two grippers.
+            key = wire.BridgeKeys(args.bridge_id).alive
+            hint = "stop that one first, or give this one its own --bridge-id"
+            if not faults.claim_role(session, key, stop, log, f"bridge {args.bridge_id}", hint):
                 log(f"stopped ({stop.reason})")
                 return
-            if not free:
-                # Both would answer every step: an actor would drive two grippers with one policy.
-                print(f"robot_bridge: error: bridge {args.bridge_id} is already served by another "
-                      "process; stop that one first, or give this one its own --bridge-id",
-                      file=sys.stderr, flush=True)
-                sys.exit(EXIT_BAD_INPUT)
             server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
             with server.serve():
                 kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
@@ -113,6 +89,9 @@ def main(argv: list[str] | None = None) -> None:
                     pass
                 server.estop(f"{stop.reason}: bridge stopping")  # torque off before the process goes
             log(f"stopped ({stop.reason})")
+    except faults.RoleTaken as err:
+        print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
     except RouterUnreachable as err:  # exit 1: its supervisor retries
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(1)
