@@ -61,6 +61,8 @@ def test_manifests_have_the_topology():
     evaluator = by_name["evaluator"]["spec"]["template"]["spec"]  # its pictures: a scratch volume
     assert evaluator["containers"][0]["volumeMounts"][0] == {"name": "media", "mountPath": "/data"}
     assert {"name": "media", "emptyDir": {}} in evaluator["volumes"]
+    # one evaluator per run: a rolling update would start the new one beside the old
+    assert by_name["evaluator"]["spec"]["strategy"] == {"type": "Recreate"}
     assert by_name["actor"]["spec"]["replicas"] == int(load_env()["ACTORS"])
     # the GPU request is there for whoever turns it on
     assert "nvidia.com/gpu: 1" in (K8S / "learner.yaml").read_text()
