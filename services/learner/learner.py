@@ -19,6 +19,8 @@
   done G * (steps - warmup) updates (or the limiter allows no more); it then
   scores the last arrivals, waits for the last evaluation, checkpoints and
   publishes Stop.
+- One learner per run: before serving it looks for the run's learner token and
+  exits 2 if another process holds it (shared.faults.claim_role).
 """
 
 from __future__ import annotations

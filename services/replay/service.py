@@ -29,6 +29,8 @@
 - Persistence: the store logs every add in its data directory and is
   snapshotted every `snapshot_every` inserts; the run's step budget
   (config.steps) caps inserts.
+- One replay per run: before serving it looks for the run's replay token and
+  exits 2 if another process holds it (shared.faults.claim_role).
 """
 
 from __future__ import annotations
