@@ -27,7 +27,7 @@ from nasa.up import free_port
 from services.robot_bridge.client import BridgeEnv
 from shared import wire
 from shared.gripper.sim import EPISODE_STEPS, ValveSim
-from shared.zenoh_session import open_client, open_router
+from shared.zenoh_session import open_client, open_router, token_up
 
 TASK = "gripper-valve_reset"
 
@@ -50,7 +50,7 @@ def episode(env, actions: np.ndarray) -> tuple[list[float], list[float]]:
 def wait_alive(session, bridge_id: str, deadline_s: float = 120.0) -> None:
     keys = wire.BridgeKeys(bridge_id)
     end = time.monotonic() + deadline_s
-    while not any(r.ok is not None for r in session.liveliness().get(keys.alive, timeout=2.0)):
+    while not token_up(session, keys.alive):
         if time.monotonic() > end:
             raise TimeoutError("the bridge did not come up")
         time.sleep(0.2)

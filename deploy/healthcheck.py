@@ -53,11 +53,10 @@ def router() -> bool:
 
 def _token_seen(key: str, role: str) -> bool:
     """Whether the liveliness token `key` is visible through the router, logged in as `role`."""
-    from shared.zenoh_session import env_connect, open_client
+    from shared.zenoh_session import env_connect, open_client, token_up
 
     with open_client(env_connect(), timeout_s=TIMEOUT_S, role=role) as session:
-        replies = session.liveliness().get(key, timeout=TIMEOUT_S)
-        return any(reply.ok is not None for reply in replies)
+        return token_up(session, key, TIMEOUT_S)
 
 
 def replay() -> bool:

@@ -60,17 +60,16 @@ def claim_role(session: zenoh.Session, key: str, stop: StopFlag, log: Log, what:
     """True once no other process holds the liveliness token `key` of `what`: at once, or within
     TOKEN_LEASE_S (a process that died just before this one's restart). False if `stop` came first.
     RoleTaken, with `hint`, if it is still held then."""
-    def held() -> bool:
-        return any(r.ok is not None for r in session.liveliness().get(key, timeout=2.0))
+    from shared.zenoh_session import token_up  # zenoh only for services
 
-    if not held():
+    if not token_up(session, key):
         return True
     log(f"{what} has a live token already: waiting {TOKEN_LEASE_S:.0f} s in case its process just died")
     deadline = time.monotonic() + TOKEN_LEASE_S
     while time.monotonic() < deadline:
         if stop.wait(1.0):
             return False
-        if not held():
+        if not token_up(session, key):
             return True
     raise RoleTaken(f"{what} is served by another process already ({key} is up): {hint}")
 

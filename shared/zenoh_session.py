@@ -85,6 +85,11 @@ def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
             time.sleep(0.2)
 
 
+def token_up(session: zenoh.Session, key: str, timeout_s: float = 2.0) -> bool:
+    """Whether a liveliness token matching `key` is up, as this session sees it through the router."""
+    return any(r.ok is not None for r in session.liveliness().get(key, timeout=timeout_s))
+
+
 def open_router(listen: str, auth: Path | None = None, join: str = "") -> zenoh.Session:
     """A session in router mode listening on `listen` (e.g. tcp/127.0.0.1:7447): the run's router.
     With an auth folder it accepts only the logins of its users.txt and enforces its acl.json; on a

@@ -19,7 +19,7 @@ from system_harness import REPO
 from nasa.up import free_port
 from services.learner.status_api import api_token, is_loopback, make_app
 from shared import wire, zenoh_auth
-from shared.zenoh_session import open_client, open_router
+from shared.zenoh_session import open_client, open_router, token_up
 
 RUN = "authrun"
 
@@ -179,14 +179,14 @@ def test_liveliness_tokens_follow_the_routes(router: str, auth_dir: Path) -> Non
     k = wire.Keys(RUN)
 
     def seen(session: zenoh.Session) -> bool:
-        return any(r.ok is not None for r in session.liveliness().get(k.alive("replay", 0), timeout=2.0))
+        return token_up(session, k.alive("replay", 0))
 
     with (login(router, auth_dir, "replay") as replay, login(router, auth_dir, "actor") as actor,
           login(router, auth_dir, "evaluator") as evaluator, login(router, auth_dir, "learner") as learner):
         forged = actor.liveliness().declare_token(k.alive("replay", 0))
         own = actor.liveliness().declare_token(k.alive("actor", 0, 1))
         # The actor's own token reached the router after the forged one, on the same link.
-        while not any(r.ok is not None for r in learner.liveliness().get(k.alive_actors, timeout=2.0)):
+        while not token_up(learner, k.alive_actors):
             pass
         assert not seen(replay)
         forged.undeclare()
@@ -207,7 +207,7 @@ def test_an_actor_sees_the_tokens_of_its_own_id(router: str, auth_dir: Path) -> 
         token = again.liveliness().declare_token(k.alive("actor", 0, 2))
         deadline = time.monotonic() + 10.0
         same_id = k.alive("actor", 0) + "/*"
-        while not any(r.ok is not None for r in first.liveliness().get(same_id, timeout=2.0)):
+        while not token_up(first, same_id):
             assert time.monotonic() < deadline, "an actor never saw the token of its own id"
         token.undeclare()
 
@@ -220,7 +220,7 @@ def test_a_service_sees_the_token_of_another_serving_its_role(router: str, auth_
     with login(router, auth_dir, role) as first, login(router, auth_dir, role) as again:
         token = first.liveliness().declare_token(key)
         deadline = time.monotonic() + 10.0
-        while not any(r.ok is not None for r in again.liveliness().get(key, timeout=2.0)):
+        while not token_up(again, key):
             assert time.monotonic() < deadline, f"a {role} never saw the token of another {role}"
         token.undeclare()
 
@@ -230,7 +230,7 @@ def test_the_learner_sees_the_evaluators_token_and_an_actor_does_not(router: str
     k = wire.Keys(RUN)
 
     def seen(session: zenoh.Session) -> bool:
-        return any(r.ok is not None for r in session.liveliness().get(k.alive_evaluators, timeout=2.0))
+        return token_up(session, k.alive_evaluators)
 
     with (login(router, auth_dir, "evaluator") as evaluator, login(router, auth_dir, "learner") as learner,
           login(router, auth_dir, "actor") as actor):

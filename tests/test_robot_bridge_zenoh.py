@@ -13,13 +13,13 @@ import pytest
 
 from nasa.up import free_port
 from services.robot_bridge import operate
-from services.robot_bridge.client import BridgeEnv, BridgeUnavailable, bridge_alive
+from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
 from services.robot_bridge.server import BridgeServer
 from shared import wire
 from shared.envs import FrameStack
 from shared.evaluation import draws_restarter
 from shared.gripper.sim import EPISODE_STEPS, ValveSim, angle_distance
-from shared.zenoh_session import open_client, open_router
+from shared.zenoh_session import open_client, open_router, token_up
 
 TASK = "gripper-valve_reset"
 
@@ -123,7 +123,7 @@ def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str
         stderr=subprocess.PIPE, text=True, env={**os.environ, "MUJOCO_GL": "egl"},
     )
     try:
-        wait_until(lambda: bridge_alive(actor_session, "p1", timeout_s=2.0), deadline_s=120.0)
+        wait_until(lambda: token_up(actor_session, wire.BridgeKeys("p1").alive), deadline_s=120.0)
         env = BridgeEnv(actor_session, "p1", timeout_s=60.0)
         frame, _, _, _ = env.reset()
         assert frame.shape == (3, 84, 84)

@@ -21,6 +21,7 @@ import zenoh
 from services.robot_bridge import xl320
 from shared import wire
 from shared.envs import EnvUnavailable
+from shared.zenoh_session import token_up
 
 SPEC_RETRY_S = 2.0
 BRIDGE_LOST = "bridge_lost"
@@ -28,12 +29,6 @@ BRIDGE_LOST = "bridge_lost"
 
 class BridgeUnavailable(EnvUnavailable):
     """The bridge did not answer, or refused (e-stop, fault, waiting for an operator)."""
-
-
-def bridge_alive(session: zenoh.Session, bridge_id: str | int, timeout_s: float = 5.0) -> bool:
-    """Whether a bridge of this id has its liveliness token up (a process serves it)."""
-    key = wire.BridgeKeys(bridge_id).alive
-    return any(r.ok is not None for r in session.liveliness().get(key, timeout=timeout_s))
 
 
 def fault_state(info: dict) -> str:
@@ -95,7 +90,6 @@ class BridgeEnv:
     def __init__(self, session: zenoh.Session, bridge_id: str | int, client: str = "actor",
                  timeout_s: float = 30.0) -> None:
         self.session = session
-        self.bridge_id = bridge_id
         self.keys = wire.BridgeKeys(bridge_id)
         self.client = client
         self.timeout_s = timeout_s
@@ -123,7 +117,7 @@ class BridgeEnv:
 
     def alive(self) -> bool:
         """Whether the bridge's liveliness token is up."""
-        return bridge_alive(self.session, self.bridge_id)
+        return token_up(self.session, self.keys.alive, timeout_s=5.0)
 
     def wait_alive(self, stop: Callable[[], bool], poll_s: float = 0.5) -> bool:
         """Block until the bridge is up again (True) or `stop()` (False): how an actor pauses."""
