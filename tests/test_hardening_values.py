@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 
 from services.learner.learner import Learner
 from services.learner.status import StatusBoard
@@ -206,3 +207,30 @@ def test_a_bad_stop_message_is_counted_and_a_good_one_stops_the_service(tmp_path
     svc._on_stop(_sample(wire.encode(wire.Stop("operator"))))
     assert svc.stop.reason == "stop message: operator" and svc.invalid == 2
     svc.store.close()
+
+
+def test_an_actor_reads_its_own_ids_tokens_and_refuses_malformed_ones():
+    """Tokens under alive/actor/<id>/*: a malformed incarnation is counted invalid and stops nothing,
+    an older one is logged once, a newer one stops this actor (it then exits 2)."""
+    from services.actor.actor import ActorService
+    from shared.service import StopFlag
+
+    keys = wire.Keys("r1")
+    logged: list[str] = []
+    invalid: list[str] = []
+    actor = SimpleNamespace(keys=keys, incarnation=100, actor_id=0, stop=StopFlag(), superseded_by=None,
+                            _older_seen=set(), log=logged.append, _invalid=invalid.append)
+
+    def token(tail: str, kind=zenoh.SampleKind.PUT) -> SimpleNamespace:
+        return SimpleNamespace(kind=kind, key_expr=keys.alive("actor", 0) + "/" + tail)
+
+    for tail in ("x", "1e9", "NaN", "-"):
+        ActorService._on_same_id(actor, token(tail))
+    assert len(invalid) == 4 and not actor.stop
+    ActorService._on_same_id(actor, token("100"))  # its own token
+    ActorService._on_same_id(actor, token("99"))
+    ActorService._on_same_id(actor, token("99"))
+    ActorService._on_same_id(actor, token("101", zenoh.SampleKind.DELETE))  # a newer one that went
+    assert len(logged) == 1 and not actor.stop and actor.superseded_by is None
+    ActorService._on_same_id(actor, token(str(2**40)))  # a huge incarnation is still a newer one
+    assert actor.stop and actor.superseded_by == 2**40
