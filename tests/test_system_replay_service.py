@@ -15,7 +15,7 @@ from shared import run_config, wire
 from shared.replay.adder import ZenohWriter
 from shared.replay.client import ZenohReplayClient
 from shared.service import Log, StopFlag
-from shared.zenoh_session import open_client, open_router
+from shared.zenoh_session import open_client, open_router, token_up
 from tests.test_replay_service import SPEC, batch, make_service
 
 
@@ -46,7 +46,7 @@ class Serving:
         self.thread.start()
         # Its liveliness token is declared after its queryables: once seen, requests reach it.
         key = self.svc.keys.alive("replay", 0)
-        wait_for(lambda: list(self.session.liveliness().get(key, timeout=1.0)), "the replay never came up")
+        wait_for(lambda: token_up(self.session, key, timeout_s=1.0), "the replay never came up")
 
     def __exit__(self, *exc) -> None:
         self.stop.set("test done")
