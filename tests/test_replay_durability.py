@@ -204,6 +204,38 @@ def test_snapshot_does_not_stall_inserts(tmp_path: Path) -> None:
         check_store(store, 63 * EP_LEN - 1)  # the snapshot plus the log written during it
 
 
+def test_an_episode_that_grows_while_its_snapshot_is_written_reopens(tmp_path: Path) -> None:
+    """The snapshot holds an open episode as it stood when captured, not the chunks it gained
+    while the file was being written (those are in the next log segment)."""
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path, chunk_len=8) as store:
+        fill(store, range(2))
+        ep = store.begin_episode(frame(2, 0), incarnation=2)  # noqa: F821
+
+        def add(t: int) -> None:
+            store.add(ep, np.array([t / 37, -t / 37]), float(2 + t), 1.0, frame(2, t + 1),  # noqa: F821
+                      t == EP_LEN - 1, policy_version=2)
+
+        for t in range(10):
+            add(t)
+        writing, release = threading.Event(), threading.Event()
+        write = store._write_snapshot
+
+        def held_write(seg: int, state: dict) -> None:
+            writing.set()
+            assert release.wait(60), "test never released the snapshot writer"
+            write(seg, state)
+
+        store._write_snapshot = held_write
+        store.snapshot(block=False)
+        assert writing.wait(30), "snapshot never reached its write"
+        for t in range(10, EP_LEN):  # new chunks of the open episode
+            add(t)
+        release.set()
+        store._snapshot_thread.join()
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path, chunk_len=8) as store:
+        check_store(store, 3 * EP_LEN - 1)
+
+
 def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:
     with ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path) as store:
         fill(store, range(1))

@@ -708,11 +708,12 @@ class ReplayStore:
             self._snapshot_thread.start()
 
     def _capture(self) -> dict:
+        # Copies only: the file is written outside the lock while inserts go on.
         pos = np.arange(self._head, self._num_inserted) % self.capacity
         arrays = {name: getattr(self, name)[pos] for name in self._ARRAYS}
         chunks = [(cid, c.episode_id, c.refcount, c.open, list(c.blobs)) for cid, c in self._chunks.items()]
         episodes = {
-            str(e): [ep.actor_id, ep.incarnation, ep.chunk_ids, ep.num_frames, ep.open, ep.live_chunks]
+            str(e): [ep.actor_id, ep.incarnation, list(ep.chunk_ids), ep.num_frames, ep.open, ep.live_chunks]
             for e, ep in self._episodes.items()
         }
         meta = {
