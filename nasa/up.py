@@ -511,15 +511,16 @@ def status(argv: list[str]) -> None:
     it left in DIR when it is not running; with --data DIR --serve, serve a stopped run's dashboard."""
     import json
 
-    import httpx
     import tyro
 
     @dataclass
     class StatusCommand:
         """Print the status of a running system (the learner's GET /status); with --data, a
-        stopped run's last status (<data>/learner/status.json) when the learner is not running."""
+        stopped run's last status (<data>/learner/status.json) when that run's learner is not
+        the one answering."""
 
         url: str = "http://127.0.0.1:8000/status"
+        """The learner's status API: its /status, or just its address (http://HOST:PORT)."""
         data: Path | None = None
         serve: bool = False
         """With --data: serve the stopped run's dashboard (http://HOST:PORT/) until interrupted."""
@@ -533,25 +534,74 @@ def status(argv: list[str]) -> None:
             sys.exit(EXIT_BAD_INPUT)
         serve_stopped(cmd.data, cmd.host, cmd.port)
         return
-    try:
-        response = httpx.get(cmd.url, timeout=5.0)
-        response.raise_for_status()
-    except httpx.HTTPError as err:
-        if cmd.data is None:
-            print(f"nasa status: cannot read {cmd.url}: {err} (a stopped run: --data DIR)", file=sys.stderr)
-            sys.exit(1)
-        from services.learner.status_api import StoppedRunError, read_final_status
-
-        try:
-            final = read_final_status(cmd.data)
-        except StoppedRunError as stopped:
-            print(f"nasa status: cannot read {cmd.url}: {err}; and {stopped}", file=sys.stderr)
-            sys.exit(1)
-        saved = cmd.data / "learner" / "status.json"
-        print(f"nasa status: the learner is not running; its last status, from {saved}:", file=sys.stderr)
-        print(json.dumps(final, indent=2))
+    url = status_url(cmd.url)
+    live, why = read_live_status(url)
+    not_running = f"the learner is not running at {url}"
+    if live is not None and cmd.data is not None and (other := other_run(live, cmd.data)):
+        live, why = None, other
+        not_running = f"the learner at {url} is not this run's: {other}"
+    if live is not None:
+        print(json.dumps(live, indent=2))
         return
-    print(json.dumps(response.json(), indent=2))
+    if cmd.data is None:
+        print(f"nasa status: cannot read {url}: {why} (a stopped run: --data DIR)", file=sys.stderr)
+        sys.exit(1)
+    from services.learner.status_api import StoppedRunError, read_final_status
+
+    try:
+        final = read_final_status(cmd.data)
+    except StoppedRunError as stopped:
+        print(f"nasa status: cannot read {url}: {why}; and {stopped}", file=sys.stderr)
+        sys.exit(1)
+    saved = cmd.data / "learner" / "status.json"
+    print(f"nasa status: {not_running}; this run's last status, from {saved}:", file=sys.stderr)
+    print(json.dumps(final, indent=2))
+
+
+def status_url(url: str) -> str:
+    """The learner's /status at `url`; a bare address (http://host:port) means its /status."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    parts = urlsplit(url)
+    return urlunsplit(parts._replace(path="/status")) if parts.path in ("", "/") else url
+
+
+def read_live_status(url: str) -> tuple[dict | None, str]:
+    """(the status `url` answers, "") or (None, why not)."""
+    import httpx
+
+    try:
+        response = httpx.get(url, timeout=5.0)
+        response.raise_for_status()
+        body = response.json()
+    except httpx.HTTPError as err:
+        return None, str(err)
+    except ValueError:
+        return None, "it answers, but not with JSON: is it the learner's status API (/status)?"
+    if not isinstance(body, dict):
+        return None, "it answers JSON that is not a status: is it the learner's status API (/status)?"
+    return body, ""
+
+
+def other_run(live: dict, data: Path) -> str | None:
+    """Why the status `live` is not that of the run in folder `data` (another run's learner
+    answers there), or None when it may be."""
+    from services.learner.status_api import StoppedRunError, read_final_status
+
+    try:
+        saved_id = read_final_status(data).get("run_id")
+    except StoppedRunError:  # none saved, or unreadable: the settings may still tell
+        saved_id = None
+    if saved_id is not None and live.get("run_id") != saved_id:
+        return f"it serves run {live.get('run_id')!r}, and {data} holds run {saved_id!r}"
+    try:
+        folder = run_config.read_folder(data)
+        digest = run_config.RunConfig.from_dict(folder).digest() if folder is not None else None
+    except (ConfigError, TypeError, ValueError, KeyError):
+        return None
+    if digest is not None and live.get("config_digest") != digest:
+        return f"it serves run {live.get('run_id')!r}, whose settings are not those of the run in {data}"
+    return None
 
 
 def serve_stopped(data: Path, host: str, port: int) -> None:

@@ -6,7 +6,9 @@ import json
 import socket
 import subprocess
 import sys
+import time
 
+import httpx
 import numpy as np
 import pytest
 import torch
@@ -17,8 +19,9 @@ from tiny import tiny_config, tiny_run
 
 from nasa.train import Trainer
 from services.evaluator.media import AutoencoderTap, EvalMedia
-from services.learner.history import History
+from services.learner.history import History, HistoryError
 from services.learner.metrics import ACTOR_FIGURES, INFO, SCALARS, LearnerMetrics
+from services.learner.status import StatusBoard
 from services.learner.status_api import StoppedRunError, folder_app, make_app
 from shared.agents import make_agent
 from shared.service import Log
@@ -258,7 +261,7 @@ def test_a_stopped_runs_status_is_printed_as_json(tmp_path, capsys):
     (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
     print_status(["--url", "http://127.0.0.1:9/status", "--data", str(tmp_path)])
     out, err = capsys.readouterr()
-    assert json.loads(out) == STATUS and "the learner is not running" in err
+    assert json.loads(out) == STATUS and "the learner is not running at http://127.0.0.1:9/status" in err
 
 
 def test_a_damaged_history_leaves_the_stopped_dashboard_up_without_its_series(tmp_path, capsys):
@@ -293,3 +296,92 @@ def test_a_stopped_dashboard_on_a_port_it_cannot_have_is_one_line_and_exit_2(tmp
                                "--port", port], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert f"port {port} on 127.0.0.1 is in use" in done.stderr or "1-65535, got 99999" in done.stderr
+
+
+def test_history_carries_on_the_series_an_earlier_learner_left(tmp_path):
+    earlier = History(capacity=100)
+    for wall in range(1, 11):
+        earlier.add(STATUS | {"wall_s": float(wall)})
+    earlier.every_s = 4.0
+    earlier.save(tmp_path)
+    resumed = History(capacity=100)
+    resumed.restore(tmp_path, wall_s=5.0)  # the checkpoint's clock: later points run again
+    resumed.add(STATUS | {"wall_s": 6.5})
+    assert [p["wall_s"] for p in resumed.points()] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.5]
+    assert resumed.every_s == 4.0
+    fresh = History()
+    fresh.restore(tmp_path / "nothing-here", wall_s=5.0)
+    assert fresh.points() == []
+    (tmp_path / "learner" / "history.json").write_text('{"points": 3}')
+    with pytest.raises(HistoryError, match="history.json is unreadable"):
+        History().restore(tmp_path, wall_s=5.0)
+
+
+def test_rates_fall_while_the_loop_takes_no_samples():
+    board = StatusBoard()
+    board.sample_rates(0)
+    time.sleep(0.6)
+    board.sample_rates(12)
+    _, sampled = board.rates()
+    assert sampled > 12
+    time.sleep(1.5)  # the loop evaluates, or waits: no samples, no updates
+    _, stalled = board.rates()
+    assert stalled < sampled / 2
+
+
+@pytest.fixture
+def live_status():
+    """A status API on a free loopback port, answering STATUS."""
+    from nasa.up import free_port
+    from services.learner.status_api import StatusServer
+
+    port = free_port()
+    server = StatusServer(make_app(lambda: STATUS, lambda: []), "127.0.0.1", port)
+    server.start()
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/status", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            pass
+        assert time.monotonic() < deadline, "the status API never answered"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}"
+    server.stop()
+
+
+def test_status_takes_the_apis_address_and_refuses_what_is_not_a_status(live_status, capsys):
+    from nasa.up import status as print_status
+
+    print_status(["--url", live_status])
+    assert json.loads(capsys.readouterr().out) == STATUS
+    with pytest.raises(SystemExit) as done:
+        print_status(["--url", live_status + "/static/LICENSE-uPlot"])
+    err = capsys.readouterr().err
+    assert done.value.code == 1 and "not with JSON" in err and "Traceback" not in err
+
+
+def test_status_of_a_folder_is_not_another_runs_live_status(live_status, tmp_path, capsys):
+    from nasa.up import status as print_status
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS | {"run_id": "other"}))
+    print_status(["--url", live_status, "--data", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert json.loads(out)["run_id"] == "other"
+    assert "it serves run 'r1'" in err and "holds run 'other'" in err
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))  # the same run: live
+    print_status(["--url", live_status, "--data", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert json.loads(out) == STATUS and err == ""
+
+
+def test_status_of_a_nasa_train_folder_says_what_it_is(tmp_path, capsys):
+    from nasa.up import status as print_status
+
+    (tmp_path / "eval.csv").write_text("step,mean,std,return_0\n0,10.5,0,10.5\n")
+    with pytest.raises(SystemExit) as done:
+        print_status(["--url", "http://127.0.0.1:9/status", "--data", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert done.value.code == 1 and "a `nasa train` run" in err and "eval.csv" in err

@@ -1,6 +1,7 @@
 """Issue 14: the ratio survives a learner restart. A learner killed with SIGKILL after its checkpoint
 loses the updates it made since; the restarted learner makes them up (it tells the replay's rate
-limiter how many samples it has used), so the run still ends with G * (steps - warm-up) updates."""
+limiter how many samples it has used), so the run still ends with G * (steps - warm-up) updates.
+The restarted learner also clears the last status an earlier session left."""
 
 from __future__ import annotations
 
@@ -31,6 +32,11 @@ def test_a_learner_killed_after_its_checkpoint_makes_up_the_updates_it_lost(tmp_
         os.kill(learner.proc.pid, signal.SIGKILL)
         lost = before["updates"] - torch.load(ckpt, weights_only=True)["agent"]["num_updates"]
         assert lost > 0  # the checkpoint holds fewer updates than the learner had made
+        # A last status an earlier session left must not pass for this session's.
+        saved_status = data / "learner" / "status.json"
+        saved_status.write_text(json.dumps({"run_id": "an earlier session"}))
+        system.wait_for("the restarted learner", lambda s: s["resumed"], timeout=300, or_run_done=True)
+        assert not saved_status.exists() or "an earlier session" not in saved_status.read_text()
         deadline = time.monotonic() + 400
         while learner.exited != 0 and time.monotonic() < deadline:
             system.sup.poll(lambda msg: None)

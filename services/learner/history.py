@@ -4,12 +4,14 @@ A daemon thread reads /status every `every_s` seconds (never the update loop)
 and keeps one point per read. When `capacity` points are held, every second
 point is dropped and the interval doubles, so the series always spans the
 whole run in at most `capacity` points. The learner leaves the series in
-<data>/learner/history.json when it stops, for `nasa status --data DIR --serve`.
+<data>/learner/history.json when it stops, for `nasa status --data DIR --serve`,
+and a learner that resumes the run carries it on.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 from collections.abc import Callable
@@ -48,6 +50,24 @@ class History:
                 self._points = self._points[::2]
                 self.every_s *= 2
 
+    def restore(self, data: Path, wall_s: float) -> None:
+        """Carry on the series an earlier learner of the run left, up to `wall_s` (the run's clock
+        at the checkpoint resumed from: later points belong to steps that will run again).
+        HistoryError if it cannot be read."""
+        body = _read(data)
+        if body is None:
+            return
+        points = [p for p in body["points"]
+                  if isinstance(p.get("wall_s"), int | float) and p["wall_s"] <= wall_s]
+        every_s = body.get("every_s")
+        with self._lock:
+            self._points = points + self._points
+            if isinstance(every_s, int | float) and math.isfinite(every_s) and every_s > self.every_s:
+                self.every_s = float(every_s)
+            while len(self._points) >= self.capacity:
+                self._points = self._points[::2]
+                self.every_s *= 2
+
     def points(self) -> list[dict]:
         with self._lock:
             return list(self._points)
@@ -80,15 +100,22 @@ class HistoryError(ValueError):
     """A history.json that cannot be read (damaged, or not one the learner wrote)."""
 
 
-def load(data: Path) -> list[dict]:
-    """A stopped run's series (empty if the learner left none)."""
+def _read(data: Path) -> dict | None:
+    """The history.json an earlier learner left ({"every_s", "points"}), or None."""
     path = Path(data) / HISTORY_FILE
     if not path.exists():
-        return []
+        return None
     try:
-        points = json.loads(path.read_bytes())["points"]
+        body = json.loads(path.read_bytes())
+        points = body["points"]
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise HistoryError(f"{path} is unreadable ({type(err).__name__}: {err})") from err
     if not isinstance(points, list) or not all(isinstance(p, dict) for p in points):
         raise HistoryError(f"{path} is unreadable: its points are not a list of objects")
-    return points
+    return body
+
+
+def load(data: Path) -> list[dict]:
+    """A stopped run's series (empty if the learner left none)."""
+    body = _read(data)
+    return [] if body is None else body["points"]

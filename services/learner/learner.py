@@ -40,7 +40,7 @@ import zenoh
 from services.learner.core import LearnerCore
 from services.learner.evaluation import BetweenUpdates
 from services.learner.health import LearnerArgs, health_reasons
-from services.learner.history import History
+from services.learner.history import History, HistoryError
 from services.learner.metrics import LearnerMetrics
 from shared import faults, run_config, wire
 from shared.config import ConfigError
@@ -176,6 +176,12 @@ class Learner:
         s, k = self.session, self.keys
         if not faults.claim_run_role(s, k, "learner", self.stop, self.log):
             return
+        # An earlier session's last status would read as this one's if this one does not stop cleanly.
+        (Path(self.args.data) / FINAL_STATUS).unlink(missing_ok=True)
+        try:
+            self.history.restore(self.args.data, self.wall_s)
+        except HistoryError as err:
+            self.log(f"{err}: the dashboard's series start again here")
         token = api_token(self.args.api_token_file)
         if token is None and not is_loopback(self.args.host):
             self.log(f"warning: the status API binds {self.args.host} with no token: anyone who reaches it "

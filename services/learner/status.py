@@ -17,6 +17,11 @@ import numpy as np
 
 from shared import wire
 
+RATE_SAMPLE_S = 0.5
+RATE_WINDOW_S = 10.0
+STALE_SAMPLE_S = 2 * RATE_SAMPLE_S
+"""A newest sample older than this means the loop stopped sampling: the rates end at now."""
+
 
 def _new_actor(actor_id: int, incarnation: int) -> dict:
     return {"id": actor_id, "incarnation": incarnation, "alive": True, "env_steps": 0, "episodes": 0,
@@ -152,18 +157,24 @@ class StatusBoard:
         self.lag = {"mean": mean if old is None else 0.95 * old + 0.05 * mean, "max": worst}
 
     def sample_rates(self, updates: int) -> None:
-        """Keep (time, env steps, updates) every 0.5 s for the rates /status reports."""
+        """Keep (time, env steps, updates) every RATE_SAMPLE_S for the rates /status reports."""
         now = time.monotonic()
-        if not self._rates or now - self._rates[-1][0] >= 0.5:
+        if not self._rates or now - self._rates[-1][0] >= RATE_SAMPLE_S:
             self._rates.append((now, self.env_steps, updates))
 
     def rates(self) -> tuple[float, float]:
-        """Env steps/s and updates/s over the last ~10 s."""
+        """Env steps/s and updates/s over the last ~10 s up to now. A loop that has not sampled
+        for a while (an evaluation between updates, a wait on the replay) did no updates since:
+        its rates fall, rather than stand at what they were when it last sampled."""
         rates = list(self._rates)
-        if len(rates) < 2:
+        if not rates:
             return 0.0, 0.0
-        recent = [r for r in rates if r[0] >= rates[-1][0] - 10.0]
-        (t0, e0, u0), (t1, e1, u1) = recent[0], rates[-1]
+        end = rates[-1]
+        now = time.monotonic()
+        if now - end[0] > STALE_SAMPLE_S:
+            end = (now, self.env_steps, end[2])
+        t0, e0, u0 = next((r for r in rates if r[0] >= end[0] - RATE_WINDOW_S), rates[-1])
+        t1, e1, u1 = end
         if t1 <= t0:
             return 0.0, 0.0
         return (e1 - e0) / (t1 - t0), (u1 - u0) / (t1 - t0)

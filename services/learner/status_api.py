@@ -187,7 +187,13 @@ def read_final_status(data: Path) -> dict:
     if not Path(data).is_dir():
         raise StoppedRunError(f"there is no run folder {data}")
     if not saved.exists():
-        raise StoppedRunError(f"there is no {saved}: the learner of this run never stopped cleanly")
+        if not saved.parent.exists() and (Path(data) / "eval.csv").exists():
+            raise StoppedRunError(
+                f"{data} is a `nasa train` run (no learner/ folder): it has no status API; its "
+                f"evaluations are in {Path(data) / 'eval.csv'} (`nasa plot {data}`), its losses in "
+                f"{Path(data) / 'tensorboard'}")
+        raise StoppedRunError(f"there is no {saved}: the learner of this run has not stopped cleanly "
+                              "since it last started")
     return read_json_object(saved, StoppedRunError, "a status")
 
 
