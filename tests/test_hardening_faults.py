@@ -161,6 +161,26 @@ def test_a_full_disk_pauses_inserts_unacknowledged_and_they_resume(tmp_path):
         again.close()
 
 
+def test_a_snapshot_on_a_full_disk_is_reported_and_leaves_no_file(tmp_path):
+    with tmpfs(tmp_path / "disk", "size=4m") as disk:
+        svc = make_service(disk, no_rate_limit=True, steps=10_000)
+        stored = svc.insert_batch(batch(n=8)[0])
+        filler = _fill(disk)
+        svc.store.snapshot(block=False)
+        svc.store._snapshot_thread.join()
+        assert svc.stats().write_error.startswith("snapshot: ")
+        assert not list((disk / "replay").glob("*.tmp"))  # a half-written snapshot holds no space
+        filler.unlink()
+        assert svc.insert_batch(batch(start=8, n=8, seed=1)[0]) == 8
+        svc.store.snapshot(block=False)
+        svc.store._snapshot_thread.join()
+        assert svc.stats().write_error == ""
+        svc.store.close()
+        again = open_store(svc.run_config, disk / "replay")
+        assert again.num_inserted == stored + 8
+        again.close()
+
+
 # -- health and dead threads -----------------------------------------------------------------
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import signal
@@ -234,6 +235,57 @@ def test_an_episode_that_grows_while_its_snapshot_is_written_reopens(tmp_path: P
         store._snapshot_thread.join()
     with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path, chunk_len=8) as store:
         check_store(store, 3 * EP_LEN - 1)
+
+
+def test_a_snapshot_that_fails_leaves_no_file_and_loses_nothing(tmp_path: Path, monkeypatch) -> None:
+    import shared.replay.log as rlog
+
+    class NoRoom:  # the snapshot's file cannot be put in place (a full disk)
+        def __getattr__(self, name: str):  # noqa: ANN204
+            return getattr(os, name)
+
+        @staticmethod
+        def replace(src, dst) -> None:  # noqa: ANN001
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(3))
+        monkeypatch.setattr(rlog, "os", NoRoom())
+        store.snapshot(block=False)
+        store._snapshot_thread.join()
+        monkeypatch.undo()
+        assert "No space left" in store.snapshot_error
+        assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob("snapshot-*"))
+        fill(store, range(3, 5))  # the log goes on
+        store.snapshot(block=False)
+        store._snapshot_thread.join()
+        assert store.snapshot_error == ""
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        check_store(store, 5 * EP_LEN - 1)
+
+
+def test_a_failed_fsync_leaves_no_record_the_retry_would_repeat(tmp_path: Path) -> None:
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path, fsync_interval_s=0.0) as store:
+        fill(store, range(1))
+        ep = store.begin_episode(frame(1, 0), incarnation=1)  # noqa: F821
+        sync, failures = store._log.sync, [OSError(errno.EIO, "Input/output error")]
+
+        def failing_once() -> None:
+            if failures:
+                raise failures.pop()
+            sync()
+
+        store._log.sync = failing_once
+        for t in range(EP_LEN):
+            args = (ep, np.array([t / 37, -t / 37]), float(1 + t), 1.0, frame(1, t + 1),  # noqa: F821
+                    t == EP_LEN - 1)
+            try:
+                store.add(*args, policy_version=1)
+            except OSError:  # as the replay service does: write it again
+                store.add(*args, policy_version=1)
+        assert not failures
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        check_store(store, 2 * EP_LEN - 1)
 
 
 def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:

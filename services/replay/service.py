@@ -315,7 +315,8 @@ class ReplayService(MessageGuard):
             invalid=self.invalid,
             dropped=self.dropped,
             done=s["num_inserted"] >= self.config.steps,
-            write_error=self.write_error,
+            write_error=self.write_error or (
+                f"snapshot: {self.store.snapshot_error}" if self.store.snapshot_error else ""),
         )
 
     def run(self) -> None:
@@ -351,6 +352,8 @@ class ReplayService(MessageGuard):
                     # A live process that does nothing is never restarted: exit, non-zero.
                     raise faults.WorkerDied(f"replay worker thread(s) {', '.join(dead)} died")
                 s.put(k.replay_stats, wire.encode(self.stats()))
+                if self.store.snapshot_error:  # the log goes on; the next snapshot tries again
+                    self.log.every("snapshot", 60.0, f"the last snapshot failed: {self.store.snapshot_error}")
                 if self.store.num_inserted - self._last_snapshot >= self.args.snapshot_every:
                     self._last_snapshot = self.store.num_inserted
                     self.store.snapshot(block=False)

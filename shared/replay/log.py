@@ -134,6 +134,11 @@ class LogWriter:
         self.bytes_written += n
         self.dirty = True
 
+    def cut(self, size: int) -> None:
+        """Drop what was appended after the log was `size` bytes long."""
+        os.ftruncate(self._fd, size)
+        self.bytes_written = size
+
     def sync(self) -> None:
         if self.dirty:
             os.fsync(self._fd)
@@ -179,17 +184,21 @@ def write_snapshot(path: Path, sections: list[tuple[str, bytes | memoryview]]) -
     """Write sections + DONE to a temp file, fsync, rename. Returns bytes written."""
     tmp = path.with_suffix(".tmp")
     total = 0
-    with open(tmp, "wb") as f:
-        f.write(_SNAP_MAGIC)
-        for name, data in [*sections, ("DONE", b"")]:
-            nb = name.encode()
-            f.write(struct.pack("<H", len(nb)) + nb)
-            f.write(struct.pack("<QI", len(data), zlib.crc32(data)))
-            f.write(data)
-            total += len(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(_SNAP_MAGIC)
+            for name, data in [*sections, ("DONE", b"")]:
+                nb = name.encode()
+                f.write(struct.pack("<H", len(nb)) + nb)
+                f.write(struct.pack("<QI", len(data), zlib.crc32(data)))
+                f.write(data)
+                total += len(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a half-written snapshot would hold disk the log needs
+        raise
     fsync_dir(path.parent)
     return total
 

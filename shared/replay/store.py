@@ -112,6 +112,7 @@ class ReplayStore:
         self._segment = 0
         self._last_sync = time.monotonic()
         self._snapshot_thread: threading.Thread | None = None
+        self.snapshot_error = ""  # why the last background snapshot failed ("" when it did not)
         self._closed = False
         if self._dir is not None:
             self._open_dir()
@@ -603,7 +604,13 @@ class ReplayStore:
     def _disk_bytes(self) -> int:
         if self._dir is None:
             return 0
-        return sum(p.stat().st_size for p in self._dir.iterdir() if p.is_file())
+        total = 0
+        for p in self._dir.iterdir():
+            try:
+                total += p.stat().st_size if p.is_file() else 0
+            except FileNotFoundError:  # a segment or snapshot a background snapshot just removed
+                continue
+        return total
 
     # ------------------------------------------------------------ durability
     def _check_open(self) -> None:
@@ -613,10 +620,17 @@ class ReplayStore:
     def _write(self, rtype: int, payload: bytes) -> None:
         if self._log is None:
             return
+        before = self._log.bytes_written
         self._log.append(rtype, payload)
         now = time.monotonic()
         if now - self._last_sync >= self.fsync_interval_s:
-            self._log.sync()
+            try:
+                self._log.sync()
+            except OSError:
+                # The record is not applied, so it must not stay in the log: the caller may write
+                # it again, and a second copy would make the log unreadable.
+                self._log.cut(before)
+                raise
             self._last_sync = now
 
     def flush(self) -> None:
@@ -703,9 +717,19 @@ class ReplayStore:
             self._write_snapshot(seg, state)
         else:
             self._snapshot_thread = threading.Thread(
-                target=self._write_snapshot, args=(seg, state), daemon=True
+                target=self._write_snapshot_in_background, args=(seg, state), daemon=True
             )
             self._snapshot_thread.start()
+
+    def _write_snapshot_in_background(self, seg: int, state: dict) -> None:
+        """A failed snapshot (a full disk) loses nothing: the older snapshot and the log segments
+        it would have replaced stay. Its error stands in `snapshot_error` until one succeeds."""
+        try:
+            self._write_snapshot(seg, state)
+        except OSError as err:
+            self.snapshot_error = f"{type(err).__name__}: {err}"
+        else:
+            self.snapshot_error = ""
 
     def _capture(self) -> dict:
         # Copies only: the file is written outside the lock while inserts go on.
