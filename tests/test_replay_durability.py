@@ -288,6 +288,18 @@ def test_a_failed_fsync_leaves_no_record_the_retry_would_repeat(tmp_path: Path) 
         check_store(store, 2 * EP_LEN - 1)
 
 
+def test_damage_inside_the_newest_segment_is_an_error_and_cuts_nothing(tmp_path: Path) -> None:
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(3))
+    seg = sorted(tmp_path.glob("log-*.bin"))[-1]
+    body = bytearray(seg.read_bytes())
+    body[300] ^= 0x10  # one flipped bit inside an early record
+    seg.write_bytes(bytes(body))
+    with pytest.raises(StoreFormatError, match="corrupt at byte .* an intact record follows"):
+        ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path)
+    assert seg.read_bytes() == bytes(body)  # the acknowledged records after it are still there
+
+
 def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:
     with ReplayStore(100, SHAPE, 3, 2, data_dir=tmp_path) as store:
         fill(store, range(1))

@@ -10,8 +10,9 @@ A log record is `<u32 payload length><u32 crc32(type + payload)><u8 type>` then
 the payload. Records are written with one `os.write` on an O_APPEND descriptor,
 so once the call returns the bytes are in the OS page cache and survive the
 death of the process (kill -9); `fsync` (power loss) is periodic and on flush.
-A torn or corrupt record at the end of the newest segment is the half-written
-tail of a crash: it is cut off at reopen. Damage anywhere else is an error.
+A torn or corrupt record at the end of the newest segment, with no intact record
+after it, is the half-written tail of a crash: it is cut off at reopen. Damage
+anywhere else is an error, and nothing is cut.
 
 A snapshot is a list of named, crc-checked sections ending with a `DONE`
 section, written to a temporary name, fsynced and renamed: a snapshot without
@@ -171,6 +172,11 @@ def read_segment(path: Path, is_last: bool) -> Iterator[tuple[int, memoryview]]:
         if bad is not None:
             if not is_last:
                 raise StoreFormatError(f"{path} is corrupt at byte {pos} ({bad})")
+            if (after := _next_record(data, pos + 1)) is not None:
+                raise StoreFormatError(
+                    f"{path} is corrupt at byte {pos} ({bad}), and an intact record follows at byte "
+                    f"{after}: damage, not the torn tail of a crash, so nothing was cut. To go on "
+                    f"without the records from byte {pos}: truncate -s {pos} {path}")
             # The half-written tail of a crashed writer: nothing in it was acknowledged.
             with open(path, "r+b") as f:
                 f.truncate(pos)
@@ -178,6 +184,16 @@ def read_segment(path: Path, is_last: bool) -> Iterator[tuple[int, memoryview]]:
             return
         yield rtype, payload
         pos = end
+
+
+def _next_record(data: memoryview, start: int) -> int | None:
+    """The offset of the first intact record (its checksum holds) at or after `start`, or None."""
+    for pos in range(start, len(data) - _HEADER.size + 1):
+        length, crc, rtype = _HEADER.unpack_from(data, pos)
+        end = pos + _HEADER.size + length
+        if end <= len(data) and zlib.crc32(data[pos + _HEADER.size : end], zlib.crc32(bytes([rtype]))) == crc:
+            return pos
+    return None
 
 
 def write_snapshot(path: Path, sections: list[tuple[str, bytes | memoryview]]) -> int:
