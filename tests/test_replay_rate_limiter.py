@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from shared.replay import RateLimiterClosed, SampleToInsertRatio
@@ -116,6 +117,22 @@ def test_close_releases_all_waiters() -> None:
 def test_rejects_window_that_could_deadlock() -> None:
     with pytest.raises(ValueError, match="error_buffer"):
         SampleToInsertRatio(samples_per_insert=5.0, min_size_to_sample=1, error_buffer=2.0)
+    with pytest.raises(ValueError, match="error_buffer"):  # G = 3: diff 1 below the centre blocks both
+        SampleToInsertRatio(samples_per_insert=3.0, min_size_to_sample=10, error_buffer=1.5)
+
+
+@pytest.mark.parametrize("spi", [0.5, 1.0, 2.0, 3.0, 5.0])
+def test_no_window_it_accepts_blocks_both_sides(spi: float) -> None:
+    rng = np.random.default_rng(0)
+    eb = (spi + 1.0) / 2  # the narrowest accepted
+    rl = SampleToInsertRatio(samples_per_insert=spi, min_size_to_sample=3, error_buffer=eb)
+    for _ in range(3000):
+        ops = [op for op, ok in (("insert", rl.can_insert()), ("sample", rl.can_sample())) if ok]
+        assert ops, f"both sides blocked at {rl.stats()}"
+        if rng.choice(ops) == "insert":
+            rl.insert()
+        else:
+            assert rl.take_sample(timeout=0)
 
 
 def test_restore_sets_the_counts_of_a_restarted_run() -> None:

@@ -33,11 +33,12 @@ class SampleToInsertRatio:
             raise ValueError(f"samples_per_insert must be > 0, got {samples_per_insert}")
         if min_size_to_sample < 1:
             raise ValueError(f"min_size_to_sample must be >= 1, got {min_size_to_sample}")
-        # A window narrower than one insert's worth of samples can block both sides at once.
-        if 2 * error_buffer < max(samples_per_insert, 1.0):
+        # Both sides block at once where diff > max_diff - spi and diff < min_diff + 1: a window
+        # of 2 * error_buffer must hold one insert's samples and one sample more.
+        if 2 * error_buffer < samples_per_insert + 1.0:
             raise ValueError(
                 f"error_buffer {error_buffer} too small: need 2 * error_buffer >= "
-                f"max(samples_per_insert, 1) = {max(samples_per_insert, 1.0)} or both sides can block"
+                f"samples_per_insert + 1 = {samples_per_insert + 1.0} or both sides can block"
             )
         self.samples_per_insert = float(samples_per_insert)
         self.min_size_to_sample = int(min_size_to_sample)
