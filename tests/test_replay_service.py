@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -145,3 +148,18 @@ def test_transitions_past_the_step_budget_are_dropped_without_calling_them_orpha
     out, err = capsys.readouterr()
     assert "dropped" not in out + err
     svc.store.close()
+
+
+@pytest.mark.parametrize("flag, value, says", [
+    ("--max-abs-reward", "nan", "max-abs-reward"), ("--max-abs-reward", "1e6", "at most 1000"),
+    ("--max-abs-reward", "-1", "max-abs-reward"), ("--stats-every-s", "0", "stats-every-s"),
+    ("--snapshot-every", "0", "snapshot-every"), ("--sample-threads", "0", "sample-threads"),
+    ("--error-buffer", "inf", "error-buffer"),
+])
+def test_a_flag_it_cannot_serve_with_is_refused_before_it_connects(tmp_path, flag, value, says):
+    # No router listens here: the flag must be the error, with exit 2 and nothing opened.
+    done = subprocess.run([sys.executable, "-m", "services.replay", "--data", str(tmp_path / "run"),
+                           "--connect", "tcp/127.0.0.1:9", flag, value],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and says in done.stderr, done.stderr
+    assert not (tmp_path / "run").exists()

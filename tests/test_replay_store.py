@@ -238,6 +238,9 @@ def test_bad_input_rejected_and_nothing_lost() -> None:
         (dict(discount=1.5), "discount"),
         (dict(intrinsic=float("inf")), "intrinsic"),
         (dict(policy_version=-1), "policy_version"),
+        (dict(reward=1e39), "reward must be finite in float32"),  # finite, but not as stored
+        (dict(intrinsic=-1e39), "intrinsic"),
+        (dict(policy_version=2**63), "policy_version"),
     ]
     for override, msg in bad_calls:
         kw = dict(episode_id=ep, action=np.zeros(A), reward=0.0, discount=1.0, next_frame=ok,

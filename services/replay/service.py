@@ -47,6 +47,7 @@ import numpy as np
 import zenoh
 
 from shared import faults, run_config, wire
+from shared.config import ConfigError
 from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import open_store
@@ -73,8 +74,25 @@ class ReplayArgs(ServiceArgs):
     stats_every_s: float = 0.5
     snapshot_every: int = 50_000
     """Compact the store's log every this many inserts."""
-    max_abs_reward: float = 1e3
-    """Refuse transitions whose reward is beyond +-this (a huge finite reward poisons the critic)."""
+    max_abs_reward: float = wire.Bounds.max_abs_reward
+    """Refuse transitions whose reward is beyond +-this (a huge finite reward poisons the critic);
+    at most the wire's bound, which the learner applies to the batches it samples."""
+
+
+def check_args(args: ReplayArgs) -> None:
+    """The replay's flags that its parser cannot check (ConfigError: exit 2 before it connects)."""
+    if not (math.isfinite(args.stats_every_s) and args.stats_every_s > 0):
+        raise ConfigError(f"--stats-every-s must be a finite number > 0, got {args.stats_every_s}")
+    # The learner refuses batches holding rewards beyond the wire's bound: this one can only be tighter.
+    if not 0 < args.max_abs_reward <= wire.Bounds.max_abs_reward:
+        raise ConfigError(f"--max-abs-reward must be > 0 and at most {wire.Bounds.max_abs_reward:g} (what "
+                          f"the learner accepts), got {args.max_abs_reward}")
+    if not (math.isfinite(args.error_buffer) and args.error_buffer >= 0):
+        raise ConfigError(
+            f"--error-buffer must be a finite number >= 0 (0: the default), got {args.error_buffer}")
+    for name in ("snapshot_every", "sample_threads"):
+        if getattr(args, name) < 1:
+            raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
 
 
 def default_error_buffer(updates_per_step: int) -> float:
@@ -378,4 +396,4 @@ def main(argv: list[str] | None = None) -> None:
             run = run_config.open_folder(args.config, Path(args.data), may_change=may_change)
             ReplayService(args, session, stop, run).run()
 
-    run_service(ReplayArgs, argv, "python -m services.replay", run)
+    run_service(ReplayArgs, argv, "python -m services.replay", run, check_args)

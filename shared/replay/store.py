@@ -48,6 +48,7 @@ _BEGIN, _STEP, _INTRINSIC, _TRUNCATE, _CLOSE = 1, 2, 3, 4, 5
 _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass
@@ -259,18 +260,18 @@ class ReplayStore:
         if np.any(np.abs(act) > ACTION_BOUND):
             raise ValueError(f"action {act} is outside [-{ACTION_BOUND}, {ACTION_BOUND}]")
         reward, discount, intrinsic = float(reward), float(discount), float(intrinsic)
-        if not math.isfinite(reward):
-            raise ValueError(f"reward must be finite, got {reward}")
+        if not (math.isfinite(reward) and abs(reward) <= _FLOAT32_MAX):
+            raise ValueError(f"reward must be finite in float32, got {reward}")
         if not (0.0 <= discount <= 1.0):
             raise ValueError(f"discount must be in [0, 1], got {discount}")
-        if math.isinf(intrinsic):
-            raise ValueError(f"intrinsic must be finite or NaN (not yet scored), got {intrinsic}")
+        if math.isinf(intrinsic) or abs(intrinsic) > _FLOAT32_MAX:
+            raise ValueError(f"intrinsic must be finite in float32 or NaN (not yet scored), got {intrinsic}")
         if not isinstance(last, bool | np.bool_):
             raise ValueError(f"last must be a bool, got {last!r}")
         if isinstance(policy_version, bool) or not isinstance(policy_version, int | np.integer):
             raise ValueError(f"policy_version must be an int, got {policy_version!r}")
-        if policy_version < 0:
-            raise ValueError(f"policy_version must be >= 0, got {policy_version}")
+        if not 0 <= policy_version < 2**63:
+            raise ValueError(f"policy_version must be in [0, 2**63), got {policy_version}")
         return act, reward, discount, intrinsic
 
     def set_intrinsic(self, index: np.ndarray, value: np.ndarray) -> None:
