@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -298,6 +299,17 @@ def test_damage_inside_the_newest_segment_is_an_error_and_cuts_nothing(tmp_path:
     with pytest.raises(StoreFormatError, match="corrupt at byte .* an intact record follows"):
         ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path)
     assert seg.read_bytes() == bytes(body)  # the acknowledged records after it are still there
+
+
+def test_the_last_writes_before_a_pause_are_synced_when_due(tmp_path: Path) -> None:
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path, fsync_interval_s=60.0) as store:
+        store._last_sync = time.monotonic()  # just synced: the writes below are not due
+        fill(store, range(1))
+        store.sync_if_due()
+        assert store._log.dirty
+        store._last_sync -= 61.0  # a minute on, and no insert since
+        store.sync_if_due()
+        assert not store._log.dirty
 
 
 def test_incompatible_directory_fails_clearly(tmp_path: Path) -> None:

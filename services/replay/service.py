@@ -370,6 +370,10 @@ class ReplayService(MessageGuard):
                     # A live process that does nothing is never restarted: exit, non-zero.
                     raise faults.WorkerDied(f"replay worker thread(s) {', '.join(dead)} died")
                 s.put(k.replay_stats, wire.encode(self.stats()))
+                try:
+                    self.store.sync_if_due()
+                except OSError as err:  # the next write tries again, and stops inserts if it fails
+                    self.log.every("sync", 60.0, f"cannot fsync the log: {err}")
                 if self.store.snapshot_error:  # the log goes on; the next snapshot tries again
                     self.log.every("snapshot", 60.0, f"the last snapshot failed: {self.store.snapshot_error}")
                 if self.store.num_inserted - self._last_snapshot >= self.args.snapshot_every:

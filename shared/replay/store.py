@@ -634,6 +634,15 @@ class ReplayStore:
                 raise
             self._last_sync = now
 
+    def sync_if_due(self) -> None:
+        """fsync the log if it holds writes older than the fsync interval: called periodically,
+        so the last writes before a pause in inserts are not left unsynced until the next one."""
+        with self._lock:
+            if self._log is not None and self._log.dirty and (
+                    time.monotonic() - self._last_sync >= self.fsync_interval_s):
+                self._log.sync()
+                self._last_sync = time.monotonic()
+
     def flush(self) -> None:
         """fsync the log. Every add() that returned is already safe from process death
         (written to the OS); after flush() it is also safe from power loss."""
