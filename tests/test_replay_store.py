@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 
 import numpy as np
@@ -197,6 +198,33 @@ def test_unscored_rows_oldest_first_and_get_by_index() -> None:
     for bad in (np.array([29]), np.array([80]), np.array([], np.int64), np.zeros((2, 2), np.int64)):
         with pytest.raises(ValueError, match="index"):
             store.get(bad)
+    both = store.get_unscored(55, 7)
+    np.testing.assert_array_equal(both["index"], b["index"])
+    np.testing.assert_array_equal(both["obs"], b["obs"])
+    assert store.get_unscored(80, 10) is None
+
+
+def test_unscored_rows_are_read_before_an_insert_evicts_them() -> None:
+    store = ReplayStore(200, SHAPE, K, A)
+    f = np.zeros(SHAPE, np.uint8)
+    ep = store.begin_episode(f)
+    for _ in range(250):  # full: every insert evicts the oldest row, the first a scorer asks for
+        store.add(ep, np.zeros(A), 0.0, 0.99, f, False)
+    stop = threading.Event()
+
+    def insert() -> None:
+        while not stop.is_set():
+            store.add(ep, np.zeros(A), 0.0, 0.99, f, False)
+
+    inserter = threading.Thread(target=insert)
+    inserter.start()
+    try:
+        for _ in range(2000):
+            batch = store.get_unscored(0, 64)
+            assert batch is not None and len(batch["index"]) == 64
+    finally:
+        stop.set()
+        inserter.join()
 
 
 def test_dead_actor_episode_is_closed() -> None:

@@ -311,10 +311,10 @@ class ReplayService(MessageGuard):
         if not 1 <= req.limit <= MAX_BATCH or req.after < 0:
             raise wire.WireError(f"unscored request after {req.after}, limit {req.limit}")
         n = self.store.num_inserted  # read first: anything newer is past the scan
-        index = self.store.unscored(req.after, req.limit)
-        if len(index) == 0:
+        batch = self.store.get_unscored(req.after, req.limit)
+        if batch is None:
             return wire.SampleReply(False, "none unscored", n)
-        return encode_reply(self.store.get(index), n)
+        return encode_reply(batch, n)
 
     def _reply(self, batch: dict[str, np.ndarray]) -> wire.SampleReply:
         return encode_reply(batch, self.store.num_inserted)

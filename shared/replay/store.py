@@ -486,8 +486,21 @@ class ReplayStore:
     def unscored(self, after: int, limit: int) -> np.ndarray:
         """Live global indices >= after whose intrinsic slot is unscored (NaN), oldest first."""
         with self._lock:
-            g = np.arange(max(int(after), self._head), self._num_inserted, dtype=np.int64)
-            return g[np.isnan(self._intrinsic[g % self.capacity])][: max(0, int(limit))]
+            return self._unscored(after, limit)
+
+    def _unscored(self, after: int, limit: int) -> np.ndarray:
+        g = np.arange(max(int(after), self._head), self._num_inserted, dtype=np.int64)
+        return g[np.isnan(self._intrinsic[g % self.capacity])][: max(0, int(limit))]
+
+    def get_unscored(self, after: int, limit: int) -> dict[str, np.ndarray] | None:
+        """`get(unscored(after, limit))` in one step, so no insert evicts the rows found before
+        they are read; None when there are none."""
+        with self._lock:
+            g = self._unscored(after, limit)
+            if len(g) == 0:
+                return None
+            plan = self._gather(g)
+        return self._assemble(plan)
 
     def _gather(self, g: np.ndarray) -> tuple:
         """Under the lock: the metadata of transitions `g` and what decoding their frames needs."""
