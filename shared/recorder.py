@@ -78,11 +78,12 @@ class Recorder:
 
     def last_eval(self) -> dict | None:
         """step, mean and std of the newest evaluation in eval.csv, or None."""
-        rows = read_rows(self.eval_log.path)
-        if not rows:
-            return None
-        last = rows[-1]
-        return {"step": int(last["step"]), "mean": float(last["mean"]), "std": float(last["std"])}
+        for row in reversed(read_rows(self.eval_log.path)):
+            try:
+                return {"step": int(row["step"]), "mean": float(row["mean"]), "std": float(row["std"])}
+            except (KeyError, TypeError, ValueError):  # a damaged row: the one before it
+                continue
+        return None
 
     def checkpoint(self, path: Path, agent: Agent, rng: np.random.Generator, counters: Counters,
                    **extra: object) -> None:

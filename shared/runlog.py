@@ -52,6 +52,21 @@ class CsvLog:
                 f"({','.join(self.fields)}): it is damaged or from other settings; "
                 "move it aside to continue the run without it"
             )
+        self._cut_torn_row()
+
+    def _cut_torn_row(self) -> None:
+        """Drop a last row its writer did not finish (it died mid-write): the next row would
+        otherwise be appended onto it, and both be lost."""
+        data = self.path.read_bytes()
+        if data.endswith(b"\n"):
+            return
+        end = data.rfind(b"\n") + 1
+        with open(self.path, "r+b") as f:
+            if end == 0:  # the header alone, unterminated
+                f.seek(len(data))
+                f.write(b"\r\n")
+            else:
+                f.truncate(end)
 
     def append(self, row: dict) -> None:
         unknown = set(row) - set(self.fields)

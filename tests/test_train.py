@@ -212,6 +212,23 @@ def test_a_run_log_is_continued_only_under_its_own_header(tmp_path):
     assert damaged.read_bytes() == b"step,mean\r\n0,1\r\n"
 
 
+def test_a_row_its_writer_did_not_finish_is_dropped_before_the_next_one(tmp_path):
+    from shared.recorder import Recorder
+
+    (tmp_path / "eval.csv").write_bytes(
+        b"step,mean,std,return_0,return_1\r\n1000,12.5,0.5,12,13\r\n2000,30,1")  # died mid-row
+    recorder = Recorder(tmp_path, 2)
+    assert recorder.last_eval() == {"step": 1000, "mean": 12.5, "std": 0.5}
+    recorder.eval_row(2000, [300.0, 310.0])
+    rows = read_rows(tmp_path / "eval.csv")
+    assert [(r["step"], r["mean"], r["return_0"]) for r in rows] == [
+        ("1000", "12.5", "12"), ("2000", "305", "300")]
+    # A finished but damaged last row: the newest readable one is the last evaluation.
+    with open(tmp_path / "eval.csv", "ab") as f:
+        f.write(b"3000,,\r\n")
+    assert Recorder(tmp_path, 2).last_eval()["step"] == 2000
+
+
 def test_resume_to_a_total_the_checkpoint_already_holds_is_refused_and_keeps_the_rows(tmp_path):
     from shared.config import ConfigError
 
