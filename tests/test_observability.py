@@ -385,3 +385,33 @@ def test_status_of_a_nasa_train_folder_says_what_it_is(tmp_path, capsys):
         print_status(["--url", "http://127.0.0.1:9/status", "--data", str(tmp_path)])
     err = capsys.readouterr().err
     assert done.value.code == 1 and "a `nasa train` run" in err and "eval.csv" in err
+
+
+def test_a_non_finite_figure_goes_out_as_null_not_as_json_no_browser_reads():
+    status = STATUS | {"intrinsic": STATUS["intrinsic"] | {"novelty_mean": float("nan")},
+                       "wall_s": float("inf")}
+    client = TestClient(make_app(lambda: status, lambda: [], lambda: [{"novelty_mean": float("-inf")}]))
+    text = client.get("/status").text
+    assert "NaN" not in text and "Infinity" not in text
+    body = json.loads(text)
+    assert body["intrinsic"]["novelty_mean"] is None and body["wall_s"] is None
+    assert body["intrinsic"]["surprise_mean"] == STATUS["intrinsic"]["surprise_mean"]
+    assert json.loads(client.get("/history").text)["points"] == [{"novelty_mean": None}]
+
+
+def test_a_status_read_that_fails_does_not_end_the_series():
+    reads = iter([STATUS, RuntimeError("dictionary changed size during iteration")])
+
+    def status() -> dict:
+        item = next(reads, STATUS)
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    history = History(every_s=0.02)
+    history.start(status)
+    deadline = time.monotonic() + 30
+    while len(history.points()) < 4 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    history.stop()
+    assert len(history.points()) >= 4 and history.failed_reads == 1

@@ -42,6 +42,7 @@ class History:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self.failed_reads, self.last_error = 0, ""
 
     def add(self, status: dict) -> None:
         with self._lock:
@@ -76,7 +77,11 @@ class History:
         """Read `status` every `every_s` seconds on a daemon thread until `stop`."""
         def run() -> None:
             while not self._stop.wait(self.every_s):
-                self.add(status())
+                try:
+                    self.add(status())
+                except Exception as err:  # noqa: BLE001 -- one bad read must not end the series
+                    self.failed_reads += 1
+                    self.last_error = f"{type(err).__name__}: {err}"
 
         self.add(status())
         self._thread = threading.Thread(target=run, name="history", daemon=True)

@@ -198,9 +198,10 @@ class StatusBoard:
                        "limiter_samples": r["samples"], "write_error": r["write_error"]},
             "actors": actors,
             "policy_lag": {k: (round(v, 3) if v is not None else None) for k, v in self.lag.items()},
-            "losses": {k: round(v, 6) for k, v in self.losses.items() if math.isfinite(v)},
+            # dict(...) copies in one step: the update loop may add a key while this iterates.
+            "losses": {k: round(v, 6) for k, v in dict(self.losses).items() if math.isfinite(v)},
             "nonfinite": {"skipped_updates": self.skipped_updates, "dropped_batches": self.dropped_batches,
                           "dropped_rows": list(self.dropped_rows),
-                          "losses": {k: dict(v) for k, v in self.nonfinite_losses.items()}},
+                          "losses": {k: dict(v) for k, v in dict(self.nonfinite_losses).items()}},
             "invalid_messages": invalid,
         }

@@ -135,8 +135,23 @@ def is_loopback(host: str) -> bool:
 
 def _json(body: dict, status: int = 200) -> Response:
     """JSON straight from json.dumps: FastAPI's encoder walks every value first, which costs the
-    learner's process more than the encoding for a long history."""
-    return Response(json.dumps(body), status_code=status, media_type="application/json")
+    learner's process more than the encoding for a long history. A non-finite number (which
+    JSON has no word for, and a browser refuses) goes out as null."""
+    try:
+        text = json.dumps(body, allow_nan=False)
+    except ValueError:
+        text = json.dumps(_finite_only(body), allow_nan=False)
+    return Response(text, status_code=status, media_type="application/json")
+
+
+def _finite_only(value: object) -> object:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_only(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_only(v) for v in value]
+    return value
 
 
 def _inside(folder: Path, name: str) -> Path:
