@@ -231,7 +231,11 @@ def plot_curves(runs: list[SeedCurve], x: str = "steps") -> Figure:
             steps, values = align(curves)
             mean, std = values.mean(axis=0), values.std(axis=0)
             xs = x_values(curves, steps, x)
-            ax.plot(xs, mean, color=colors[name], label=f"{name} (n={len(curves)})")
+            label = f"{name} (n={len(curves)})"
+            if len(steps) and steps[-1] < max(int(c.steps[-1]) for c in curves):
+                label = f"{name} (n={len(curves)}, to step {steps[-1]}: all seeds' last)"
+            # One common step (a seed just started) is a point: a line of one point draws nothing.
+            ax.plot(xs, mean, color=colors[name], label=label, marker="o" if len(xs) < 2 else None)
             ax.fill_between(xs, mean - std, mean + std, color=colors[name], alpha=0.2, linewidth=0)
         base = untrained([c for curves in by_series.values() for c in curves])
         if base is not None:
