@@ -166,3 +166,31 @@ def test_dashboard_shows_the_run_in_chromium(tmp_path):
     first = media["videos"][0]
     assert first["step"] == 0 and count_frames(data / "media" / first["file"]) == first["frames"] > 0
     assert (tmp_path / "dashboard-stopped.png").stat().st_size > 10_000
+
+
+def test_the_dashboard_writes_figures_as_a_person_reads_them(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    from tests.test_observability import STATUS
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    port = free_port()
+    server = StatusServer(folder_app(tmp_path), "127.0.0.1", port)
+    server.start()
+    try:
+        url = f"http://127.0.0.1:{port}"
+        wait_listening(url)
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+            try:
+                page = browser.new_page()
+                page.goto(url + "/")
+                page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.fmt")
+                shown = page.evaluate("() => [999.7, 1234.5, 12.345, 0.001234, 5, null]"
+                                      ".map(v => window.nasaDashboard.fmt(v))")
+            finally:
+                browser.close()
+    finally:
+        server.stop()
+    assert shown == ["1,000", "1,235", "12.3", "0.00123", "5", "–"]

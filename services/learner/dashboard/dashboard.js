@@ -6,13 +6,16 @@ const POLL_MS = 2000;
 const COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf"];
 const charts = {};
 const state = { status: null, history: null, polls: 0 };
-window.nasaDashboard = { charts, state };
+window.nasaDashboard = { charts, state, fmt };
 
 function fmt(v, digits = 3) {
   if (v === null || v === undefined) return "–";
   if (typeof v === "boolean") return v ? "yes" : "no";
   if (Number.isInteger(v)) return v.toLocaleString("en");
-  return Number(v).toPrecision(digits);
+  const n = Number(v);
+  // Whole units from 10^(digits-1) up: toPrecision writes 999.7 as "1.00e+3".
+  if (Math.abs(n) >= 10 ** (digits - 1)) return Math.round(n).toLocaleString("en");
+  return n.toPrecision(digits);
 }
 
 function bytes(v) {
