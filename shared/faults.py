@@ -27,6 +27,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import re
 import socket
 import time
 from pathlib import Path
@@ -125,12 +126,30 @@ def _write_owner(fd: int, what: str) -> None:
 
 
 def owner(data: Path, role: str | None = None) -> str:
-    """Who holds the run's lock (or a service's), as its lock file says."""
+    """Who holds the run's lock (or a service's), as its lock file says. The file names the last
+    process that held it alone; services hold the run's lock together and name no one, so a named
+    process of this host that has exited is said to be gone."""
     path = Path(data) / (LOCK if role is None else f"{LOCK}.{role}")
     try:
-        return path.read_text().strip() or "another process"
+        text = path.read_text().strip()
     except OSError:
         return "another process"
+    if not text:
+        return "another process"
+    match = re.match(r"pid (\d+) on (\S+): ", text)
+    if match and match.group(2) == socket.gethostname() and not _alive(int(match.group(1))):
+        return f"its services; the launcher the lock file names ({text}) has exited"
+    return text
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return True
 
 
 def lock_run(data: Path, what: str, flag: str = "--data") -> RunLock:

@@ -87,6 +87,13 @@ def test_services_share_their_launchers_lock_and_never_a_role(tmp_path, monkeypa
     with faults.lock_service(other, "replay"), faults.lock_service(other, "learner"):
         with pytest.raises(faults.RunFolderError, match="another run"):
             faults.lock_run(other, "nasa up")
+    # Services that took the run's lock after a launcher had gone: the file still names the
+    # launcher, which is not who holds it now.
+    with holder(tmp_path / "later") as launcher:
+        pass
+    with faults.lock_service(tmp_path / "later", "replay"):
+        with pytest.raises(faults.RunFolderError, match=f"its services; .*pid {launcher.pid} .* has exited"):
+            faults.lock_run(tmp_path / "later", "nasa up")
 
 
 def test_a_read_only_folder_is_one_clear_error(tmp_path):
