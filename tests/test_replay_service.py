@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -163,3 +165,27 @@ def test_a_flag_it_cannot_serve_with_is_refused_before_it_connects(tmp_path, fla
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and says in done.stderr, done.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_a_refused_batch_is_acknowledged_so_its_actor_does_not_wait_on_it(tmp_path):
+    class Puts:  # the service's session, as far as acknowledgements go
+        def __init__(self) -> None:
+            self.acks: list[wire.InsertAck] = []
+
+        def put(self, key, payload, **kw) -> None:  # noqa: ANN001, ANN003
+            self.acks.append(wire.decode(payload, wire.InsertAck))
+
+    session, stop = Puts(), StopFlag()
+    svc = make_service(tmp_path, session=session, stop=stop, no_rate_limit=True)
+    svc.insert_batch(batch(inc=5, n=3)[0])
+    svc._inserts.put(batch(inc=4, n=3, seed=1)[0])  # an older incarnation: the store refuses it
+    svc._inserts.put(batch(inc=5, episode=1, n=2, seed=2)[0])
+    loop = threading.Thread(target=svc._insert_loop)
+    loop.start()
+    deadline = time.monotonic() + 30
+    while len(session.acks) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stop.set("test done")
+    loop.join(5)
+    assert [(a.incarnation, a.num_inserted) for a in session.acks] == [(4, 3), (5, 5)]
+    assert svc.invalid == 1

@@ -5,6 +5,7 @@ in-process StoreAdder."""
 from __future__ import annotations
 
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -97,9 +98,30 @@ def test_no_ack_for_the_timeout_counts_the_in_flight_batches_lost():
     stop = StopFlag()
     w.on_replay(True)
     assert w.acquire(stop)
-    assert w.acquire(stop)  # returns once the (fake) minute has passed without an ack
+    # The replay goes on storing (other actors' batches), but never acknowledges this one.
+    threading.Timer(0.05, lambda: w.observe(8)).start()
+    assert w.acquire(stop)  # returns once a (fake) minute has passed without an ack
     assert w.lost == 1 and w.in_flight == 1
-    assert any("no acknowledgement for 60 s" in m for m in messages)
+    assert any("assuming the 1 in-flight batches lost" in m for m in messages)
+
+
+def test_a_replay_that_stores_nothing_is_waited_on_not_sent_more():
+    # Its rate limiter holds inserts while the learner is away: more batches would only queue there.
+    messages: list[str] = []
+    w = window(max_in_flight=1, clock=FakeClock(step=7.0), messages=messages)
+    stop = StopFlag()
+    w.on_replay(True)
+    assert w.acquire(stop)
+    result: list[bool] = []
+    t = threading.Thread(target=lambda: result.append(w.acquire(stop)))
+    t.start()
+    deadline = time.monotonic() + 30
+    while sum("stored nothing since" in m for m in messages) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert t.is_alive() and w.lost == 0 and w.in_flight == 1
+    w.on_ack(9)  # the learner is back: the replay takes it
+    t.join(5)
+    assert result == [True] and w.lost == 0
 
 
 def test_wait_alive_returns_when_the_replay_appears_or_on_stop():

@@ -193,8 +193,8 @@ class ReplayService(MessageGuard):
             except RateLimiterClosed:
                 return
             except Exception as err:  # noqa: BLE001 -- ValueError from the store, and the unforeseen
+                # Refused, and acknowledged all the same: its actor must not wait on it.
                 self._invalid(f"transitions: {err}")
-                continue
             ack = wire.InsertAck(msg.actor_id, msg.incarnation, self.store.num_inserted)
             self.session.put(self.keys.ack(msg.actor_id), wire.encode(ack), congestion_control=BLOCK)
 

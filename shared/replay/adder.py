@@ -98,14 +98,23 @@ class SendWindow:
         """Wait until one more batch may be in flight and count it; False (nothing counted) if
         stop is set or the episode is broken: that batch must not be sent."""
         with self._cv:
-            waited = self.clock()
+            waited, seen = self.clock(), self.global_steps
             while self.in_flight >= self.max_in_flight and not stop and not self.broken:
                 self._cv.wait(self.poll_s)
-                if self.clock() - waited > self.ack_timeout_s:
-                    self.log(f"no acknowledgement for {self.ack_timeout_s:.0f} s: "
-                             f"assuming the {self.in_flight} in-flight batches lost")
-                    self.lost += self.in_flight
-                    self.in_flight = 0
+                if self.clock() - waited <= self.ack_timeout_s:
+                    continue
+                if self.alive and self.global_steps == seen:
+                    # The replay acknowledges every batch it takes, stored or refused; one that has
+                    # stored nothing since is holding ours (its rate limiter waits on the learner,
+                    # or it cannot write): sending more would only queue them there.
+                    self.log(f"no acknowledgement for {self.ack_timeout_s:.0f} s, and the replay has "
+                             "stored nothing since: waiting on it")
+                    waited = self.clock()
+                    continue
+                self.log(f"no acknowledgement for {self.ack_timeout_s:.0f} s: "
+                         f"assuming the {self.in_flight} in-flight batches lost")
+                self.lost += self.in_flight
+                self.in_flight = 0
             if stop or self.broken:
                 return False
             self.in_flight += 1
