@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -206,6 +207,14 @@ def test_health_says_why_the_learner_is_not_healthy(tmp_path):
     board.seen_env_steps(100)
     board.last_update -= learner.args.stall_s + 1
     assert any("stalled" in r for r in learner.health())
+    board.evaluating = True  # a long evaluation between updates is not a stall
+    assert learner.health() == []
+    board.evaluating = False
+    seen: list = []
+    learner.between = SimpleNamespace(run=lambda target: seen.append(board.evaluating) or "a result")
+    learner._record_eval = lambda result, how="": seen.append(result)
+    learner._evaluate(100)
+    assert seen == [True, "a result"] and not board.evaluating and learner.health() == []
     board.last_update = time.monotonic()
     board.skipped_updates = learner.args.max_skipped_updates + 1
     board.replay_stats(wire.ReplayStats(1, 1, 100, 100, 0, 0, 0, False, "OSError: No space left on device"))

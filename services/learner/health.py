@@ -59,7 +59,8 @@ def health_reasons(core: LearnerCore, a: LearnerArgs, stop: StopFlag) -> list[st
     board = core.board
     reasons = [f"stopping ({stop.reason})"] if stop else []
     idle = time.monotonic() - board.last_update
-    if board.env_steps > core.config.warmup_steps and not core.done() and idle > a.stall_s:
+    if board.env_steps > core.config.warmup_steps and not core.done() and idle > a.stall_s \
+            and not board.evaluating:
         reasons.append(f"training stalled: no update for {idle:.0f} s with {board.env_steps} env steps "
                        f"stored")
     if board.skipped_updates > a.max_skipped_updates:

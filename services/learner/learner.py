@@ -321,7 +321,14 @@ class Learner:
     def _evaluate(self, target: int) -> None:
         """Step `target`'s evaluation, here and now (--eval-between-updates)."""
         assert self.between is not None
-        self._record_eval(self.between.run(target), ", between updates")
+        board = self.core.board
+        board.evaluating = True  # work, not a stall: /healthz must not have the learner restarted now
+        try:
+            result = self.between.run(target)
+        finally:
+            board.evaluating = False
+            board.last_update = time.monotonic()
+        self._record_eval(result, ", between updates")
 
     def _record_eval(self, r: wire.EvalResult, how: str = "") -> None:
         """An evaluation's eval.csv row, logged; one sent again is recorded once."""

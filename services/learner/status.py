@@ -58,6 +58,7 @@ class StatusBoard:
         self.dropped_rows: list[int] = []
         self.nonfinite_losses: dict[str, dict] = {}
         self.last_update = time.monotonic()
+        self.evaluating = False  # an evaluation between updates is under way
         self.lag = {"mean": None, "max": None}
         self._rates: deque[tuple[float, int, int]] = deque(maxlen=64)
 
