@@ -51,11 +51,16 @@ def test_evaluations_are_recorded_once_and_episodes_carry_the_update_means(tmp_p
         "step": 0, "mean": 2.0, "std": 1.0, "return_0": 1.0, "return_1": 3.0}
     assert core.record_eval(wire.EvalResult(0, 0, [9.0, 9.0])) is None  # sent again after a restart
     core.train_on(core.scorer.client.sample(16))
-    core.record_episode(12.5, 25, wall_s=3.0)
+    core.record_episode(12.5, 25, wall_s=3.0)  # no rate sampled yet: none written
+    core.board.seen_env_steps(100)
+    core.board.sample_rates(0)
+    core.board._rates[0] = (core.board._rates[0][0] - 2.0, 60, 0)  # 40 env steps in the last 2 s
+    core.record_episode(13.5, 25, wall_s=4.0)
     rows = read_rows(tmp_path / "train.csv")
-    assert len(read_rows(tmp_path / "eval.csv")) == 1 and len(rows) == 1
+    assert len(read_rows(tmp_path / "eval.csv")) == 1 and len(rows) == 2
     assert rows[0]["return"] == "12.5" and rows[0]["episode"] == "1" and rows[0]["critic_loss"] != ""
-    assert rows[0]["novelty_mean"] != ""
+    assert rows[0]["novelty_mean"] != "" and rows[0]["steps_per_s"] == ""
+    assert float(rows[1]["steps_per_s"]) == pytest.approx(20.0, rel=0.05)
 
 
 def test_the_evaluators_weights_go_once_per_eval_period_with_the_decoder_and_the_actors_never_carry_it(

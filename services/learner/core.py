@@ -145,8 +145,10 @@ class LearnerCore:
         """A training episode an actor finished: one train.csv row with the updates' means since the last."""
         self.counters.episodes += 1
         means = self.means.take() | (self.scorer.take_episode_means() if self.scorer else {})
+        env_rate = self.board.rates()[0]  # the fleet's, as nasa train's one actor is its whole fleet
         row = self.recorder.train_row(self.env_steps, self.counters.episodes, episode_return, length,
-                                      self.agent.num_updates, wall_s, means)
+                                      self.agent.num_updates, wall_s, means,
+                                      steps_per_s=env_rate if env_rate > 0 else None)
         self.scalars.episode(row)
 
     # -- checkpoint -----------------------------------------------------------------
