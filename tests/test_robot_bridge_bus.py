@@ -131,3 +131,28 @@ def test_the_emulator_answers_a_bad_instruction_crc_with_a_crc_error() -> None:
             assert status.params[0] == protocol.ERR_CRC
         finally:
             os.close(fd)
+
+
+def test_a_failing_serial_port_is_a_bus_error(rig) -> None:
+    import serial
+
+    emu, bus = rig
+    real = bus.port.ser
+
+    class Unplugged:  # what pyserial raises when the adapter goes away mid-transfer
+        def __getattr__(self, name: str):  # noqa: ANN204
+            return getattr(real, name)
+
+        def write(self, data: bytes) -> int:
+            raise serial.SerialException("write failed: [Errno 5] Input/output error")
+
+        def read(self, size: int = 1) -> bytes:
+            raise serial.SerialException("device reports readiness to read but returned no data")
+
+    bus.port.ser = Unplugged()
+    for call in (bus.read_state, lambda: bus.read(2, xl320.PRESENT_POSITION, 2),
+                 lambda: bus.write_goals({1: 300}), lambda: bus.set_torque(False, [1]), lambda: bus.ping(1)):
+        with pytest.raises(BusError, match="serial port"):
+            call()
+    bus.port.ser = real
+    assert list(bus.read_state().position) == [300, 400, 500, 600]

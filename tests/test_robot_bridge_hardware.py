@@ -1,6 +1,7 @@
 """The real gripper's raw layer over the emulated bus and a video-file camera."""
 
 import math
+import threading
 from pathlib import Path
 
 import cv2
@@ -13,19 +14,20 @@ from services.robot_bridge.config import GripperConfig, parse
 from services.robot_bridge.dynamixel import ServoBus
 from services.robot_bridge.emulator import BusEmulator
 from services.robot_bridge.hardware import GripperHardware, valve_servo_goal
+from services.robot_bridge.safety import Refused
 from shared.gripper.sim import angle_distance, valve_reward
-from tests.test_robot_bridge_bus import LATENCY_MS
+from tests.test_robot_bridge_bus import LATENCY_MS, wait_until
 
 IDS = (1, 2, 3, 4)
 VALVE = 5
 
 
-def config(port: str, settle_s: float = 0.0) -> GripperConfig:
+def config(port: str, settle_s: float = 0.0, valve_speed: int = 1023) -> GripperConfig:
     return parse({
         "bus": {"port": port, "latency_ms": LATENCY_MS},
         "servos": {"ids": list(IDS), "min_step": [200] * 4, "max_step": [820] * 4, "home": [512] * 4,
                    "moving_speed": 1023, "max_step_change": 100, "settle_s": settle_s},
-        "valve": {"id": VALVE, "moving_speed": 1023},
+        "valve": {"id": VALVE, "moving_speed": valve_speed},
         "camera": {"drop_frames": 0},
         "angle": {"source": "servo", "zero_deg": 150.0},
         "safety": {"home_tolerance": 3, "reboot_wait_s": 0.0},
@@ -83,6 +85,57 @@ def test_a_fault_or_estop_ends_the_episode_truncated(gripper) -> None:
     hw.fingers.estop()
     _, _, _, last = hw.step(np.zeros(4))
     assert last and "e-stop" in hw.info()["reason"] and hw.info()["safety"]["state"] == "estop"
+
+
+def test_a_gripper_waiting_for_its_operator_is_not_re_armed_by_a_reset(gripper) -> None:
+    emu, hw = gripper
+    hw.reset()
+    emu.kill(2)
+    _, _, _, last = hw.step(np.zeros(4))  # the recovery cannot reach servo 2
+    assert last and hw.info()["safety"]["state"] == "waiting_for_operator"
+    emu.kill(2, dead=False)  # the cable comes back by itself; no operator has re-armed
+    torque = [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in IDS]
+    assert torque[0] == torque[2] == torque[3] == 0  # servo 2 missed the torque-off while cut off
+    with pytest.raises(Refused, match="waiting_for_operator"):
+        hw.reset()
+    assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in IDS] == torque  # nothing armed
+    hw.fingers.rearm()  # the operator's re-arm
+    assert hw.fingers.state.value == "ready"
+    hw.reset()
+
+
+def test_a_valve_turn_that_fails_midway_leaves_the_valve_free_and_an_estop_reaches_it(tmp_path: Path) -> None:
+    with BusEmulator(IDS + (VALVE,), positions={1: 400, 2: 600, 3: 512, 4: 512, VALVE: 0}) as emu:
+        c = config(emu.port, valve_speed=20)  # a slow turn: it is under way when the fault comes
+        bus = ServoBus(emu.port, 1000000, IDS + (VALVE,), latency_ms=LATENCY_MS)
+        hw = GripperHardware(c, "gripper-valve_reset", seed=4, bus=bus,
+                             camera=Camera(c.camera, source=video(tmp_path / "cam.avi")))
+        try:
+            valve_turn_fails_midway(emu, hw)
+        finally:
+            hw.close()
+
+
+def valve_turn_fails_midway(emu: BusEmulator, hw: GripperHardware) -> None:
+    outcome: list = []
+
+    def reset() -> None:
+        try:
+            outcome.append(hw.reset())
+        except Refused as err:
+            outcome.append(err)
+
+    turning = threading.Thread(target=reset)
+    turning.start()
+    wait_until(lambda: emu.snapshot(VALVE, xl320.TORQUE_ENABLE) == 1)
+    emu.delay(VALVE, 1.0)  # its next reply comes too late: the turn fails
+    turning.join(30)
+    emu.delay(VALVE, 0.0)
+    assert isinstance(outcome[0], Refused)
+    assert emu.snapshot(VALVE, xl320.TORQUE_ENABLE) == 0
+    hw.bus.set_torque(True, [VALVE])  # however it was left on, an e-stop turns it off
+    hw.fingers.estop()
+    assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in (*IDS, VALVE)] == [0] * 5
 
 
 def test_the_valve_servo_goal_covers_its_range_and_goes_to_the_nearest_end() -> None:

@@ -10,7 +10,8 @@ pinging each one, so the bridge's recovery knows which to reboot.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,17 @@ class ServoBus:
         if self.port.is_open:
             self.port.closePort()
 
+    @contextmanager
+    def _port_errors(self, ids: Iterable[int]) -> Iterator[None]:
+        """The SDK reads and writes the port directly: a port that fails (pyserial's
+        SerialException is an OSError) is a bus error on the servos of the transfer, which every
+        caller handles. The SDK marks the port busy for the transfer: it is free again."""
+        try:
+            yield
+        except OSError as err:
+            self.port.is_using = False
+            raise BusError(f"serial port: {err}", list(ids)) from err
+
     # -- whole bus -----------------------------------------------------------------------------
     def write_goals(self, goals: dict[int, int]) -> None:
         """Every servo's goal position in one sync write (broadcast: no reply to check)."""
@@ -85,7 +97,8 @@ class ServoBus:
         for sid, goal in goals.items():
             value = int(goal)
             self._goals.addParam(sid, [value & 0xFF, (value >> 8) & 0xFF])
-        result = self._goals.txPacket()
+        with self._port_errors(goals):
+            result = self._goals.txPacket()
         if result != COMM_SUCCESS:
             raise BusError(f"sync write failed: {self.packet.getTxRxResult(result)}", list(goals))
 
@@ -99,7 +112,8 @@ class ServoBus:
             )
             for sid in ids:
                 group.addParam(sid)
-        result = group.txRxPacket()
+        with self._port_errors(ids):
+            result = group.txRxPacket()
         if result != COMM_SUCCESS:
             silent = self.unanswering(ids)
             message = self.packet.getTxRxResult(result)
@@ -125,21 +139,24 @@ class ServoBus:
 
     # -- one servo -----------------------------------------------------------------------------
     def ping(self, servo_id: int) -> bool:
-        model, result, _ = self.packet.ping(self.port, servo_id)
+        with self._port_errors([servo_id]):
+            model, result, _ = self.packet.ping(self.port, servo_id)
         return result == COMM_SUCCESS and model == xl320.MODEL_NUMBER
 
     def write(self, servo_id: int, address: int, value: int, size: int) -> None:
-        if size == 1:
-            result, error = self.packet.write1ByteTxRx(self.port, servo_id, address, int(value))
-        else:
-            result, error = self.packet.write2ByteTxRx(self.port, servo_id, address, int(value))
+        with self._port_errors([servo_id]):
+            if size == 1:
+                result, error = self.packet.write1ByteTxRx(self.port, servo_id, address, int(value))
+            else:
+                result, error = self.packet.write2ByteTxRx(self.port, servo_id, address, int(value))
         self._check(servo_id, f"write {value} at {address}", result, error)
 
     def read(self, servo_id: int, address: int, size: int) -> int:
-        if size == 1:
-            value, result, error = self.packet.read1ByteTxRx(self.port, servo_id, address)
-        else:
-            value, result, error = self.packet.read2ByteTxRx(self.port, servo_id, address)
+        with self._port_errors([servo_id]):
+            if size == 1:
+                value, result, error = self.packet.read1ByteTxRx(self.port, servo_id, address)
+            else:
+                value, result, error = self.packet.read2ByteTxRx(self.port, servo_id, address)
         self._check(servo_id, f"read at {address}", result, error)
         return int(value)
 
@@ -152,7 +169,8 @@ class ServoBus:
 
     def reboot(self, servo_id: int, wait_s: float = 0.5) -> None:
         """Reboot one servo (clears its hardware error; torque comes back off) and wait for it."""
-        result, error = self.packet.reboot(self.port, servo_id)
+        with self._port_errors([servo_id]):
+            result, error = self.packet.reboot(self.port, servo_id)
         self._check(servo_id, "reboot", result, error)
         time.sleep(wait_s)
 

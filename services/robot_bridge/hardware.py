@@ -153,21 +153,23 @@ class GripperHardware:
         vid, v = self.config.valve.id, self.config.valve
         goal = valve_servo_goal(self._image_degrees(angle))
         lock = self.fingers.bus_lock
-        with lock:
-            self.bus.set_limits(vid, v.moving_speed, v.torque_limit)
-            self.bus.set_torque(True, [vid])
-            self.bus.write(vid, xl320.GOAL_POSITION, goal, 2)
-        end = time.monotonic() + VALVE_TURN_TIMEOUT_S
-        while True:
+        try:
             with lock:
-                present = self.bus.read(vid, xl320.PRESENT_POSITION, 2)
-            arrived = abs(present - goal) <= VALVE_TOLERANCE_STEPS
-            if arrived or time.monotonic() > end or self.fingers.estopped:
-                break
-            self.fingers.touch()  # the fingers hold home meanwhile: the watchdog must not fire
-            time.sleep(0.02)
-        with lock:
-            self.bus.set_torque(False, [vid])  # free, so the fingers can turn it
+                self.bus.set_limits(vid, v.moving_speed, v.torque_limit)
+                self.bus.set_torque(True, [vid])
+                self.bus.write(vid, xl320.GOAL_POSITION, goal, 2)
+            end = time.monotonic() + VALVE_TURN_TIMEOUT_S
+            while True:
+                with lock:
+                    present = self.bus.read(vid, xl320.PRESENT_POSITION, 2)
+                arrived = abs(present - goal) <= VALVE_TOLERANCE_STEPS
+                if arrived or time.monotonic() > end or self.fingers.estopped:
+                    break
+                self.fingers.touch()  # the fingers hold home meanwhile: the watchdog must not fire
+                time.sleep(0.02)
+        finally:
+            with lock:  # free, so the fingers can turn it; also when the turn failed midway
+                self.bus.set_torque(False, [vid])
 
     def _report(self, report, reason: str) -> dict:
         state = report.state if report is not None else None

@@ -106,7 +106,15 @@ class SafeFingers:
         return safe, bool(np.any(safe != wanted))
 
     def arm(self) -> ServoState:
-        """Limits set, torque on, goals at the present positions (no jump): ready for homing."""
+        """Limits set, torque on, goals at the present positions (no jump): ready for homing. Only
+        a ready gripper: one waiting for its operator is re-armed by the operator (`rearm`)."""
+        with self._lock:
+            self._refuse_if_stopped()
+            if self.state is not State.READY:
+                raise Refused(f"the bridge is {self.state.value}: {self.fault}")
+            return self._arm()
+
+    def _arm(self) -> ServoState:
         with self._lock:
             self._refuse_if_stopped()
             for sid in self.ids:
@@ -266,7 +274,7 @@ class SafeFingers:
             with self._lock:
                 for sid in servo_ids:
                     self.bus.reboot(sid, self.safety.reboot_wait_s)
-                self.arm()
+                self._arm()
             homed = self.go_home()
         except (BusError, Refused) as e:
             homed, self.fault = False, f"{self.fault}; recovery failed: {e}"
@@ -279,9 +287,10 @@ class SafeFingers:
             self._torque_off()  # a servo that cannot hear it is the fault already reported
 
     def _torque_off(self) -> list[int]:
-        """Torque off on every servo that answers, one by one; returns those that did not."""
+        """Torque off on every servo of the bus that answers (the valve's too: a turn cut short
+        may have left it on), one by one; returns those that did not."""
         unreached = []
-        for sid in self.ids:
+        for sid in dict.fromkeys((*self.ids, *getattr(self.bus, "ids", ()))):
             try:
                 self.bus.set_torque(False, [sid])
             except BusError:

@@ -180,7 +180,10 @@ class BridgeServer:
 
     def _watchdog_loop(self) -> None:
         while not self._stop.wait(WATCHDOG_POLL_S):
-            self._safety.poll_watchdog()
+            try:
+                self._safety.poll_watchdog()
+            except Exception as err:  # noqa: BLE001 -- the watchdog must outlive any one poll
+                self.log(f"watchdog poll failed: {type(err).__name__}: {err}")
 
     @contextmanager
     def serve(self) -> Iterator[BridgeServer]:
