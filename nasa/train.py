@@ -40,9 +40,10 @@ class Trainer:
         torch.manual_seed(c.seed)  # before any network is built
         self.env = envs.from_config(c.env, c.seed)
         self.eval_env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
+        # Where the evaluation draws stood when the run began, not at the checkpoint resumed from.
+        self.restart_eval_draws = draws_restarter(self.eval_env, c.eval_same_episodes)
         if state is not None:  # before any file is opened: a state refused leaves the run as it was
             self._restore_envs(state)
-        self.restart_eval_draws = draws_restarter(self.eval_env, c.eval_same_episodes)
         self.run_config = run_config.RunConfig(c, self.env.spec)
         spec = self.env.spec
         self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)

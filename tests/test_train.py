@@ -61,13 +61,16 @@ def test_resume_continues_exactly(tmp_path, algo):
         assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
 
 
-def test_resume_continues_exactly_on_the_gripper_stand_in(tmp_path):
+@pytest.mark.parametrize("same_episodes", [False, True])
+def test_resume_continues_exactly_on_the_gripper_stand_in(tmp_path, same_episodes):
     """The stand-in carries the valve and the fingers from one episode into the next, in training
-    and in evaluation: a resumed run must get them back as they were."""
+    and in evaluation: a resumed run must get them back as they were, and with
+    --eval-same-episodes evaluate the episodes the run began with."""
     def config(steps):
         c = tiny_config(steps=steps)
         c.env.task = "gripper-valve"
         c.env.action_repeat = 5  # 10-step episodes
+        c.eval_same_episodes = same_episodes
         return c
 
     Trainer.create(config(80), tmp_path / "straight").run()
