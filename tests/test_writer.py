@@ -78,6 +78,9 @@ def test_replay_gone_loses_the_in_flight_batches_and_breaks_the_episode():
     assert w.broken  # still: the episode under way stays abandoned
     w.begin_episode()  # a new episode starts from its reset frame: accepted whatever came before
     assert not w.broken and w.acquire(stop) and w.in_flight == 1
+    w.on_replay(False)
+    w.begin_episode()  # the replay went during the reset: this episode is not sent either
+    assert w.broken and not w.acquire(stop)
 
 
 def test_a_writer_blocked_when_the_replay_goes_is_released_and_sends_nothing():

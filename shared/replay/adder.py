@@ -151,9 +151,10 @@ class SendWindow:
             self._cv.notify_all()
 
     def begin_episode(self) -> None:
-        """A new episode starts with its reset frame: the replay accepts it whatever came before."""
+        """A new episode starts with its reset frame: the replay accepts it whatever came before,
+        if it is there (it may have gone during the reset)."""
         with self._cv:
-            self.broken = False
+            self.broken = not self.alive
 
     def wait_alive(self, stop: StopFlag, what: str = "the replay") -> bool:
         """Block until the replay is alive (True) or stop is set (False)."""
