@@ -14,6 +14,7 @@ import pickle
 import random
 import signal
 import threading
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -65,9 +66,11 @@ def save(path: str | Path, state: dict) -> None:
 
 
 def load(path: str | Path, device: torch.device | str = "cpu") -> dict:
+    _check_crcs(Path(path))
     try:
         state = torch.load(Path(path), map_location=device, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError) as err:
+    except (RuntimeError, EOFError, pickle.UnpicklingError, UnicodeDecodeError, KeyError, AttributeError,
+            ValueError) as err:
         # torch's own text for a foreign or truncated file suggests weights_only=False, which would
         # run whatever the file holds: name the cause in one line instead.
         text = str(err)
@@ -81,6 +84,19 @@ def load(path: str | Path, device: torch.device | str = "cpu") -> dict:
             "it cannot be continued; start the run again in a new folder"
         )
     return state
+
+
+def _check_crcs(path: Path) -> None:
+    """torch writes a CRC-32 for each record of its zip file and does not check them on load: a
+    damaged byte in a tensor would load as a wrong weight. Checked here first."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError) as err:
+        raise CheckpointError(f"{path} is not a readable checkpoint: {err}") from err
+    if bad is not None:
+        raise CheckpointError(f"{path} is damaged: its record {bad} fails its checksum; it cannot be "
+                              "continued (an older copy, or start the run again in a new folder)")
 
 
 def rng_state(rng: np.random.Generator) -> dict:

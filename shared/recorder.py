@@ -102,7 +102,11 @@ class Recorder:
     def restore(self, state: dict, agent: Agent, rng: np.random.Generator, truncate: bool) -> Counters:
         """Load a checkpoint's agent and random states; with `truncate`, drop the CSV rows written
         after it (the trainer replays those steps exactly; the learner keeps what the fleet reported)."""
-        agent.load_state_dict(state["agent"])
+        try:
+            agent.load_state_dict(state["agent"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise checkpoint.CheckpointError(
+                f"the checkpoint's agent does not fit this run's algorithm and settings: {err}") from err
         checkpoint.restore_rng_state(rng, state["rng"])
         if truncate:
             self.eval_log.truncate(int(state["eval_rows"]))

@@ -5,10 +5,12 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from nasa.train import CHECKPOINT_FILE, Trainer
 from shared.config import default_config
+from shared.recorder import Recorder
 from shared.runlog import read_rows
 
 VOLATILE = {"steps_per_s", "wall_s"}  # timing columns differ between runs by nature
@@ -261,3 +263,29 @@ def test_a_ctrl_c_during_a_checkpoint_waits_for_it_and_then_interrupts(tmp_path)
     with checkpoint.sigint_deferred():  # no Ctrl-C: nothing is raised afterwards
         checkpoint.save(path, {"step": 8})
     assert checkpoint.load(path)["step"] == 8
+
+
+def test_a_checkpoint_with_a_damaged_byte_or_of_another_algorithm_is_refused(tmp_path):
+    import torch
+
+    from shared import checkpoint
+    from shared.agents import make_agent
+
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=40), run).run()
+    path = run / CHECKPOINT_FILE
+    good = path.read_bytes()
+    body = bytearray(good)
+    body[len(body) // 2] ^= 0x01  # one bit inside the tensor data, most of the file
+    path.write_bytes(bytes(body))
+    with pytest.raises(checkpoint.CheckpointError, match="fails its checksum|not a readable checkpoint"):
+        checkpoint.load(path)
+    path.write_bytes(good)
+    state = checkpoint.load(path)
+    for algo in ("pixel_td3", "sac_ae"):  # a nasa_td3 checkpoint: more networks, or other ones
+        c = tiny_config(algo)
+        other = make_agent(algo, (9, 32, 32), 2, c.agent, torch.device("cpu"))
+        before = {k: v.clone() for k, v in other.policy_state_dict().items()}
+        with pytest.raises(checkpoint.CheckpointError, match="does not fit this run's algorithm"):
+            Recorder(tmp_path / algo, 2).restore(state, other, np.random.default_rng(0), truncate=False)
+        assert all(torch.equal(before[k], v) for k, v in other.policy_state_dict().items())

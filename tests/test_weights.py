@@ -57,7 +57,16 @@ def test_malformed_weights_are_reported_and_leave_the_agent_as_it_was():
     tensors[name][1] = [1, 2, 3]  # a shape that does not match its bytes
     sub.offer(wire.encode(wire.Weights(1, 1, 0, tensors)))
     assert not sub.maybe_load()
-    assert len(bad) == 2 and sub.version is None
+    # Well-formed tensors, all of the right shapes but the last: the others must not load either.
+    state = other.policy_state_dict()
+    last = list(state)[-1]
+    state[last] = torch.zeros(*state[last].shape, 2)
+    sub.offer(wire.encode(wire.Weights(1, 2, 0, wire.pack_tensors(state))))
+    assert not sub.maybe_load()
+    missing = dict(list(other.policy_state_dict().items())[:-1])  # one network's tensor left out
+    sub.offer(wire.encode(wire.Weights(1, 3, 0, wire.pack_tensors(missing))))
+    assert not sub.maybe_load()
+    assert len(bad) == 4 and sub.version is None and "expected" in bad[2] and "missing" in bad[3]
     assert all(torch.equal(before[k], v) for k, v in actor.policy_state_dict().items())
 
 

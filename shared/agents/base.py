@@ -58,6 +58,22 @@ def module_state(state: dict[str, torch.Tensor], prefix: str) -> dict[str, torch
     return {k[len(head):]: v for k, v in state.items() if k.startswith(head)}
 
 
+def check_fits(expected: dict[str, torch.Tensor], given: dict, what: str) -> None:
+    """ValueError unless `given` has exactly `expected`'s tensors, each of its shape and a floating
+    dtype where it is floating: checked whole before anything is loaded, as load_state_dict
+    copies every tensor that fits before it raises on one that does not."""
+    missing, extra = sorted(set(expected) - set(given)), sorted(set(given) - set(expected))
+    if missing or extra:
+        raise ValueError(f"{what}: missing {missing[:4]}, unexpected {extra[:4]}")
+    for key, want in expected.items():
+        got = given[key]
+        if not isinstance(got, torch.Tensor) or got.shape != want.shape:
+            shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
+            raise ValueError(f"{what}: {key} is {shape}, expected {tuple(want.shape)}")
+        if want.is_floating_point() != got.is_floating_point():
+            raise ValueError(f"{what}: {key} is {got.dtype}, expected {want.dtype}")
+
+
 def to_obs_tensor(obs: np.ndarray, device: torch.device) -> torch.Tensor:
     """A (C, H, W) uint8 observation as a (1, C, H, W) uint8 tensor on `device`; the cast happens there."""
     return torch.as_tensor(obs, device=device).unsqueeze(0)
@@ -209,8 +225,17 @@ class ModuleStateMixin:
         return state
 
     def load_state_dict(self, state: dict) -> None:
+        """ValueError, with nothing loaded, unless every network's tensors fit this agent's."""
+        modules, optimizers = self._modules(), self._optimizers()
+        for name, module in modules.items():
+            if not isinstance(state.get(name), dict):
+                raise ValueError(f"the state has no {name!r}: is it another algorithm's?")
+            check_fits(module.state_dict(), state[name], name)
+        known = {*modules, *optimizers}
+        if extra := sorted(k for k, v in state.items() if isinstance(v, dict) and k not in known):
+            raise ValueError(f"the state holds {extra}, which this agent has not: is it another algorithm's?")
         self._graphed = None  # the optimizers' new state tensors are not the captured ones
-        for name, module in self._modules().items():
+        for name, module in modules.items():
             module.load_state_dict(state[name])
         for name, opt in self._optimizers().items():
             opt.load_state_dict(state[name])
@@ -224,5 +249,7 @@ class ModuleStateMixin:
         }
 
     def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """ValueError, with nothing loaded, unless the tensors are exactly this agent's policy's."""
+        check_fits(self.policy_state_dict(), state, "the policy's weights")
         for prefix, module in self._policy_modules().items():
             module.load_state_dict(module_state(state, prefix))
