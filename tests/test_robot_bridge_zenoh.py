@@ -62,8 +62,8 @@ def test_the_bridge_is_transparent_for_the_stand_in(sessions) -> None:
                 assert np.array_equal(ts.frame, frame) and ts.reward == reward and ts.last == last
                 assert ts.last == (i == EPISODE_STEPS - 1)
             assert env.info["target_angle"] == local.target_angle and len(env.info["positions"]) == 4
-            _, reward, _, last = env.step(np.zeros(4))  # past the end: truncated, no reward
-            assert last and reward == 0.0 and "reset first" in env.info["reason"]
+            with pytest.raises(BridgeUnavailable, match="reset first"):
+                env.step(np.zeros(4))  # past the end: refused, no transition
         # The bridge is gone: its token went with it, and a reset fails instead of hanging.
         wait_until(lambda: not env.alive())
         assert env.wait_alive(stop=lambda: True) is False  # an actor told to stop does not wait
@@ -98,9 +98,9 @@ def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions, endpo
             actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "test button")))
             wait_until(lambda: server.estopped)
             actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "pressed twice")))  # idempotent
-            _, reward, _, last = env.step(np.zeros(4))
-            assert last and reward == 0.0 and "e-stop" in env.info["reason"]
-            assert env.info["safety"]["state"] == "estop"
+            with pytest.raises(BridgeUnavailable, match="refused a step: e-stop"):
+                env.step(np.zeros(4))  # not executed: no transition for the replay
+            assert env.info["safety"]["state"] == "estop" and "e-stop" in env.info["reason"]
             with pytest.raises(BridgeUnavailable, match="e-stop"):
                 env.reset()
             operate.send_estop("g2", False, "operator re-arm", endpoint)  # the operator's command
@@ -237,3 +237,17 @@ def test_an_estop_that_cannot_go_out_says_so_and_exits_1(endpoint: str) -> None:
     assert result.returncode == 1
     assert result.stderr.startswith(f"NOT sent: estop to bridge g1: no Zenoh router answered at {endpoint}")
     assert "Traceback" not in result.stderr and "sent estop" not in result.stdout
+
+
+def test_a_stale_step_is_refused_and_leaves_the_live_episode_going() -> None:
+    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
+    server = BridgeServer(None, "g5", sim, "gripper-valve", log=lambda _: None)
+    try:
+        live = server.handle_reset(wire.BridgeReset("b"))
+        action = np.zeros(4, "<f4").tobytes()
+        stale = server.handle_step(wire.BridgeStep("a", live.episode - 1, 0, action))  # another client's
+        assert not stale.ok and "stale step" in stale.reason
+        again = server.handle_step(wire.BridgeStep("b", live.episode, 0, action))
+        assert again.ok and not again.last and again.step == 1
+    finally:
+        sim.close()

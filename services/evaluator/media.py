@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.agents.base import module_state
+from shared.agents.base import check_fits, module_state
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.video import (
     CAMERA_SIZE,
@@ -49,7 +49,9 @@ class AutoencoderTap:
         module = getattr(self.agent, "decoder", None)
         if decoder and module is None:
             raise ValueError(f"weights carry a decoder, but {type(self.agent).__name__} has none")
-        self.agent.load_policy_state_dict(state)
+        if decoder:  # checked before anything loads, as the policy is
+            check_fits(module.state_dict(), decoder, "the decoder's weights")
+        self.agent.load_policy_state_dict({k: v for k, v in state.items() if not k.startswith("decoder.")})
         if decoder:
             module.load_state_dict(decoder)
         self.autoencoder = self.agent if decoder else None

@@ -155,6 +155,9 @@ class BridgeEnv:
         payload = np.asarray(action, dtype="<f4").tobytes()
         msg = wire.BridgeStep(self.client, self.episode, self._step, payload)
         r = self._ask(self.keys.step, msg, wire.BridgeReply)
+        if not r.ok:  # not executed (an e-stop, a stale step): the episode is abandoned, nothing stored
+            self.info = r.info
+            raise BridgeUnavailable(f"bridge {self.keys.prefix} refused a step: {r.reason}")
         self._step += 1
         return self._frame(r), r.reward, r.discount, r.last
 

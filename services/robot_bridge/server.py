@@ -81,10 +81,13 @@ class BridgeServer:
 
     def handle_step(self, msg: wire.BridgeStep) -> wire.BridgeReply:
         action = wire.array(msg.action, "<f4", (int(self.env.action_dim),))
+        # Refused, not answered as a step: a transition that never ran must not reach the replay.
+        # A stale step (another client's, or one sent again) leaves the live episode as it is.
         if msg.episode != self.episode or msg.step != self.step_index or self._done:
-            return self._ended(f"stale step (episode {msg.episode} step {msg.step}): reset first")
+            return self._refusal(f"stale step (episode {msg.episode} step {msg.step}): reset first")
         if self.estopped:
-            return self._ended(f"e-stop: {self.estop_reason}")
+            self._done = True
+            return self._refusal(f"e-stop: {self.estop_reason}")
         start = time.perf_counter()
         frame, reward, discount, last = self.env.step(np.asarray(action, np.float64))
         env_s = time.perf_counter() - start
@@ -116,13 +119,6 @@ class BridgeServer:
             True, reason, self.episode, self.step_index, list(frame.shape), data,
             reward, discount, first, last, self._info(env_s, reason),
         )
-
-    def _ended(self, reason: str) -> wire.BridgeReply:
-        """The episode ends here, truncated: the last frame again, no reward."""
-        self._done = True
-        reply = self._reply(self._frame, 0.0, 1.0, False, True, 0.0, reason)
-        reply.info.update(truncated=True, reason=reason)
-        return reply
 
     def _refusal(self, reason: str) -> wire.BridgeReply:
         safety = self._safety.status() if self._safety is not None else {"state": "ready"}
