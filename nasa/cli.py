@@ -76,9 +76,11 @@ def train(argv: list[str]) -> None:
     from shared.faults import lock_run
 
     if cmd.resume is not None:
+        check_update_device(cmd.config.agent, device)  # --cuda-graph may be asked for on resuming
         with lock_run(cmd.resume, "nasa train --resume"):
             print(f"nasa train: resuming {cmd.resume}", flush=True)
-            run_until_stopped(Trainer.resume(cmd.resume, steps=steps), cmd.resume)
+            trainer = Trainer.resume(cmd.resume, steps=steps, cuda_graph=cmd.config.agent.cuda_graph)
+            run_until_stopped(trainer, cmd.resume)
         return
     c = cmd.config
     from shared.envs import check_task

@@ -71,8 +71,9 @@ class Trainer:
         return trainer
 
     @classmethod
-    def resume(cls, out: str | Path, steps: int | None = None) -> Trainer:
-        """Continue the run in `out` exactly from its last checkpoint (optionally to a new step total)."""
+    def resume(cls, out: str | Path, steps: int | None = None, cuda_graph: bool | None = None) -> Trainer:
+        """Continue the run in `out` exactly from its last checkpoint (optionally to a new step total,
+        or with its updates replayed as CUDA graphs or not)."""
         out = Path(out)
         body = run_config.read_folder(out)
         if body is None:
@@ -90,13 +91,16 @@ class Trainer:
                 raise ConfigError(f"--steps {steps}: the run's checkpoint already holds step {held}; "
                                   "give a larger total")
             config.steps = steps
+        changed = steps is not None
+        if cuda_graph is not None and cuda_graph != config.agent.cuda_graph:
+            config.agent.cuda_graph, changed = cuda_graph, True
         trainer = cls(config, out, state)
         if state is not None:
             trainer._restore(state)
         else:  # killed before its first checkpoint: start over
             trainer.store.truncate(0)
             trainer.recorder.clear()
-        if steps is not None:
+        if changed:
             run_config.write_folder(out, trainer.run_config)
         return trainer
 

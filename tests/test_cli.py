@@ -85,6 +85,24 @@ def test_cuda_graph_on_a_cpu_is_refused_before_a_run_folder_is_made(tmp_path, ca
     assert not (tmp_path / "run").exists()
 
 
+def test_cuda_graph_asked_for_on_resuming_is_applied_or_refused_not_ignored(tmp_path, capsys):
+    import json
+
+    from nasa.train import Trainer
+    from tests.tiny import tiny_config
+
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=20), run)  # a run folder: config.json, no checkpoint yet
+    before = (run / "config.json").read_text()
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--resume", str(run), "--cuda-graph"])
+    assert exit_.value.code == 2 and "agent.cuda_graph needs a CUDA device" in capsys.readouterr().err
+    assert (run / "config.json").read_text() == before
+    trainer = Trainer.resume(run, cuda_graph=False)  # as asked: written to the run's settings
+    assert not trainer.config.agent.cuda_graph
+    assert json.loads((run / "config.json").read_text())["agent"]["cuda_graph"] is False
+
+
 def test_nasa_up_declares_no_config_field_of_its_own():
     launcher = {f.name for f in dataclasses.fields(UpCommand)}
     assert not launcher & {f.name for f in dataclasses.fields(TrainConfig)}
