@@ -98,6 +98,12 @@ def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path):
     again = core_on(tmp_path)
     assert again.resumed and again.agent.num_updates == 2 and again.policy_version == 2
     assert again.env_steps == 60 and again.counters.wall_s == 4.0
+    # An episode that ended after the checkpoint stays in train.csv: a restart numbers on from it.
+    again.record_episode(10.0, 25, wall_s=6.0)
+    third = core_on(tmp_path)
+    third.record_episode(11.0, 25, wall_s=third.counters.wall_s + 1.0)
+    rows = read_rows(tmp_path / "train.csv")
+    assert [r["episode"] for r in rows] == ["1", "2"] and float(rows[1]["wall_s"]) >= 6.0
     for name, tensor in core.agent.policy_state_dict().items():
         assert torch.equal(tensor, again.agent.policy_state_dict()[name])
 

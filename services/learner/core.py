@@ -23,6 +23,7 @@ from shared.agents.base import nonfinite_skips
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
+from shared.runlog import read_rows
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 from shared.service import Log
@@ -183,6 +184,16 @@ class LearnerCore:
 
     def restore(self, state: dict) -> None:
         self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=False)
+        # train.csv keeps the episodes that ended after the checkpoint (they happened): number on
+        # from the last of them, and let the clock not run back.
+        for row in reversed(read_rows(self.recorder.train_log.path)):
+            try:
+                episode, wall = int(row["episode"]), float(row["wall_s"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            self.counters.episodes = max(self.counters.episodes, episode)
+            self.counters.wall_s = max(self.counters.wall_s, wall)
+            break
         self.policy_version = int(state["policy_version"])
         self.last_checkpoint_step = self.counters.env_steps
         self.board.seen_env_steps(self.counters.env_steps)
