@@ -23,7 +23,7 @@ import tyro
 
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_task
-from shared.run_config import read_json_object
+from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import read_rows
 
 Action = Literal["start", "resume", "skip"]
@@ -87,6 +87,21 @@ def plan_runs(
     return runs
 
 
+def settings_mismatch(run: Run, preset: str, device: str, extra: list[str]) -> str | None:
+    """Why the run already in `run.out` is not the one this command would start there (another
+    preset, flags, task, algorithm or seed), or None. The step budget and the device may differ:
+    a resumed run keeps its own device, and --steps extends it."""
+    from nasa.cli import parse_train
+
+    try:
+        saved = read_config(run.out / "config.json")
+    except (ConfigError, TypeError, ValueError):
+        return None  # unreadable: `nasa train --resume` names it, and that run fails alone
+    wanted, _, _ = parse_train(start_args(run, preset, device, None, extra))
+    fields = differing_fields(wanted.config, saved, ignore=("steps", "device", *RESUME_MAY_CHANGE))
+    return ", ".join(fields) if fields else None
+
+
 def train_command(
     run: Run, preset: str, device: str, steps: int | None, extra: list[str]
 ) -> list[str]:
@@ -98,10 +113,14 @@ def train_command(
         return [*base, "--resume", str(run.out), *steps_flag]
     if run.action != "start":
         raise ValueError(f"run {run.out} is to be skipped, it has no command")
-    return [
-        *base, "--algo", run.algo, "--task", run.task, "--seed", str(run.seed),
-        "--out", str(run.out), "--preset", preset, "--device", device, *steps_flag, *extra,
-    ]
+    return [*base, *start_args(run, preset, device, steps, extra)]
+
+
+def start_args(run: Run, preset: str, device: str, steps: int | None, extra: list[str]) -> list[str]:
+    """`nasa train`'s flags that start `run` in its folder."""
+    steps_flag = ["--steps", str(steps)] if steps is not None else []
+    return ["--algo", run.algo, "--task", run.task, "--seed", str(run.seed), "--out", str(run.out),
+            "--preset", preset, "--device", device, *steps_flag, *extra]
 
 
 def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.0) -> list[Run]:
@@ -208,6 +227,16 @@ def reproduce(argv: list[str]) -> None:
     if cmd.results.exists() and not cmd.results.is_dir():
         raise ConfigError(f"--results {cmd.results} is a file, not a folder")
     runs = plan_runs(cmd.results, tasks, algos, list(range(cmd.seeds)), cmd.steps)
+    # A folder holding a run of other settings would be resumed, or counted finished, as this one.
+    mismatched = [(r, why) for r in runs if r.action != "start"
+                  and (why := settings_mismatch(r, cmd.preset, cmd.device, extra))]
+    if mismatched:
+        shown = "; ".join(f"{r.out}: {why}" for r, why in mismatched[:3])
+        more = f" (and {len(mismatched) - 3} more)" if len(mismatched) > 3 else ""
+        raise ConfigError(
+            f"--results {cmd.results} holds runs made with other settings than --preset {cmd.preset} "
+            f"and the flags after -- give: {shown}{more}. Use the settings they were made with, or "
+            "another --results folder")
     counts = {a: sum(r.action == a for r in runs) for a in ("start", "resume", "skip")}
     print(
         f"nasa reproduce: {len(runs)} runs ({len(tasks)} tasks x {len(algos)} algos x {cmd.seeds} seeds) "

@@ -13,7 +13,7 @@ import tyro
 from nasa import reproduce as rep
 from nasa.cli import TrainCommand, main
 from nasa.reproduce import Run, execute, plan_runs, run_folder, train_command
-from shared.config import default_config
+from shared.config import default_config, to_dict
 from shared.runlog import CsvLog, eval_fields
 
 TASKS = ["cartpole-balance", "walker-walk"]
@@ -24,8 +24,9 @@ SEEDS = [0, 1]
 def make_run(out: Path, task: str, algo: str, seed: int, total: int, last: int | None, ckpt: bool) -> None:
     """A run folder as the trainer leaves it: config.json, eval rows up to `last`, maybe a checkpoint."""
     out.mkdir(parents=True)
-    config = {"algo": algo, "seed": seed, "steps": total, "env": {"task": task}}
-    (out / "config.json").write_text(json.dumps(config))
+    config = default_config(algo, "paper", task)
+    config.seed, config.steps, config.env.task = seed, total, task
+    (out / "config.json").write_text(json.dumps(to_dict(config)))
     log = CsvLog(out / "eval.csv", eval_fields(1))
     for step in range(0, (last if last is not None else -1) + 1, 100):
         log.append({"step": step, "mean": 1.0, "std": 0.0, "return_0": 1.0})
@@ -160,7 +161,9 @@ def test_second_invocation_skips_what_the_first_finished(
 
     def fake_train_command(run: Run, *args: object) -> list[str]:
         launched.append(run)
-        config = json.dumps({"algo": run.algo, "seed": run.seed, "steps": 300, "env": {"task": run.task}})
+        made = default_config(run.algo, "paper", run.task)  # what nasa train writes
+        made.seed, made.steps, made.env.task = run.seed, 300, run.task
+        config = json.dumps(to_dict(made))
         script = (
             "import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
             "(out / 'config.json').write_text(sys.argv[2]); "
@@ -198,3 +201,22 @@ def test_results_that_name_a_file_exit_2(tmp_path: Path, capsys: pytest.CaptureF
         main([*base_args(tmp_path / "results"), "--dry-run"])
     assert exc.value.code == 2
     assert "is a file, not a folder" in capsys.readouterr().err
+
+
+def test_runs_made_with_another_preset_are_not_resumed_or_counted_as_this_ones(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    results = tmp_path / "results"
+    out = run_folder(results, "cartpole-balance", "nasa_td3", 0)
+    out.mkdir(parents=True)
+    made = default_config("nasa_td3", "cpu-small", "cartpole-balance")
+    made.env.task, made.steps = "cartpole-balance", 2000
+    (out / "config.json").write_text(json.dumps(to_dict(made)))
+    args = ["reproduce", "--tasks", "cartpole-balance", "--algos", "nasa_td3", "--seeds", "1",
+            "--results", str(results), "--device", "cpu", "--dry-run"]
+    with pytest.raises(SystemExit) as done:
+        main([*args, "--preset", "paper"])
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and "other settings than --preset paper" in err and "seed0" in err
+    main([*args, "--preset", "cpu-small"])  # the settings it was made with: resumed
+    assert "0 to start, 1 to resume" in capsys.readouterr().out
