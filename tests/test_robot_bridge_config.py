@@ -43,7 +43,10 @@ BAD = [
     ("angle", "source", "encoder", "angle.source: 'encoder' is not one of aruco, servo"),
     ("angle", "direction", 2, "angle.direction: must be 1 or -1"),
     ("angle", "aruco_dictionary", "DICT_9X9", "angle.aruco_dictionary"),
-    ("safety", "step_timeout_s", 0, "safety.step_timeout_s: must be > 0"),
+    ("safety", "step_timeout_s", 0, "safety.step_timeout_s: must be a finite number > 0"),
+    ("safety", "reboot_wait_s", float("nan"), "safety.reboot_wait_s: must be a finite number >= 0"),
+    ("servos", "settle_s", float("inf"), "servos.settle_s: must be a finite number"),
+    ("servos", "settle_s", 10.0, "servos.settle_s: 10.0 must be below safety.step_timeout_s"),
     ("safety", "watchdog_off_s", 1.0, "safety.watchdog_off_s: 1.0 is below safety.watchdog_hold_s"),
 ]
 
@@ -80,3 +83,12 @@ def test_servo_angle_source_needs_a_valve_servo() -> None:
     raw["valve"]["id"] = 0
     with pytest.raises(config.GripperConfigError, match="needs a valve servo"):
         config.parse(raw)
+
+
+def test_an_infinite_watchdog_is_refused() -> None:
+    raw = example()
+    raw["safety"]["watchdog_hold_s"] = raw["safety"]["watchdog_off_s"] = float("inf")
+    with pytest.raises(config.GripperConfigError) as err:
+        config.parse(raw, "gripper.toml")
+    blamed = {p.split(":")[0] for p in err.value.problems}
+    assert blamed == {"safety.watchdog_hold_s", "safety.watchdog_off_s"}

@@ -30,7 +30,9 @@ def config(port: str, settle_s: float = 0.0, valve_speed: int = 1023) -> Gripper
         "valve": {"id": VALVE, "moving_speed": valve_speed},
         "camera": {"drop_frames": 0},
         "angle": {"source": "servo", "zero_deg": 150.0},
-        "safety": {"home_tolerance": 3, "reboot_wait_s": 0.0},
+        # A long settle (a step held in flight) needs a step timeout and a watchdog hold beyond it.
+        "safety": {"home_tolerance": 3, "reboot_wait_s": 0.0, "step_timeout_s": max(2.0, settle_s + 1.0),
+                   "watchdog_hold_s": max(2.0, settle_s + 1.0), "watchdog_off_s": max(10.0, settle_s + 2.0)},
     })
 
 

@@ -211,6 +211,13 @@ def _check(
         problems += _check_angle(angle, valve)
     if safety is not None:
         problems += _check_safety(safety)
+    if servos is not None and safety is not None and math.isfinite(servos.settle_s):
+        # A step waits settle_s for its goals to act: longer than its timeout truncates every
+        # step, and longer than the watchdog's hold has the watchdog hold the fingers mid-step.
+        bound = min(safety.step_timeout_s, safety.watchdog_hold_s)
+        if math.isfinite(bound) and bound > 0 and servos.settle_s >= bound:  # else blamed above
+            problems.append(f"servos.settle_s: {servos.settle_s} must be below safety.step_timeout_s and "
+                            f"safety.watchdog_hold_s ({bound})")
     return problems
 
 
@@ -251,16 +258,16 @@ def _check_angle(a: AngleConfig, valve: ValveServoConfig | None) -> list[str]:
 def _check_safety(s: SafetyConfig) -> list[str]:
     problems = []
     for key in ("step_timeout_s", "watchdog_hold_s", "watchdog_off_s", "home_timeout_s"):
-        if not getattr(s, key) > 0:
-            problems.append(f"safety.{key}: must be > 0, got {getattr(s, key)}")
+        if not (math.isfinite(getattr(s, key)) and getattr(s, key) > 0):  # inf: an interlock off
+            problems.append(f"safety.{key}: must be a finite number > 0, got {getattr(s, key)}")
     if s.watchdog_off_s < s.watchdog_hold_s:
         problems.append(
             f"safety.watchdog_off_s: {s.watchdog_off_s} is below safety.watchdog_hold_s ({s.watchdog_hold_s})"
         )
     if s.home_tolerance < 1:
         problems.append(f"safety.home_tolerance: must be >= 1, got {s.home_tolerance}")
-    if s.reboot_wait_s < 0:
-        problems.append(f"safety.reboot_wait_s: must be >= 0, got {s.reboot_wait_s}")
+    if not (math.isfinite(s.reboot_wait_s) and s.reboot_wait_s >= 0):
+        problems.append(f"safety.reboot_wait_s: must be a finite number >= 0, got {s.reboot_wait_s}")
     return problems
 
 
@@ -299,6 +306,6 @@ def _check_servos(s: ServoConfig, v: ValveServoConfig) -> list[str]:
             problems.append(f"{name}: {value} is outside 1..{top}")
     if s.max_step_change < 1:
         problems.append(f"servos.max_step_change: must be >= 1, got {s.max_step_change}")
-    if not s.settle_s >= 0:
-        problems.append(f"servos.settle_s: must be >= 0, got {s.settle_s}")
+    if not (math.isfinite(s.settle_s) and s.settle_s >= 0):
+        problems.append(f"servos.settle_s: must be a finite number >= 0, got {s.settle_s}")
     return problems
