@@ -120,7 +120,15 @@ class Trainer:
         self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=True)
         self.scalars.purge_step = self.counters.env_steps  # the steps after the checkpoint are run again
         self.last_checkpoint_step = self.counters.env_steps
-        self.store.truncate(int(state["replay_inserted"]))
+        inserted = int(state["replay_inserted"])
+        self.store.truncate(inserted)
+        held = min(inserted, self.store.capacity)
+        if (size := len(self.store)) < held:
+            # Rows the replay evicted after the checkpoint (its capacity is below the run's steps)
+            # do not come back: the run goes on from a smaller replay, not exactly as it would have.
+            print(f"nasa train: the replay holds {size} of the {held} rows it held at the checkpoint "
+                  f"(capacity {self.store.capacity}, evicted since): the resumed run does not continue "
+                  "exactly as an uninterrupted one would", flush=True)
 
     def _restore_envs(self, state: dict) -> None:
         for env, key in ((self.env, "env_rng"), (self.eval_env, "eval_env_rng")):

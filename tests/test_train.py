@@ -82,6 +82,20 @@ def test_resume_continues_exactly_on_the_gripper_stand_in(tmp_path, same_episode
         assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
 
 
+def test_a_resume_that_cannot_get_back_evicted_rows_says_so(tmp_path, capsys):
+    # Capacity 50 and a checkpoint at 40: the steps after it evict rows the checkpoint's replay held.
+    small = tiny_config(steps=60)
+    small.replay_capacity = 50
+    Trainer.create(small, tmp_path / "run").run()
+    capsys.readouterr()
+    Trainer.resume(tmp_path / "run", steps=80)
+    assert "holds 30 of the 40 rows it held at the checkpoint" in capsys.readouterr().out
+    Trainer.create(tiny_config(steps=60), tmp_path / "roomy").run()  # capacity 1000: nothing evicted
+    capsys.readouterr()
+    Trainer.resume(tmp_path / "roomy", steps=80)
+    assert "rows it held" not in capsys.readouterr().out
+
+
 def test_existing_run_folder_is_not_overwritten(tmp_path):
     Trainer.create(tiny_config(steps=40), tmp_path / "run").run()
     with pytest.raises(FileExistsError, match="--resume"):
