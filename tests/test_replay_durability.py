@@ -177,19 +177,26 @@ def test_snapshot_roundtrip_intrinsic_truncate_eviction(tmp_path: Path) -> None:
         np.testing.assert_array_equal(b[key], before[key])
 
 
+def hold_snapshot_writes(store: ReplayStore) -> tuple[threading.Event, threading.Event]:
+    """(writing, release): a snapshot's file write sets `writing`, then waits for `release` (as a
+    thread the scheduler holds back would), with the store's lock not held."""
+    writing, release = threading.Event(), threading.Event()
+    write = store._write_snapshot
+
+    def held_write(seg: int, state: dict) -> None:
+        writing.set()
+        assert release.wait(60), "test never released the snapshot writer"
+        write(seg, state)
+
+    store._write_snapshot = held_write
+    return writing, release
+
+
 def test_snapshot_does_not_stall_inserts(tmp_path: Path) -> None:
     """Inserts complete while a snapshot's file is being written (it is written without the lock)."""
     with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
         fill(store, range(60))
-        writing, release = threading.Event(), threading.Event()
-        write = store._write_snapshot
-
-        def held_write(seg: int, state: dict) -> None:
-            writing.set()
-            assert release.wait(60), "test never released the snapshot writer"
-            write(seg, state)
-
-        store._write_snapshot = held_write
+        writing, release = hold_snapshot_writes(store)
         snap = threading.Thread(target=store.snapshot)
         snap.start()
         assert writing.wait(30), "snapshot never reached its write"
@@ -219,15 +226,7 @@ def test_an_episode_that_grows_while_its_snapshot_is_written_reopens(tmp_path: P
 
         for t in range(10):
             add(t)
-        writing, release = threading.Event(), threading.Event()
-        write = store._write_snapshot
-
-        def held_write(seg: int, state: dict) -> None:
-            writing.set()
-            assert release.wait(60), "test never released the snapshot writer"
-            write(seg, state)
-
-        store._write_snapshot = held_write
+        writing, release = hold_snapshot_writes(store)
         store.snapshot(block=False)
         assert writing.wait(30), "snapshot never reached its write"
         for t in range(10, EP_LEN):  # new chunks of the open episode

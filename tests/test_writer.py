@@ -95,12 +95,17 @@ def test_a_writer_blocked_when_the_replay_goes_is_released_and_sends_nothing():
     assert result == [False] and w.in_flight == 0
 
 
-def test_no_ack_for_the_timeout_counts_the_in_flight_batches_lost():
-    messages: list[str] = []
-    w = window(max_in_flight=1, clock=FakeClock(step=7.0), messages=messages)
-    stop = StopFlag()
+def one_in_flight(messages: list[str]) -> tuple[SendWindow, StopFlag]:
+    """A window of one batch, that batch sent, on a clock where a minute passes in microseconds."""
+    w, stop = window(max_in_flight=1, clock=FakeClock(step=7.0), messages=messages), StopFlag()
     w.on_replay(True)
     assert w.acquire(stop)
+    return w, stop
+
+
+def test_no_ack_for_the_timeout_counts_the_in_flight_batches_lost():
+    messages: list[str] = []
+    w, stop = one_in_flight(messages)
     # The replay goes on storing (other actors' batches), but never acknowledges this one.
     threading.Timer(0.05, lambda: w.observe(8)).start()
     assert w.acquire(stop)  # returns once a (fake) minute has passed without an ack
@@ -111,10 +116,7 @@ def test_no_ack_for_the_timeout_counts_the_in_flight_batches_lost():
 def test_a_replay_that_stores_nothing_is_waited_on_not_sent_more():
     # Its rate limiter holds inserts while the learner is away: more batches would only queue there.
     messages: list[str] = []
-    w = window(max_in_flight=1, clock=FakeClock(step=7.0), messages=messages)
-    stop = StopFlag()
-    w.on_replay(True)
-    assert w.acquire(stop)
+    w, stop = one_in_flight(messages)
     result: list[bool] = []
     t = threading.Thread(target=lambda: result.append(w.acquire(stop)))
     t.start()
