@@ -101,6 +101,8 @@ def test_a_gripper_waiting_for_its_operator_is_not_re_armed_by_a_reset(gripper) 
     with pytest.raises(Refused, match="waiting_for_operator"):
         hw.reset()
     assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in IDS] == torque  # nothing armed
+    hw.fingers.poll_watchdog()  # it tells the servo that missed the torque-off again
+    assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in IDS] == [0] * 4
     hw.fingers.rearm()  # the operator's re-arm
     assert hw.fingers.state.value == "ready"
     hw.reset()

@@ -90,6 +90,7 @@ class SafeFingers:
         self.last_goals = self.home.copy()
         self.last_errors: dict[int, list[str]] = {}
         self._last_command = clock()
+        self._unreached: list[int] = []  # servos a torque-off while waiting for the operator missed
 
     # -- commands ------------------------------------------------------------------------------
     def action_to_goals(self, action: np.ndarray) -> np.ndarray:
@@ -213,6 +214,8 @@ class SafeFingers:
         """Hold, then torque off, when no command came for too long; call it periodically."""
         idle = self._clock() - self._last_command
         with self._lock:
+            if self.state is State.WAITING_FOR_OPERATOR and self._unreached:
+                self._unreached = self._torque_off()
             if self.estopped or self.state is not State.READY:
                 return self.watchdog
             try:
@@ -284,7 +287,9 @@ class SafeFingers:
         if not self.estopped:
             self.state = State.WAITING_FOR_OPERATOR
         with self._lock:
-            self._torque_off()  # a servo that cannot hear it is the fault already reported
+            # A servo that cannot hear it is the fault already reported; the watchdog tells it
+            # again until it does (a cable that comes back would leave it holding torque).
+            self._unreached = self._torque_off()
 
     def _torque_off(self) -> list[int]:
         """Torque off on every servo of the bus that answers (the valve's too: a turn cut short
