@@ -87,7 +87,7 @@ def test_the_evaluators_weights_go_once_per_eval_period_with_the_decoder_and_the
     assert "decoder.fc.weight" not in decoded(core.weights_message(epoch=1))
 
 
-def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path):
+def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path, monkeypatch):
     core = core_on(tmp_path)
     for _ in range(2):
         core.train_on(core.scorer.client.sample(16))
@@ -95,7 +95,11 @@ def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path):
     core.board.seen_env_steps(60)
     core.save_checkpoint(wall_s=4.0)
     assert (tmp_path / CHECKPOINT).exists()
+    # Restarted on a host whose clock is an hour behind: its weights must still be the newest.
+    stamp = wire.restart_stamp
+    monkeypatch.setattr(wire, "restart_stamp", lambda per_s, bits: stamp(per_s, bits) - 3_600_000)
     again = core_on(tmp_path)
+    assert again.epoch > core.epoch
     assert again.resumed and again.agent.num_updates == 2 and again.policy_version == 2
     assert again.env_steps == 60 and again.counters.wall_s == 4.0
     # An episode that ended after the checkpoint stays in train.csv: a restart numbers on from it.

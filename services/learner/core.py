@@ -60,6 +60,9 @@ class LearnerCore:
         self.eval = self.recorder.last_eval() or {"step": None, "mean": None, "std": None}
         self.last_scoring_s = 0.0  # the last train_on's time in scoring owed rows
         self._skips_seen = 0  # the agent's skipped optimizer steps after the last update
+        # Orders weights across learner restarts; past the checkpoint's, should this host's clock
+        # be behind the one the run's last learner ran on (actors keep the newest epoch's weights).
+        self.epoch = wire.restart_stamp(1000, 62)
         if (self.out / CHECKPOINT).exists():
             self.restore(checkpoint.load(self.out / CHECKPOINT, device))
 
@@ -171,7 +174,7 @@ class LearnerCore:
             counters = dataclasses.replace(self.counters, env_steps=self.env_steps, wall_s=wall_s)
             try:
                 self.recorder.checkpoint(self.out / CHECKPOINT, self.agent, self.rng, counters,
-                                         policy_version=self.policy_version)
+                                         policy_version=self.policy_version, epoch=self.epoch)
             except (OSError, RuntimeError) as err:  # a full disk (torch.save raises RuntimeError): retry
                 self.checkpoint_error = f"{type(err).__name__}: {err}"
             else:
@@ -195,6 +198,7 @@ class LearnerCore:
             self.counters.wall_s = max(self.counters.wall_s, wall)
             break
         self.policy_version = int(state["policy_version"])
+        self.epoch = max(self.epoch, int(state.get("epoch", -1)) + 1)
         self.last_checkpoint_step = self.counters.env_steps
         self.board.seen_env_steps(self.counters.env_steps)
         self.resumed = True

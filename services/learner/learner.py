@@ -67,7 +67,6 @@ class Learner:
             torch.set_num_threads(args.threads)
         self.client = ZenohReplayClient(session, self.keys, run.spec, self.log)
         self.core = LearnerCore(run, args.data, self.client, resolve_device(run.config.device))
-        self.epoch = wire.restart_stamp(1000, 62)  # orders weights across learner restarts
         self._evals: queue.Queue[wire.EvalResult] = queue.Queue()
         self._episodes: queue.Queue[tuple[float, int]] = queue.Queue()
         self._latest: dict[str, bytes] = {}  # the newest message of each weights key, for `.../latest`
@@ -159,7 +158,7 @@ class Learner:
     # -- the loop ----------------------------------------------------------------------
 
     def publish_weights(self, evaluation: bool = False) -> None:
-        msg = self.core.weights_message(self.epoch, evaluation)
+        msg = self.core.weights_message(self.core.epoch, evaluation)
         if msg is not None:  # never non-finite weights: the actors keep the last good ones
             which = "evaluation" if evaluation else "policy"
             self._latest[which] = msg
