@@ -8,6 +8,7 @@ import httpx
 import pytest
 from system_harness import ERROR_BUFFER, WARMUP, System, assert_eval_steps
 
+from nasa.up import other_run
 from shared.runlog import read_rows
 
 STEPS = 300
@@ -37,6 +38,8 @@ def test_system_end_to_end(tmp_path):
         assert "# TYPE nasa_intrinsic_scored_transitions_total counter" in metrics
         assert 'nasa_intrinsic_mean{name="novelty"} ' in metrics
         assert httpx.get(system.url + "/healthz", timeout=5).status_code == 200
+        # `nasa status --data` on this live run's folder takes this learner's status for its own.
+        assert other_run(s, tmp_path / "run") is None
 
         # The replay holds samples (= updates) to inserts (= env steps) at G = 1 within its error buffer.
         checks = 0
