@@ -81,6 +81,7 @@ class Child:
     pids: list[int] = field(default_factory=list)
     nice: int = 0  # added to the child's CPU niceness (lower priority)
     env: dict[str, str | None] = field(default_factory=dict)  # over the supervisor's; None: unset
+    started: float = 0.0  # when its current process started (monotonic)
 
 
 def child_env(base: dict[str, str], over: dict[str, str | None]) -> dict[str, str]:
@@ -93,17 +94,24 @@ def child_env(base: dict[str, str], over: dict[str, str | None]) -> dict[str, st
     return env
 
 
+STABLE_S = 120.0
+"""A child that ran this long before it died starts its count of restarts in a row again."""
+MAX_RESTART_DELAY_S = 30.0
+
+
 class Supervisor:
     """Starts services as child processes, restarts the ones that die, stops them all in order."""
 
     def __init__(self, env: dict[str, str], log_dir: Path | None, max_restarts: int = 20,
                  restart_delay_s: float = 1.0, cwd: str | None = None,
-                 command: Callable[[str], list[str]] = service_command) -> None:
+                 command: Callable[[str], list[str]] = service_command,
+                 stable_s: float = STABLE_S) -> None:
         self.env = env
         self.command = command
         self.log_dir = log_dir
         self.max_restarts = max_restarts
         self.restart_delay_s = restart_delay_s
+        self.stable_s = stable_s
         self.cwd = cwd
         self.children: dict[str, Child] = {}
         self.stopping = False
@@ -138,6 +146,7 @@ class Supervisor:
             if out is not None:
                 out.close()
         child.pids.append(child.proc.pid)
+        child.started = time.monotonic()
 
     def poll(self, on_event=print) -> None:  # noqa: ANN001
         """Restart children that died (not when they exited 0, and not while stopping)."""
@@ -156,10 +165,15 @@ class Supervisor:
                 on_event(f"{child.name} refused its input: {self.last_error(child)}; not restarted")
                 continue
             since = self._dead_since.setdefault(child.name, now)
+            if since - child.started >= self.stable_s:
+                child.restarts = 0  # it ran well for a while: a crash now and then is not a loop
+            # Each restart in a row waits twice as long as the one before (a crash loop backs off).
+            delay = min(self.restart_delay_s * 2 ** child.restarts, MAX_RESTART_DELAY_S)
             if child.restarts >= self.max_restarts:
                 child.exited = code
-                on_event(f"{child.name} exited with {code}; not restarted after {child.restarts} restarts")
-            elif now - since >= self.restart_delay_s:
+                on_event(f"{child.name} exited with {code}; not restarted after {child.restarts} restarts "
+                         "in a row")
+            elif now - since >= delay:
                 del self._dead_since[child.name]
                 child.restarts += 1
                 on_event(f"{child.name} exited with {code}: restarting it ({child.restarts})")
@@ -180,6 +194,14 @@ class Supervisor:
     def ended(self, roles: tuple[str, ...]) -> Child | None:
         """The first child of one of `roles` that ended for good (exited 0, refused, or out of restarts)."""
         return next((c for c in self.children.values() if c.role in roles and c.exited is not None), None)
+
+    def all_ended(self, role: str) -> Child | None:
+        """The last child of `role` to end for good, once every child of it has (else None). An
+        actor that ended with 0 (the run's steps are done) does not count."""
+        group = [c for c in self.children.values() if c.role == role]
+        if not group or any(c.exited is None or c.exited == 0 for c in group):
+            return None
+        return group[-1]
 
     def running(self) -> list[Child]:
         return [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
@@ -423,10 +445,13 @@ def up(argv: list[str]) -> None:
     from shared.faults import check_port_free, lock_run
 
     envs.check_task(c.env.task)  # an unknown task leaves no folder behind
-    lock = lock_run(data, f"nasa up (status port {cmd.port})")  # held until this process ends
-    check_port_free("127.0.0.1", cmd.port, "the status")
+    if cmd.router_port and cmd.router_port == cmd.port:
+        raise ConfigError(f"--port and --router-port are both {cmd.port}: the status API and the router "
+                          "each need a port of their own")
+    check_port_free("127.0.0.1", cmd.port, "the status")  # before the folder: a refusal leaves none
     if cmd.router_port:
         check_port_free("127.0.0.1", cmd.router_port, "the router")
+    lock = lock_run(data, f"nasa up (status port {cmd.port})")  # held until this process ends
     prepare(cmd, data)
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
         else f"device {device}"
@@ -459,10 +484,12 @@ def up(argv: list[str]) -> None:
                   f"status http://127.0.0.1:{cmd.port}/status", flush=True)
             while not stop["reason"]:
                 sup.poll(lambda msg: print(f"nasa up: {msg}", flush=True))
-                # The run cannot go on without its learner or its replay.
-                ended = sup.ended(("learner", "replay"))
+                # The run cannot go on without its learner or its replay, nor without any actor.
+                ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
                 if ended is not None:
                     stop["reason"] = f"{ended.name} exited ({ended.exited})"
+                    if ended.role == "actor":
+                        stop["reason"] = f"no actor is left: the last, {stop['reason']}"
                     break
                 time.sleep(0.2)
         finally:

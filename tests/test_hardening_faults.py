@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from nasa.up import free_port
 from services.learner.learner import Learner, LearnerArgs
 from shared import faults, wire
 from shared.replay import log as rlog
@@ -117,7 +118,12 @@ def test_a_busy_port_is_one_line_and_exit_2(tmp_path):
             done = _nasa("up", "--preset", "cpu-small", "--data", str(tmp_path / flag), flag, str(port))
             assert done.returncode == 2, done.stderr
             assert f"port {port}" in done.stderr and "Traceback" not in done.stderr
-            assert not (tmp_path / flag / "config.json").exists()  # nothing started
+            assert not (tmp_path / flag).exists()  # refused before the run folder is made
+    free = str(free_port())
+    same = _nasa("up", "--preset", "cpu-small", "--data", str(tmp_path / "same"), "--port", free,
+                 "--router-port", free)
+    assert same.returncode == 2 and "each need a port of their own" in same.stderr, same.stderr
+    assert not (tmp_path / "same").exists()
 
 
 # -- disk full -------------------------------------------------------------------------------

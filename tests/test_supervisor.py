@@ -62,8 +62,36 @@ def test_a_child_that_dies_is_restarted_up_to_max_restarts(tmp_path):
     assert len(child.pids) == 3 and len(set(child.pids)) == 3
     assert [e for e in events if "restarting" in e] == [
         "actor-0 exited with 1: restarting it (1)", "actor-0 exited with 1: restarting it (2)"]
-    assert events[-1] == "actor-0 exited with 1; not restarted after 2 restarts"
+    assert events[-1] == "actor-0 exited with 1; not restarted after 2 restarts in a row"
     assert sup.ended(("actor",)) is child and sup.ended(("learner",)) is None
+
+
+def test_restarts_in_a_row_back_off_and_a_child_that_ran_well_starts_its_count_again(tmp_path):
+    sup = Supervisor({}, tmp_path / "logs", restart_delay_s=0.1, max_restarts=3,
+                     command=lambda role: [sys.executable, "-c", EXIT_WITH, role])
+    child = sup.add("actor-0", "actor", ["1"])
+    events: list[str] = []
+    start = time.monotonic()
+    poll_until(sup, lambda: child.exited is not None, events)
+    assert child.restarts == 3 and time.monotonic() - start >= 0.1 + 0.2 + 0.4  # waits doubling
+    steady = Supervisor({}, tmp_path / "logs2", restart_delay_s=0.0, max_restarts=1, stable_s=0.0,
+                        command=lambda role: [sys.executable, "-c", EXIT_WITH, role])
+    again = steady.add("actor-1", "actor", ["1"])
+    poll_until(steady, lambda: len(again.pids) >= 4, events)  # each run counted as a fresh start
+    assert again.exited is None
+    steady.stop_all()
+
+
+def test_the_run_has_no_actor_left_once_every_actor_ended_for_good(tmp_path):
+    sup = supervisor(tmp_path, EXIT_WITH)
+    refused = [sup.add(f"actor-{i}", "actor", ["2"]) for i in range(2)]
+    events: list[str] = []
+    poll_until(sup, lambda: all(c.exited is not None for c in refused), events)
+    assert sup.all_ended("actor") is refused[-1]
+    done = supervisor(tmp_path / "done", EXIT_WITH)
+    finished = [done.add("actor-0", "actor", ["2"]), done.add("actor-1", "actor", ["0"])]  # its steps done
+    poll_until(done, lambda: all(c.exited is not None for c in finished), events)
+    assert done.all_ended("actor") is None
 
 
 def test_a_child_that_exits_0_is_not_restarted(tmp_path):
