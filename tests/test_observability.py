@@ -415,3 +415,15 @@ def test_a_status_read_that_fails_does_not_end_the_series():
         time.sleep(0.02)
     history.stop()
     assert len(history.points()) >= 4 and history.failed_reads == 1
+
+
+def test_a_status_api_whose_port_is_taken_is_an_error_not_a_silent_thread():
+    from services.learner.status_api import StatusServer
+    from shared.faults import RunFolderError
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(RunFolderError, match=f"cannot listen on 127.0.0.1:{port}"):
+            StatusServer(make_app(lambda: STATUS, lambda: []), "127.0.0.1", port).start()

@@ -26,6 +26,7 @@ import math
 import os
 import sys
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -230,10 +231,29 @@ class StatusServer:
     def __init__(self, app: FastAPI, host: str, port: int) -> None:
         config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
         self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, name="status-api", daemon=True)
+        self.thread = threading.Thread(target=self._serve, name="status-api", daemon=True)
 
-    def start(self) -> None:
+    def _serve(self) -> None:
+        try:
+            self.server.run()
+        except SystemExit:  # uvicorn's way out when it cannot bind: start() says why
+            pass
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        """Serve, once the port is bound; RunFolderError if it cannot be (another process has it:
+        uvicorn's thread would end with a log line, and the run go on with no status API)."""
+        from shared.faults import RunFolderError
+
         self.thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not self.server.started:
+            if not self.thread.is_alive():
+                config = self.server.config
+                raise RunFolderError(f"the status API cannot listen on {config.host}:{config.port} "
+                                     "(in use by another process?); choose another --port")
+            if time.monotonic() > deadline:
+                return  # slow to start, not refused: it goes on starting
+            time.sleep(0.02)
 
     def stop(self) -> None:
         self.server.should_exit = True
