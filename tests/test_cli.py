@@ -31,8 +31,8 @@ def resumed(tmp_path, monkeypatch) -> tuple[Path, list[int | None]]:
         def run(self) -> None:
             pass
 
-    def resume(folder, steps=None):  # noqa: ANN001, ANN202
-        assert Path(folder) == out
+    def resume(folder, steps=None, cuda_graph=None):  # noqa: ANN001, ANN202
+        assert Path(folder) == out and cuda_graph is False  # the run's own setting, passed on
         calls.append(steps)
         return Recorded()
 
