@@ -206,8 +206,9 @@ class Supervisor:
     def running(self) -> list[Child]:
         return [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
 
-    def stop_all(self, timeout_s: float = 20.0) -> None:
-        """SIGTERM role by role in STOP_ORDER, SIGKILL what is left after the timeout."""
+    def stop_all(self, timeout_s: float = 20.0, on_event=print) -> None:  # noqa: ANN001
+        """SIGTERM role by role in STOP_ORDER, SIGKILL what is left after the timeout (and say so:
+        a learner killed mid-checkpoint leaves the one before)."""
         self.stopping = True
         for role in STOP_ORDER:
             group = [c for c in self.children.values() if c.role == role and c.proc is not None]
@@ -219,6 +220,7 @@ class Supervisor:
                 try:
                     c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
+                    on_event(f"{c.name} did not stop within {timeout_s:g} s of SIGTERM: killed")
                     c.proc.kill()
                     c.proc.wait()
         for c in self.children.values():  # anything with a role outside STOP_ORDER
@@ -488,13 +490,15 @@ def up(argv: list[str]) -> None:
                 ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
                 if ended is not None:
                     stop["reason"] = f"{ended.name} exited ({ended.exited})"
+                    if ended.exited == 0:
+                        stop["reason"] = f"the run is done ({ended.name} finished)"
                     if ended.role == "actor":
                         stop["reason"] = f"no actor is left: the last, {stop['reason']}"
                     break
                 time.sleep(0.2)
         finally:
             print(f"nasa up: stopping ({stop['reason'] or 'error'})", flush=True)
-            sup.stop_all()
+            sup.stop_all(on_event=lambda msg: print(f"nasa up: {msg}", flush=True))
     print("nasa up: stopped", flush=True)
     lock.close()
     if ended is not None and ended.exited:

@@ -126,6 +126,17 @@ def test_a_busy_port_is_one_line_and_exit_2(tmp_path):
     assert not (tmp_path / "same").exists()
 
 
+def test_a_router_that_cannot_listen_is_one_line_and_exit_2(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        for listen in (f"tcp/127.0.0.1:{busy.getsockname()[1]}", "bogus"):
+            done = subprocess.run([sys.executable, "-m", "services.router", "--listen", listen],
+                                  capture_output=True, text=True, timeout=120)
+            assert done.returncode == 2, done.stderr  # a supervisor must not restart it in a loop
+            assert f"cannot listen on {listen}" in done.stderr and "Traceback" not in done.stderr
+
+
 # -- disk full -------------------------------------------------------------------------------
 
 

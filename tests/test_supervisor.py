@@ -130,8 +130,10 @@ def test_stop_all_kills_a_child_that_ignores_sigterm(tmp_path):
     sup = supervisor(tmp_path, IGNORE_SIGTERM)
     child = sup.add("actor-0", "actor", [str(tmp_path)])
     wait_ready(tmp_path, ["actor"])
-    sup.stop_all(timeout_s=0.5)
-    assert child.proc.returncode == -9  # SIGKILL after the timeout
+    said: list[str] = []
+    sup.stop_all(timeout_s=0.5, on_event=said.append)
+    assert child.proc.returncode == -9  # SIGKILL after the timeout, and said
+    assert said == ["actor-0 did not stop within 0.5 s of SIGTERM: killed"]
     events: list[str] = []
     sup.poll(events.append)  # stopping: nothing is restarted
     assert child.exited == -9 and events == [] and len(child.pids) == 1

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
+import zenoh
 
 from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
 from shared.zenoh_auth import AuthError, env_auth
@@ -43,6 +44,10 @@ def main(argv: list[str] | None = None) -> None:
         router = open_router(args.listen, auth=args.auth, join=args.join)
     except AuthError as err:
         print(f"router: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
+    except zenoh.ZError as err:  # a busy port, an endpoint that does not parse: the same again
+        print(f"router: error: cannot listen on {args.listen}: {str(err).strip().splitlines()[0]}",
+              file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
     with router:
         log(f"listening on {args.listen}" + (f", joining {args.join}" if args.join else "")
