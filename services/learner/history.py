@@ -47,9 +47,13 @@ class History:
     def add(self, status: dict) -> None:
         with self._lock:
             self._points.append(point(status))
-            if len(self._points) >= self.capacity:
-                self._points = self._points[::2]
-                self.every_s *= 2
+            self._thin()
+
+    def _thin(self) -> None:
+        """Under the lock: every second point dropped, and the interval doubled, until below capacity."""
+        while len(self._points) >= self.capacity:
+            self._points = self._points[::2]
+            self.every_s *= 2
 
     def restore(self, data: Path, wall_s: float) -> None:
         """Carry on the series an earlier learner of the run left, up to `wall_s` (the run's clock
@@ -65,9 +69,7 @@ class History:
             self._points = points + self._points
             if isinstance(every_s, int | float) and math.isfinite(every_s) and every_s > self.every_s:
                 self.every_s = float(every_s)
-            while len(self._points) >= self.capacity:
-                self._points = self._points[::2]
-                self.every_s *= 2
+            self._thin()
 
     def points(self) -> list[dict]:
         with self._lock:
