@@ -9,14 +9,18 @@ its environments' random states, the learner its published policy version).
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
 from shared import checkpoint
 from shared.agents import Agent
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields, read_rows
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -78,12 +82,12 @@ class Recorder:
 
     def last_eval(self) -> dict | None:
         """step, mean and std of the newest evaluation in eval.csv, or None."""
-        for row in reversed(read_rows(self.eval_log.path)):
-            try:
-                return {"step": int(row["step"]), "mean": float(row["mean"]), "std": float(row["std"])}
-            except (KeyError, TypeError, ValueError):  # a damaged row: the one before it
-                continue
-        return None
+        return _newest(self.eval_log.path, lambda row: {
+            "step": int(row["step"]), "mean": float(row["mean"]), "std": float(row["std"])})
+
+    def last_episode(self) -> tuple[int, float] | None:
+        """The number and wall-clock seconds of the newest episode in train.csv, or None."""
+        return _newest(self.train_log.path, lambda row: (int(row["episode"]), float(row["wall_s"])))
 
     def checkpoint(self, path: Path, agent: Agent, rng: np.random.Generator, counters: Counters,
                    **extra: object) -> None:
@@ -117,3 +121,13 @@ class Recorder:
         """Drop every row (a run killed before its first checkpoint starts over)."""
         self.eval_log.truncate(0)
         self.train_log.truncate(0)
+
+
+def _newest(path: Path, read: Callable[[dict], T]) -> T | None:
+    """`read` of the newest row of a run log it can read (a damaged row: the one before it)."""
+    for row in reversed(read_rows(path)):
+        try:
+            return read(row)
+        except (KeyError, TypeError, ValueError):
+            continue
+    return None

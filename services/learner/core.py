@@ -23,7 +23,6 @@ from shared.agents.base import nonfinite_skips
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
-from shared.runlog import read_rows
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 from shared.service import Log
@@ -189,14 +188,9 @@ class LearnerCore:
         self.counters = self.recorder.restore(state, self.agent, self.rng, truncate=False)
         # train.csv keeps the episodes that ended after the checkpoint (they happened): number on
         # from the last of them, and let the clock not run back.
-        for row in reversed(read_rows(self.recorder.train_log.path)):
-            try:
-                episode, wall = int(row["episode"]), float(row["wall_s"])
-            except (KeyError, TypeError, ValueError):
-                continue
-            self.counters.episodes = max(self.counters.episodes, episode)
-            self.counters.wall_s = max(self.counters.wall_s, wall)
-            break
+        if (last := self.recorder.last_episode()) is not None:
+            self.counters.episodes = max(self.counters.episodes, last[0])
+            self.counters.wall_s = max(self.counters.wall_s, last[1])
         self.policy_version = int(state["policy_version"])
         self.epoch = max(self.epoch, int(state.get("epoch", -1)) + 1)
         self.last_checkpoint_step = self.counters.env_steps
