@@ -489,11 +489,12 @@ def up(argv: list[str]) -> None:
                 # The run cannot go on without its learner or its replay, nor without any actor.
                 ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
                 if ended is not None:
-                    stop["reason"] = f"{ended.name} exited ({ended.exited})"
-                    if ended.exited == 0:
+                    if ended.role == "actor":  # all_ended: none of them with 0
+                        stop["reason"] = f"no actor is left: the last, {ended.name} exited ({ended.exited})"
+                    elif ended.exited == 0:
                         stop["reason"] = f"the run is done ({ended.name} finished)"
-                    if ended.role == "actor":
-                        stop["reason"] = f"no actor is left: the last, {stop['reason']}"
+                    else:
+                        stop["reason"] = f"{ended.name} exited ({ended.exited})"
                     break
                 time.sleep(0.2)
         finally:
