@@ -111,6 +111,11 @@ def snapshot_path(data_dir: Path, n: int) -> Path:
     return data_dir / f"snapshot-{n:06d}.bin"
 
 
+def _record_crc(rtype: int, payload: bytes | memoryview) -> int:
+    """A log record's checksum: crc32 of its type byte and its payload."""
+    return zlib.crc32(payload, zlib.crc32(bytes([rtype])))
+
+
 class LogWriter:
     """Appends records to one segment file; `append` returns once the OS has the bytes."""
 
@@ -121,7 +126,7 @@ class LogWriter:
         self.dirty = False
 
     def append(self, rtype: int, payload: bytes) -> None:
-        crc = zlib.crc32(payload, zlib.crc32(bytes([rtype])))
+        crc = _record_crc(rtype, payload)
         data = _HEADER.pack(len(payload), crc, rtype) + payload
         try:
             n = os.write(self._fd, data)
@@ -167,7 +172,7 @@ def read_segment(path: Path, is_last: bool) -> Iterator[tuple[int, memoryview]]:
                 bad = "truncated record"
             else:
                 payload = data[pos + _HEADER.size : end]
-                if zlib.crc32(payload, zlib.crc32(bytes([rtype]))) != crc:
+                if _record_crc(rtype, payload) != crc:
                     bad = "checksum mismatch"
         if bad is not None:
             if not is_last:
@@ -191,7 +196,7 @@ def _next_record(data: memoryview, start: int) -> int | None:
     for pos in range(start, len(data) - _HEADER.size + 1):
         length, crc, rtype = _HEADER.unpack_from(data, pos)
         end = pos + _HEADER.size + length
-        if end <= len(data) and zlib.crc32(data[pos + _HEADER.size : end], zlib.crc32(bytes([rtype]))) == crc:
+        if end <= len(data) and _record_crc(rtype, data[pos + _HEADER.size : end]) == crc:
             return pos
     return None
 

@@ -636,25 +636,25 @@ class ReplayStore:
             return
         before = self._log.bytes_written
         self._log.append(rtype, payload)
-        now = time.monotonic()
-        if now - self._last_sync >= self.fsync_interval_s:
-            try:
-                self._log.sync()
-            except OSError:
-                # The record is not applied, so it must not stay in the log: the caller may write
-                # it again, and a second copy would make the log unreadable.
-                self._log.cut(before)
-                raise
-            self._last_sync = now
+        try:
+            self._sync_if_due()
+        except OSError:
+            # The record is not applied, so it must not stay in the log: the caller may write
+            # it again, and a second copy would make the log unreadable.
+            self._log.cut(before)
+            raise
 
     def sync_if_due(self) -> None:
         """fsync the log if it holds writes older than the fsync interval: called periodically,
         so the last writes before a pause in inserts are not left unsynced until the next one."""
         with self._lock:
-            if self._log is not None and self._log.dirty and (
-                    time.monotonic() - self._last_sync >= self.fsync_interval_s):
-                self._log.sync()
-                self._last_sync = time.monotonic()
+            if self._log is not None:
+                self._sync_if_due()
+
+    def _sync_if_due(self) -> None:
+        if self._log.dirty and time.monotonic() - self._last_sync >= self.fsync_interval_s:
+            self._log.sync()
+            self._last_sync = time.monotonic()
 
     def flush(self) -> None:
         """fsync the log. Every add() that returned is already safe from process death
