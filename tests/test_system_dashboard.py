@@ -14,6 +14,9 @@ import json
 import math
 import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import httpx
 import pytest
@@ -87,6 +90,20 @@ def check_page(page, url: str, exact: bool, timeout_s: float = 60.0) -> dict:  #
     raise AssertionError("the dashboard does not show /status: " + "; ".join(diffs))
 
 
+@contextmanager
+def serving_folder(data: Path) -> Iterator[str]:
+    """A stopped run's dashboard served from its folder (`nasa status --data DIR --serve`): its URL."""
+    port = free_port()
+    server = StatusServer(folder_app(data), "127.0.0.1", port)
+    server.start()
+    try:
+        url = f"http://127.0.0.1:{port}"
+        wait_listening(url)
+        yield url
+    finally:
+        server.stop()
+
+
 def wait_listening(url: str, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -132,26 +149,21 @@ def test_dashboard_shows_the_run_in_chromium(tmp_path):
 
         # The stopped run, from its folder: the same page shows the learner's last status exactly,
         # at a phone's width too.
-        port = free_port()
-        server = StatusServer(folder_app(data), "127.0.0.1", port)
-        server.start()
         try:
-            url = f"http://127.0.0.1:{port}"
-            wait_listening(url)
-            page.goto(url + "/")
-            final = check_page(page, url, exact=True)
-            assert final == json.loads((data / "learner" / "status.json").read_text())
-            assert final["eval"]["step"] == STEPS
-            page.wait_for_function("() => document.getElementById('ae-image').naturalWidth > 0")
-            assert page.locator("#videos a").count() >= 1
-            page.screenshot(path=str(tmp_path / "dashboard-stopped.png"), full_page=True)
-            page.set_viewport_size({"width": 390, "height": 844})
-            page.wait_for_timeout(500)
-            width = page.evaluate("document.documentElement.scrollWidth")
-            assert width <= 390, f"the page is {width} px wide at a phone's 390 px"
-            page.screenshot(path=str(tmp_path / "dashboard-phone.png"), full_page=True)
+            with serving_folder(data) as url:
+                page.goto(url + "/")
+                final = check_page(page, url, exact=True)
+                assert final == json.loads((data / "learner" / "status.json").read_text())
+                assert final["eval"]["step"] == STEPS
+                page.wait_for_function("() => document.getElementById('ae-image').naturalWidth > 0")
+                assert page.locator("#videos a").count() >= 1
+                page.screenshot(path=str(tmp_path / "dashboard-stopped.png"), full_page=True)
+                page.set_viewport_size({"width": 390, "height": 844})
+                page.wait_for_timeout(500)
+                width = page.evaluate("document.documentElement.scrollWidth")
+                assert width <= 390, f"the page is {width} px wide at a phone's 390 px"
+                page.screenshot(path=str(tmp_path / "dashboard-phone.png"), full_page=True)
         finally:
-            server.stop()
             browser.close()
 
     # What else the run left: the learner's TensorBoard scalars, the evaluator's view and video.
@@ -175,22 +187,14 @@ def test_the_dashboard_writes_figures_as_a_person_reads_them(tmp_path):
 
     (tmp_path / "learner").mkdir()
     (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
-    port = free_port()
-    server = StatusServer(folder_app(tmp_path), "127.0.0.1", port)
-    server.start()
-    try:
-        url = f"http://127.0.0.1:{port}"
-        wait_listening(url)
-        with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
-            try:
-                page = browser.new_page()
-                page.goto(url + "/")
-                page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.fmt")
-                shown = page.evaluate("() => [999.7, 1234.5, 12.345, 0.001234, 5, null]"
-                                      ".map(v => window.nasaDashboard.fmt(v))")
-            finally:
-                browser.close()
-    finally:
-        server.stop()
+    with serving_folder(tmp_path) as url, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+        try:
+            page = browser.new_page()
+            page.goto(url + "/")
+            page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.fmt")
+            shown = page.evaluate("() => [999.7, 1234.5, 12.345, 0.001234, 5, null]"
+                                  ".map(v => window.nasaDashboard.fmt(v))")
+        finally:
+            browser.close()
     assert shown == ["1,000", "1,235", "12.3", "0.00123", "5", "–"]
