@@ -92,6 +92,8 @@ class Recorder:
     def checkpoint(self, path: Path, agent: Agent, rng: np.random.Generator, counters: Counters,
                    **extra: object) -> None:
         """Write a checkpoint: the agent, every random state, the counters, the CSV row counts, `extra`."""
+        for log in (self.eval_log, self.train_log):
+            log.sync()
         checkpoint.save(path, {
             "agent": agent.state_dict(),
             "rng": checkpoint.rng_state(rng),

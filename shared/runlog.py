@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 
 from shared.config import ConfigError
@@ -74,6 +75,11 @@ class CsvLog:
             raise ValueError(f"{self.path.name}: unknown fields {sorted(unknown)}")
         with open(self.path, "a", newline="") as f:
             csv.writer(f).writerow([_format(row.get(k)) for k in self.fields])
+
+    def sync(self) -> None:
+        """fsync the file: a checkpoint that counts its rows must not outlive them on a power loss."""
+        with open(self.path, "rb") as f:
+            os.fsync(f.fileno())
 
     # Lines are counted and cut as bytes: a damaged byte in a row must not stop a resume that
     # drops that row anyway.
