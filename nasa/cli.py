@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +21,14 @@ from shared.service import EXIT_BAD_INPUT, bad_input_errors, parse_with_preset
 if TYPE_CHECKING:
     from nasa.train import Trainer
 
-EXIT_INTERRUPTED = 130  # the shell's 128 + SIGINT
+
+
+class Terminated(Exception):
+    """SIGTERM, raised where the run is, as Ctrl-C raises KeyboardInterrupt: the same clean stop."""
+
+
+def _raise_terminated(_signum: int, _frame: object) -> None:
+    raise Terminated
 
 
 @dataclass
@@ -99,17 +107,20 @@ def train(argv: list[str]) -> None:
 
 
 def run_until_stopped(trainer: Trainer, out: Path) -> None:
-    """Run to the step budget; on Ctrl-C (SIGINT), release the renderers and say how to continue."""
+    """Run to the step budget; on Ctrl-C (SIGINT) or SIGTERM, release the renderers, say how to
+    continue, and exit 128 + the signal (130, 143), the shell's convention."""
+    signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         trainer.run()
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated) as err:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one would cut the message short
         trainer.close()
         saved = trainer.last_checkpoint_step
         where = (f"its last checkpoint holds step {saved}" if saved
                  else "it has no checkpoint yet, so --resume starts it over")
         print(f"\nnasa train: stopped at step {trainer.counters.env_steps}; {where}; "
               f"continue with: nasa train --resume {out}", file=sys.stderr, flush=True)
-        sys.exit(EXIT_INTERRUPTED)
+        sys.exit(128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
 
 
 def up(argv: list[str]) -> None:

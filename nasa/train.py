@@ -106,7 +106,7 @@ class Trainer:
 
     def save_checkpoint(self) -> None:
         # A Ctrl-C here waits for the checkpoint, so the message it prints names the one on disk.
-        with checkpoint.sigint_deferred():
+        with checkpoint.stop_signals_deferred():
             self.store.flush()
             self.recorder.checkpoint(
                 self.out / CHECKPOINT_FILE, self.agent, self.rng, self.counters,

@@ -24,7 +24,8 @@ bus, or the real gripper.
 
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
-then exits non-zero: 2 if it refused its input), on Ctrl-C, or on SIGTERM.
+then exits non-zero: 2 if it refused its input), on Ctrl-C or SIGTERM (exit 130 or 143, the
+shell's 128 + the signal: a run stopped from outside is not a finished one).
 Children are stopped in order (actors, evaluator, learner, replay), killed if
 they do not exit in time, and get SIGTERM if the launcher itself dies
 (PR_SET_PDEATHSIG, set by each service at start), so no process is left.
@@ -467,10 +468,10 @@ def up(argv: list[str]) -> None:
     auth = up_auth(cmd, data, run_id, env)
     from shared.zenoh_session import open_router
 
-    stop = {"reason": ""}
+    stop = {"reason": "", "signum": 0}
 
     def on_signal(signum: int, _frame: object) -> None:
-        stop["reason"] = signal.Signals(signum).name
+        stop["reason"], stop["signum"] = signal.Signals(signum).name, signum
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
@@ -504,6 +505,8 @@ def up(argv: list[str]) -> None:
     lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
+    if stop["signum"]:  # Ctrl-C: 130, as `nasa train`; a run stopped from outside is not a finished one
+        sys.exit(128 + stop["signum"])
 
 
 def omp_env(cmd: UpCommand, lay: layout.Layout, role: str) -> dict[str, str | None]:

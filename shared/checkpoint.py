@@ -30,9 +30,13 @@ class CheckpointError(ValueError):
     """A checkpoint this version cannot continue from (another format, or not a checkpoint)."""
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 @contextlib.contextmanager
-def sigint_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C (SIGINT) until the block ends, then deliver it to the handler it would have met.
+def stop_signals_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) or SIGTERM until the block ends, then deliver it to the handler it
+    would have met.
 
     A KeyboardInterrupt inside torch.save leaves its zip writer half done, which then raises an error
     of its own instead; around a checkpoint, the checkpoint lands first and the interrupt follows.
@@ -41,13 +45,14 @@ def sigint_deferred() -> Iterator[None]:
         yield  # signals reach only the main thread
         return
     caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in STOP_SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-        if caught:
-            signal.raise_signal(signal.SIGINT)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for signum in dict.fromkeys(caught):
+            signal.raise_signal(signum)
 
 
 def save(path: str | Path, state: dict) -> None:

@@ -153,6 +153,7 @@ class StopFlag:
     def __init__(self) -> None:
         self.event = threading.Event()
         self.reason = ""
+        self.signum = 0
 
     def set(self, reason: str) -> None:
         if not self.event.is_set():
@@ -167,10 +168,18 @@ class StopFlag:
 
     def install_signal_handlers(self) -> None:
         def handler(signum: int, _frame: object) -> None:
+            if not self.event.is_set():
+                self.signum = signum
             self.set(signal.Signals(signum).name)
 
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
+
+    def exit_if_signalled(self) -> None:
+        """Exit 128 + the signal's number (the shell's convention) when a signal stopped the service:
+        a supervisor then tells "stopped from outside" (restart it) from "the run is done" (exit 0)."""
+        if self.signum:
+            sys.exit(128 + self.signum)
 
 
 class Log:
@@ -250,6 +259,7 @@ def run_service(
         role = prog.rsplit(".", 1)[-1]  # "python -m services.<role>": its Zenoh login under auth
         with open_client(args.connect, role=role) as session:  # type: ignore[attr-defined]
             run(args, session, stop)
+        stop.exit_if_signalled()
     except bad_input_errors() as err:
         print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)

@@ -5,6 +5,8 @@ itself, health tells the truth, a dead worker thread is noticed."""
 from __future__ import annotations
 
 import contextlib
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -135,6 +137,50 @@ def test_a_router_that_cannot_listen_is_one_line_and_exit_2(tmp_path):
                                   capture_output=True, text=True, timeout=120)
             assert done.returncode == 2, done.stderr  # a supervisor must not restart it in a loop
             assert f"cannot listen on {listen}" in done.stderr and "Traceback" not in done.stderr
+
+
+def _serving(proc: subprocess.Popen, says: str) -> None:
+    """Read the process's stderr until a line holds `says`."""
+    for line in proc.stderr:
+        if says in line:
+            return
+    pytest.fail(f"it exited ({proc.wait()}) before saying {says!r}")
+
+
+def test_a_service_stopped_by_a_signal_exits_128_plus_it_and_one_stopped_by_the_run_exits_0(tmp_path):
+    """A supervisor restarts what exited non-zero and leaves what exited 0 (the run is done): an actor
+    or a learner stopped from outside must not read as finished."""
+    from shared.zenoh_session import open_client
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": "sig"}
+    env.pop("NASA_ZENOH_AUTH", None)
+    popen = {"stderr": subprocess.PIPE, "text": True, "env": env}
+    router = subprocess.Popen([sys.executable, "-m", "services.router", "--listen", endpoint], **popen)
+    replays: list[subprocess.Popen] = []
+    try:
+        _serving(router, "listening on")
+        with open_client(endpoint) as session:
+            for n, stop in enumerate(("sigterm", "message", "sigint")):
+                replay = subprocess.Popen([sys.executable, "-m", "services.replay",
+                                           "--data", str(tmp_path / f"run{n}")], **popen)
+                replays.append(replay)
+                _serving(replay, "serving run sig")
+                if stop == "message":
+                    session.put(wire.Keys("sig").stop, wire.encode(wire.Stop("run done")))
+                else:
+                    replay.send_signal(signal.SIGTERM if stop == "sigterm" else signal.SIGINT)
+                rest = replay.communicate(timeout=60)[1]
+                expected = {"sigterm": 128 + signal.SIGTERM, "message": 0, "sigint": 128 + signal.SIGINT}
+                assert replay.returncode == expected[stop], rest
+                assert "Traceback" not in rest, rest
+        router.send_signal(signal.SIGTERM)
+        assert router.wait(60) == 128 + signal.SIGTERM
+    finally:
+        for proc in (*replays, router):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
 
 # -- disk full -------------------------------------------------------------------------------

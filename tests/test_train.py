@@ -4,6 +4,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,8 +109,9 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.system  # a `nasa train` process, stopped with Ctrl-C (SIGINT)
-def test_ctrl_c_stops_cleanly_and_says_how_to_continue(tmp_path):
+@pytest.mark.system  # a `nasa train` process, stopped with Ctrl-C (SIGINT) or SIGTERM (`docker stop`)
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_stops_cleanly_and_says_how_to_continue(tmp_path, signum):
     run = tmp_path / "run"
     proc = subprocess.Popen(
         [sys.executable, "-m", "nasa.cli", "train", "--task", "gripper-valve", "--preset", "cpu-small",
@@ -122,11 +124,11 @@ def test_ctrl_c_stops_cleanly_and_says_how_to_continue(tmp_path):
         while not (run / CHECKPOINT_FILE).exists() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.5)
         assert (run / CHECKPOINT_FILE).exists(), "no checkpoint within the deadline"
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signum)
         _, stderr = proc.communicate(timeout=120)
     finally:
         proc.kill()
-    assert proc.returncode == 130, stderr
+    assert proc.returncode == 128 + signum, stderr  # the shell's convention: 130, 143
     assert "nasa train: stopped at step" in stderr and "its last checkpoint holds step" in stderr
     assert f"continue with: nasa train --resume {run}" in stderr
     assert "Traceback" not in stderr and "EGLError" not in stderr, stderr  # nor the renderer's teardown
@@ -248,6 +250,28 @@ def test_a_row_its_writer_did_not_finish_is_dropped_before_the_next_one(tmp_path
     assert Recorder(tmp_path, 2).last_eval()["step"] == 2000
 
 
+def test_a_checkpoint_fsyncs_the_csv_rows_it_counts_before_it_is_written(tmp_path, monkeypatch):
+    """After a power loss the CSVs must hold at least the rows the checkpoint says they hold."""
+    import os
+
+    from shared import checkpoint
+
+    trainer = Trainer.create(tiny_config(steps=40), tmp_path / "run")
+    try:
+        trainer.run()
+        events: list[str] = []
+        real_fsync, real_save = os.fsync, checkpoint.save
+        monkeypatch.setattr(os, "fsync", lambda fd: (events.append(os.readlink(f"/proc/self/fd/{fd}")),
+                                                     real_fsync(fd))[1])
+        monkeypatch.setattr(checkpoint, "save", lambda *a: (events.append("save"), real_save(*a))[1])
+        trainer.save_checkpoint()
+    finally:
+        trainer.close()
+    saved = events.index("save")
+    synced = {Path(e).name for e in events[:saved]}
+    assert {"eval.csv", "train.csv"} <= synced, events
+
+
 def test_resume_to_a_total_the_checkpoint_already_holds_is_refused_and_keeps_the_rows(tmp_path):
     from shared.config import ConfigError
 
@@ -267,14 +291,14 @@ def test_a_ctrl_c_during_a_checkpoint_waits_for_it_and_then_interrupts(tmp_path)
     from shared import checkpoint
 
     path = tmp_path / "checkpoint.pt"
-    with pytest.raises(KeyboardInterrupt), checkpoint.sigint_deferred():
+    with pytest.raises(KeyboardInterrupt), checkpoint.stop_signals_deferred():
         os.kill(os.getpid(), signal.SIGINT)  # arrives while the checkpoint is being written
         time.sleep(0.05)
         checkpoint.save(path, {"step": 7})
     assert checkpoint.load(path)["step"] == 7
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
 
-    with checkpoint.sigint_deferred():  # no Ctrl-C: nothing is raised afterwards
+    with checkpoint.stop_signals_deferred():  # no Ctrl-C: nothing is raised afterwards
         checkpoint.save(path, {"step": 8})
     assert checkpoint.load(path)["step"] == 8
 

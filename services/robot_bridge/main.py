@@ -78,16 +78,14 @@ def main(argv: list[str] | None = None) -> None:
             # Two bridges of one id would both answer every step: one policy would drive two grippers.
             key = wire.BridgeKeys(args.bridge_id).alive
             hint = "stop that one first, or give this one its own --bridge-id"
-            if not faults.claim_role(session, key, stop, log, f"bridge {args.bridge_id}", hint):
-                log(f"stopped ({stop.reason})")
-                return
-            server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
-            with server.serve():
-                kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
-                log(f"serving {args.task} ({kind}) on {server.keys.prefix}")
-                while not stop.wait(0.2):
-                    pass
-                server.estop(f"{stop.reason}: bridge stopping")  # torque off before the process goes
+            if faults.claim_role(session, key, stop, log, f"bridge {args.bridge_id}", hint):
+                server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
+                with server.serve():
+                    kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
+                    log(f"serving {args.task} ({kind}) on {server.keys.prefix}")
+                    while not stop.wait(0.2):
+                        pass
+                    server.estop(f"{stop.reason}: bridge stopping")  # torque off before the process goes
             log(f"stopped ({stop.reason})")
     except faults.RoleTaken as err:
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
@@ -97,3 +95,4 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(1)
     finally:
         env.close()
+    stop.exit_if_signalled()

@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> None:
             + (f"; logins and ACL from {args.auth}" if args.auth else ""))
         stop.wait()
         log(f"stopping ({stop.reason})")
+    stop.exit_if_signalled()
 
 
 if __name__ == "__main__":
