@@ -85,6 +85,35 @@ def test_the_bridge_is_transparent_for_the_stand_in(sessions) -> None:
         local.close()
 
 
+def test_a_reply_it_cannot_read_pauses_the_client_instead_of_crashing_it(sessions) -> None:
+    """A garbled or mis-shaped reply is the bridge's fault: BridgeUnavailable (the actor abandons the
+    episode and waits), not an error that ends the actor's process."""
+    bridge_session, actor_session = sessions
+    sim = ValveSim(TASK, seed=7, render_quality="fast")
+    server = BridgeServer(bridge_session, "g5", sim, TASK, log=lambda _: None)
+    good = wire.BridgeReply(True, "", 0, 0, [3, 84, 84], bytes(3 * 84 * 84), 0.0, 1.0, True, False, {})
+    replies = {
+        "garbage": b"\x00not a message",
+        "shape": wire.encode(wire.BridgeReply(**{**vars(good), "frame_shape": [3, 64, 64],
+                                                 "frame": bytes(3 * 64 * 64)})),
+        "short": wire.encode(wire.BridgeReply(**{**vars(good), "frame": bytes(10)})),
+    }
+    try:
+        with server.serve():
+            env = BridgeEnv(actor_session, "g5", timeout_s=30.0)
+            for name, payload in replies.items():
+                key = f"test/bad_bridge/{name}"
+                answer = bridge_session.declare_queryable(key, lambda q, p=payload: q.reply(q.key_expr, p))
+                try:
+                    env.keys.reset = key
+                    with pytest.raises(BridgeUnavailable, match="bridge"):
+                        env.reset()
+                finally:
+                    answer.undeclare()
+    finally:
+        sim.close()
+
+
 def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions, endpoint: str) -> None:
     bridge_session, actor_session = sessions
     sim = ValveSim("gripper-valve", seed=1, render_quality="fast")

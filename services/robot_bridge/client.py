@@ -165,8 +165,12 @@ class BridgeEnv:
         self.info = r.info
         if tuple(r.frame_shape) != self.frame_shape:
             announced = list(self.frame_shape)
-            raise wire.WireError(f"frame shape {r.frame_shape}, the bridge announced {announced}")
-        return wire.array(r.frame, "u1", self.frame_shape)
+            raise BridgeUnavailable(f"bridge {self.keys.prefix}: a frame of shape {r.frame_shape}, "
+                                    f"it announced {announced}")
+        try:
+            return wire.array(r.frame, "u1", self.frame_shape)
+        except wire.WireError as err:
+            raise BridgeUnavailable(f"bridge {self.keys.prefix}: a malformed frame: {err}") from err
 
     def _ask(self, key: str, msg: wire.Message, cls: type[wire.M], timeout_s: float | None = None) -> wire.M:
         timeout_s = self.timeout_s if timeout_s is None else max(timeout_s, 0.1)
@@ -174,7 +178,13 @@ class BridgeEnv:
             replies = self.session.get(key, payload=wire.encode(msg), timeout=timeout_s)
             for reply in replies:
                 if reply.ok is not None:
-                    return wire.decode(reply.ok.payload.to_bytes(), cls)
+                    # A reply it cannot read is the bridge's fault, not this process's: the actor pauses
+                    # and abandons the episode, as for a bridge that does not answer, and is not restarted.
+                    try:
+                        return wire.decode(reply.ok.payload.to_bytes(), cls)
+                    except wire.WireError as err:
+                        raise BridgeUnavailable(f"bridge {self.keys.prefix}: a malformed reply: {err}") \
+                            from err
                 raise BridgeUnavailable(f"bridge {self.keys.prefix}: {reply.err.payload.to_bytes().decode()}")
         except zenoh.ZError as e:
             raise BridgeUnavailable(f"bridge {self.keys.prefix}: {e}") from e
