@@ -48,6 +48,11 @@ class EnvUnavailable(RuntimeError):
     """A remote environment (a robot bridge) is gone or refuses for now: the episode under way
     is abandoned, and the caller starts a new one once the environment is back."""
 
+
+class EnvFault(ValueError):
+    """The episode under way cannot go on: the simulation diverged (MuJoCo's PhysicsError) or the
+    policy's action is not finite. The episode is lost; a reset starts a sound one."""
+
 ACTION_BOUND = 1.0
 """Every task's actions lie in [-ACTION_BOUND, ACTION_BOUND]; the wire and the replay refuse others."""
 
@@ -237,7 +242,10 @@ class DMCPixels:
     ) -> None:
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
+        from dm_control.rl.control import PhysicsError
+
         self._env = _load_suite_task(task, seed)
+        self._physics_error = PhysicsError
         gl.apply_render_quality(self._env.physics.model, render_quality)
         self.action_dim = int(self._env.action_spec().shape[0])
         self.image_size = image_size
@@ -278,10 +286,13 @@ class DMCPixels:
         if action.shape != (self.action_dim,):
             raise ValueError(f"action shape {action.shape}, expected ({self.action_dim},)")
         if not np.all(np.isfinite(action)):
-            raise ValueError(f"action has non-finite values: {action}")
+            raise EnvFault(f"action has non-finite values: {action}")
         reward, discount = 0.0, 1.0
         for _ in range(self.action_repeat):
-            ts = self._env.step(action)
+            try:
+                ts = self._env.step(action)
+            except self._physics_error as err:
+                raise EnvFault(f"the simulation diverged: {err}") from err
             reward += ts.reward or 0.0
             discount *= ts.discount if ts.discount is not None else 1.0
             if ts.last():

@@ -34,12 +34,13 @@ class BetweenUpdates:
         return eval_due(env_steps, self.config, self.done)
 
     def run(self, target: int) -> wire.EvalResult:
-        """The evaluation of step `target`, with the agent's weights of now."""
+        """The evaluation of step `target`, with the agent's weights of now. envs.EnvFault: an
+        episode failed (step `target` is done all the same: the same weights would fail again)."""
         c = self.config
         if self.env is None:
             self.env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
             self.restart_draws = draws_restarter(self.env, c.eval_same_episodes)
         self.restart_draws()
-        returns = evaluate(self.agent, self.env, c.eval_episodes)
         self.done = target
+        returns = evaluate(self.agent, self.env, c.eval_episodes)
         return wire.EvalResult(target, self.agent.num_updates, [float(r) for r in returns])

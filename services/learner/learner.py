@@ -42,7 +42,7 @@ from services.learner.evaluation import BetweenUpdates
 from services.learner.health import LearnerArgs, health_reasons
 from services.learner.history import History, HistoryError
 from services.learner.metrics import LearnerMetrics
-from shared import faults, run_config, wire
+from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.device import resolve_device
 from shared.prefetch import DevicePrefetcher, PrefetchError
@@ -324,6 +324,9 @@ class Learner:
         board.evaluating = True  # work, not a stall: /healthz must not have the learner restarted now
         try:
             result = self.between.run(target)
+        except envs.EnvFault as err:  # a diverged simulation, a policy acting NaN: the run goes on
+            self.log(f"eval step {target}: evaluation failed, no result for this step: {err}")
+            return
         finally:
             board.evaluating = False
             board.last_update = time.monotonic()

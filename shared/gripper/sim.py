@@ -220,7 +220,9 @@ class ValveSim:
         if action.shape != (self.action_dim,):
             raise ValueError(f"action shape {action.shape}, expected ({self.action_dim},)")
         if not np.all(np.isfinite(action)):
-            raise ValueError(f"action has non-finite values: {action}")
+            from shared.envs import EnvFault  # shared.envs loads this module on demand
+
+            raise EnvFault(f"action has non-finite values: {action}")
         if self._last:
             raise RuntimeError("step() after the episode ended: call reset() first")
         goal = action_to_goal(action, self._low, self._high)
