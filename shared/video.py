@@ -103,10 +103,14 @@ def write_mp4(path: Path, frames: list[np.ndarray], fps: int = 20) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.mp4")
-    with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=16,
-                            ffmpeg_log_level="error") as writer:
-        for frame in frames:
-            writer.append_data(frame)
+    try:
+        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=16,
+                                ffmpeg_log_level="error") as writer:
+            for frame in frames:
+                writer.append_data(frame)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk: free what the failed write took
+        raise
     tmp.replace(path)
 
 

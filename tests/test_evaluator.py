@@ -124,3 +124,104 @@ def test_a_suite_tasks_draws_restart_where_they_stood():
     restart()
     assert np.array_equal(env.reset().obs, first)
     assert draws_restarter(env, same_episodes=False)() is None  # off: does nothing
+
+
+def _suite_env(env: object) -> object:
+    """The DeepMind Control Suite environment inside a PixelEnv."""
+    while not hasattr(env, "_physics_error"):
+        env = env._env
+    return env._env
+
+
+def _diverge_after(env: object, calls: int) -> None:
+    """MuJoCo's PhysicsError (a diverged simulation) from the suite's step after `calls` steps."""
+    from dm_control.rl.control import PhysicsError
+
+    suite, left = _suite_env(env), [calls]
+    step = suite.step
+
+    def diverging(action: object) -> object:
+        left[0] -= 1
+        if left[0] < 0:
+            raise PhysicsError("Physics state is invalid. Warning(s) raised: mjWARN_BADQACC")
+        return step(action)
+
+    suite.step = diverging
+
+
+def test_a_diverged_simulation_skips_that_evaluation_and_the_evaluator_goes_on():
+    ev = _service()
+    _weights(ev, version=0)
+    assert ev.evaluate(0) is not None
+    _weights(ev, version=3, env_steps=60)
+    _diverge_after(ev.env, 5)
+    assert ev.evaluate(50) is None  # no row for step 50, and no crash
+    assert ev.due() is None  # not played again: the same weights would diverge again
+    _suite_env(ev.env).step = type(_suite_env(ev.env)).step.__get__(_suite_env(ev.env))
+    _weights(ev, version=4, env_steps=110)
+    result = ev.evaluate(ev.due())
+    assert result is not None and result.step == 100 and len(result.returns) == 2
+
+
+def test_a_policy_acting_nan_or_a_diverged_simulation_between_updates_is_not_the_learners_end(tmp_path):
+    between = BetweenUpdates(tiny_config("td3_ae", steps=500), _service().agent, done_step=None)
+    assert between.run(0).step == 0
+    _diverge_after(between.env, 3)
+    with pytest.raises(envs.EnvFault, match="diverged"):
+        between.run(50)
+    assert between.due(60) is None  # step 50 is done, without a row
+    for p in between.agent.actor.parameters():
+        p.data.fill_(float("nan"))
+    with pytest.raises(envs.EnvFault, match="non-finite"):
+        between.run(100)
+
+
+def test_pictures_that_cannot_be_written_lose_nothing_but_themselves(tmp_path, monkeypatch):
+    """The result is out before the pictures are made; a full disk fails them alone, leaving no
+    temporary file, and the next evaluation goes on."""
+    run = tiny_run("td3_ae", steps=500)
+    args = EvaluatorArgs(config=run.config, data=tmp_path, video_every=1)
+    ev = EvaluatorService(args, None, StopFlag(), run)
+    try:
+        _weights(ev, version=0)
+        result = ev.evaluate(0)
+        assert result is not None and result.step == 0
+
+        def full(*_: object, **__: object) -> None:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr("PIL.Image.Image.save", full)
+        ev.tap.autoencoder = ev.agent  # as when the weights carry the decoder
+        ev.pictures(0)  # no exception
+        assert not list((tmp_path / "media").glob("*.tmp*"))
+        monkeypatch.undo()
+        _weights(ev, version=2, env_steps=60)
+        assert ev.evaluate(ev.due()).step == 50
+        ev.pictures(50)
+        assert (tmp_path / "media" / "eval_step_000000050.mp4").exists()
+    finally:
+        ev.media.close()
+
+
+def test_a_damaged_media_manifest_is_moved_aside_and_a_new_one_started(tmp_path, capsys):
+    from services.evaluator.media import EvalMedia
+
+    (tmp_path / "media").mkdir()
+    (tmp_path / "media" / "media.json").write_text('{"videos": [{"st')
+    media = EvalMedia(tmp_path)
+    media.close()
+    assert media.manifest == {"autoencoder": None, "videos": []}
+    assert (tmp_path / "media" / "media.json.damaged").read_text() == '{"videos": [{"st'
+    assert "media.json is damaged" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("flag", "value", "says"), [
+    ("view_frames", 0, "--view-frames 0"), ("eval_device", "banana", "banana"),
+    ("threads", 0, "--threads 0"), ("video_every", -1, "--video-every -1"),
+])
+def test_an_evaluator_flag_it_cannot_run_with_is_refused_up_front(flag, value, says):
+    from services.evaluator.evaluator import check_args
+    from shared.service import bad_input_errors
+
+    with pytest.raises(bad_input_errors(), match=says):
+        check_args(EvaluatorArgs(config=tiny_config(), **{flag: value}))

@@ -183,6 +183,21 @@ def test_a_service_stopped_by_a_signal_exits_128_plus_it_and_one_stopped_by_the_
                 proc.wait()
 
 
+def test_a_second_evaluator_on_a_run_folder_is_refused(tmp_path):
+    """Its pictures and media.json are one evaluator's: a second one would overwrite them."""
+    from shared.zenoh_session import open_router
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, "NASA_ZENOH_CONNECT": endpoint, "NASA_RUN_ID": "two"}
+    env.pop("NASA_ZENOH_AUTH", None)
+    env.pop("NASA_PARENT_PID", None)
+    with open_router(endpoint), faults.lock_service(tmp_path, "evaluator"):
+        done = subprocess.run([sys.executable, "-m", "services.evaluator", "--data", str(tmp_path)],
+                              capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr and str(tmp_path) in done.stderr, done.stderr
+
+
 # -- disk full -------------------------------------------------------------------------------
 
 

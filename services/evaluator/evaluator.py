@@ -41,6 +41,7 @@ from services.robot_bridge.client import BridgePresence
 from shared import envs, faults, run_config, wire
 from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
+from shared.device import resolve_device
 from shared.env_loop import EnvLoop
 from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
 from shared.service import Log, MessageGuard, StopFlag
@@ -85,7 +86,7 @@ class EvaluatorService(MessageGuard):
         self.restart_draws: Callable[[], None] = (
             (lambda: None) if self.env is None else draws_restarter(self.env, c.eval_same_episodes))
         spec = run.spec
-        device = torch.device(args.eval_device)
+        device = resolve_device(args.eval_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device,
                                 updates=False)
         self.tap = AutoencoderTap(self.agent)
@@ -93,6 +94,7 @@ class EvaluatorService(MessageGuard):
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
         self.evaluations = 0
         self.done = first_done(c)  # the newest step evaluated
+        self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
 
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every the learner's weights
@@ -120,7 +122,10 @@ class EvaluatorService(MessageGuard):
 
     def evaluate(self, target: int) -> wire.EvalResult | None:
         """The evaluation's episodes; the first one's frames (and camera, for a video) are kept
-        for the pictures, made after the episodes. None: the bridge abandoned it (played again)."""
+        for the pictures (`pictures`, made after the result is out). None: the bridge abandoned it
+        (played again when it is back), or an episode failed (skipped: the same weights would fail
+        the same way)."""
+        self._kept = None
         if not self._env_ready():
             return None
         version = self.weights.version or 0
@@ -136,15 +141,30 @@ class EvaluatorService(MessageGuard):
                 self.env = None  # made again once the bridge is there
             self.stop.wait(1.0)
             return None
+        except envs.EnvFault as err:  # a diverged simulation, a policy acting NaN: no row, no crash loop
+            self.done = target
+            self.log(f"step {target}: evaluation failed, no result for this step: {err}")
+            return None
         self.done, self.evaluations = target, self.evaluations + 1
-        if self.media is not None and obs:
+        self._kept = (obs, cameras, first, video, version)
+        return wire.EvalResult(target, version, [float(r) for r in returns])
+
+    def pictures(self, target: int) -> None:
+        """The autoencoder's view and the video of the evaluation just published. They are extras:
+        a full disk or an unwritable folder loses them (said once a minute), never the result."""
+        if self.media is None or not self._kept or not self._kept[0]:
+            return
+        obs, cameras, first, video, version = self._kept
+        self._kept = None
+        try:
             autoencoder, frames = self.tap.autoencoder, np.stack(obs)
             if autoencoder is not None:
                 self.media.autoencoder_view(autoencoder, frames, target, version)
             if video:
                 path = self.media.video(autoencoder, frames, cameras, target, first)
                 self.log(f"step {target}: video {path}")
-        return wire.EvalResult(target, version, [float(r) for r in returns])
+        except OSError as err:
+            self.log.every("media", 60.0, f"step {target}: pictures not written: {err}")
 
     def _first_episode(self, keep: bool, video: bool) -> tuple[float, list[np.ndarray], list]:
         """One deterministic episode (as shared.evaluation's), keeping its observations if asked."""
@@ -182,6 +202,7 @@ class EvaluatorService(MessageGuard):
                     continue
                 s.put(k.eval_result, wire.encode(msg), congestion_control=BLOCK)
                 self.log(f"step {target} (policy {msg.policy_version}): mean {np.mean(msg.returns):.1f}")
+                self.pictures(target)
             self.log(f"stopping ({self.stop.reason})")
         if self.media is not None:
             self.media.close()
@@ -191,7 +212,22 @@ def main(argv: list[str] | None = None) -> None:
     from shared.service import run_service
 
     def run(args: EvaluatorArgs, session: zenoh.Session, stop: StopFlag) -> None:
-        run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
-        EvaluatorService(args, session, stop, run).run()
+        # The run folder's media are this evaluator's alone; no folder: nothing to lock.
+        with faults.lock_service(args.data, "evaluator") if args.data else contextlib.nullcontext():
+            run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
+            EvaluatorService(args, session, stop, run).run()
 
-    run_service(EvaluatorArgs, argv, "python -m services.evaluator", run)
+    run_service(EvaluatorArgs, argv, "python -m services.evaluator", run, check_args)
+
+
+def check_args(args: EvaluatorArgs) -> None:
+    """The evaluator's flags that its parser cannot check (ConfigError: exit 2 before it connects)."""
+    from shared.config import ConfigError
+
+    resolve_device(args.eval_device)
+    if args.threads < 1:
+        raise ConfigError(f"--threads {args.threads}: at least 1")
+    if args.view_frames < 1:
+        raise ConfigError(f"--view-frames {args.view_frames}: at least 1")
+    if args.video_every < 0:
+        raise ConfigError(f"--video-every {args.video_every}: 0 (no videos) or more")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +64,26 @@ class EvalMedia:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.frames = frames
         self.scalars = Scalars(Path(data) / TENSORBOARD_DIR / "evaluator")
-        path = self.dir / "media.json"
-        self.manifest = json.loads(path.read_text()) if path.exists() else {"autoencoder": None, "videos": []}
+        self.manifest = self._load(self.dir / "media.json")
+
+    @staticmethod
+    def _load(path: Path) -> dict:
+        """The manifest an earlier evaluator left; a damaged one is moved aside (its pictures stay on
+        disk) and a new one started: the pictures are extras, and must not keep the evaluator down."""
+        empty = {"autoencoder": None, "videos": []}
+        if not path.exists():
+            return empty
+        try:
+            manifest = json.loads(path.read_text())
+            if not isinstance(manifest, dict) or not isinstance(manifest.get("videos", []), list):
+                raise ValueError("not a media manifest")
+        except (OSError, ValueError) as err:
+            aside = path.with_name(path.name + ".damaged")
+            os.replace(path, aside)
+            print(f"evaluator: {path} is damaged ({err}); moved to {aside.name}, starting a new one",
+                  file=sys.stderr, flush=True)
+            return empty
+        return {**empty, **manifest}
 
     def autoencoder_view(self, autoencoder, obs: np.ndarray, step: int,  # noqa: ANN001
                          policy_version: int) -> np.ndarray:
@@ -77,7 +96,11 @@ class EvalMedia:
         recs, novelty = reconstruct(autoencoder, obs[idx])
         image = sheet(newest_frames(obs[idx]), recs, novelty)
         tmp = self.dir / (AE_IMAGE + ".tmp")
-        Image.fromarray(image).save(tmp, format="PNG")
+        try:
+            Image.fromarray(image).save(tmp, format="PNG")
+        except BaseException:
+            tmp.unlink(missing_ok=True)  # a full disk: free what the failed write took
+            raise
         os.replace(tmp, self.dir / AE_IMAGE)
         self.scalars.image("autoencoder/view", image, step)
         self.scalars.add({"autoencoder/novelty_mean": float(novelty.mean())}, step)
@@ -99,14 +122,23 @@ class EvalMedia:
                for cam, frame, rec in zip(cameras, frames, recs, strict=True)]
         path = self.dir / f"eval_step_{step:09d}.mp4"
         write_mp4(path, out)
-        self.manifest["videos"].append({"step": int(step), "file": path.name, "frames": len(out),
-                                        "return": round(float(episode_return), 3)})
+        entry = {"step": int(step), "file": path.name, "frames": len(out),
+                 "return": round(float(episode_return), 3)}
+        # A restarted evaluator may play a step again: its video replaces the listed one.
+        self.manifest["videos"] = [v for v in self.manifest["videos"] if v.get("file") != path.name] + [entry]
         self._save()
         return path
 
     def _save(self) -> None:
         tmp = self.dir / "media.json.tmp"
-        tmp.write_text(json.dumps(self.manifest, indent=1))
+        try:
+            with open(tmp, "w") as f:
+                f.write(json.dumps(self.manifest, indent=1))
+                f.flush()
+                os.fsync(f.fileno())
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
         os.replace(tmp, self.dir / "media.json")
 
     def close(self) -> None:
