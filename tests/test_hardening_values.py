@@ -234,3 +234,25 @@ def test_an_actor_reads_its_own_ids_tokens_and_refuses_malformed_ones():
     assert len(logged) == 1 and not actor.stop and actor.superseded_by is None
     ActorService._on_same_id(actor, token(str(2**40)))  # a huge incarnation is still a newer one
     assert actor.stop and actor.superseded_by == 2**40
+
+
+def test_an_episode_its_environment_cannot_go_on_with_is_abandoned_and_the_actor_goes_on():
+    """A diverged simulation (or a NaN action) ends that episode, not the actor's process (a restart
+    would meet the same weights and the same fault)."""
+    from services.actor.actor import ActorService
+    from shared import envs
+    from shared.service import Log, StopFlag
+
+    stop, played = StopFlag(), []
+
+    def episode() -> None:
+        played.append(len(played))
+        if len(played) == 1:
+            raise envs.EnvFault("the simulation diverged: mjWARN_BADQACC")
+        stop.set("test done")
+
+    writer = SimpleNamespace(replay_done=False, wait_for_replay=lambda: None)
+    actor = SimpleNamespace(stop=stop, writer=writer, _bridge_present=lambda: True, _episode=episode,
+                            _note_fault=lambda: None, env_faults=0, log=Log("actor 0"))
+    ActorService._act(actor)
+    assert played == [0, 1] and actor.env_faults == 1

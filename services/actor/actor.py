@@ -155,6 +155,7 @@ class ActorService(MessageGuard):
                                   args.send_batch, args.max_in_flight, stop, self.log,
                                   budget=self.config.steps)
         self.episodes = 0
+        self.env_faults = 0  # episodes lost to a diverged simulation or a non-finite action
         self._finished: list[list[float]] = []
         self._rate = StepRate(time.monotonic())
         self.superseded_by: int | None = None
@@ -277,6 +278,9 @@ class ActorService(MessageGuard):
                 self._note_fault()
                 self.log.every("unavailable", 10.0, f"environment unavailable, collection paused: {err}")
                 self.stop.wait(PAUSE_S)
+            except envs.EnvFault as err:  # this episode cannot go on; a reset starts a sound one
+                self.env_faults += 1
+                self.log.every("fault", 10.0, f"episode abandoned ({self.env_faults} so far): {err}")
 
     def _episode(self) -> None:
         """One episode, until its end, a stop, the replay's or the bridge's loss, or the budget."""
