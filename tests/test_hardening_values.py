@@ -256,3 +256,22 @@ def test_an_episode_its_environment_cannot_go_on_with_is_abandoned_and_the_actor
                             _note_fault=lambda: None, env_faults=0, log=Log("actor 0"))
     ActorService._act(actor)
     assert played == [0, 1] and actor.env_faults == 1
+
+
+def test_an_eval_result_at_a_step_the_run_never_evaluates_is_refused_and_blocks_nothing(tmp_path):
+    """A result recorded at a far step (or with the wrong number of episodes) would have held back
+    every real evaluation after it: such a result is counted invalid, not recorded."""
+    from tests.test_learner import core_on
+
+    learner = Learner.__new__(Learner)
+    learner.core = core = core_on(tmp_path)  # 200 steps, evaluations every 50, 2 episodes each
+    learner._evals = queue.Queue()
+    learner.log = Log("learner")
+    learner.bounds = BOUNDS
+    for bad in (wire.EvalResult(10**15, 1, [1.0, 2.0]), wire.EvalResult(37, 1, [1.0, 2.0]),
+                wire.EvalResult(250, 1, [1.0, 2.0]), wire.EvalResult(50, 1, [1.0, 2.0, 3.0]),
+                wire.EvalResult(50, 1, [1.0])):
+        learner._on_eval(_sample(wire.encode(bad)))
+    assert core.board.invalid == 5 and learner._evals.empty()
+    learner._on_eval(_sample(wire.encode(wire.EvalResult(50, 1, [1.0, 2.0]))))
+    assert core.record_eval(learner._evals.get_nowait())["mean"] == 1.5

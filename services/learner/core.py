@@ -135,6 +135,16 @@ class LearnerCore:
 
     # -- records --------------------------------------------------------------------
 
+    def eval_problem(self, r: wire.EvalResult) -> str | None:
+        """Why an evaluation result cannot be this run's (None: it can). One recorded at a step
+        the run never evaluates would hold back every real one after it."""
+        c = self.config
+        if r.step > c.steps or r.step % c.eval_every or (r.step == 0 and not c.eval_at_start):
+            return f"step {r.step} is not an evaluation step of this run (every {c.eval_every} to {c.steps})"
+        if len(r.returns) != c.eval_episodes:
+            return f"{len(r.returns)} returns, the run evaluates {c.eval_episodes} episodes"
+        return None
+
     def record_eval(self, r: wire.EvalResult) -> dict | None:
         """An evaluation's row in eval.csv; None if that step is recorded already (sent again)."""
         if self.eval["step"] is not None and r.step <= self.eval["step"]:

@@ -126,8 +126,11 @@ class Learner:
             self._evaluators.discard(key)
 
     def _on_eval(self, sample: zenoh.Sample) -> None:
-        if (r := self._decoded(sample, wire.EvalResult, "eval result")) is not None:
-            self._evals.put(r)
+        if (r := self._decoded(sample, wire.EvalResult, "eval result")) is None:
+            return
+        if (why := self.core.eval_problem(r)) is not None:
+            return self._invalid("eval result", why)
+        self._evals.put(r)
 
     def _on_stop(self, sample: zenoh.Sample) -> None:
         if (m := self._decoded(sample, wire.Stop, "stop")) is not None:
