@@ -21,7 +21,7 @@ from shared.agents import Agent, batch_to_device, collect_action, make_agent
 from shared.config import EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
-from shared.evaluation import draws_restarter, evaluate
+from shared.evaluation import draws_restarter, evaluate, is_eval_step
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
@@ -159,7 +159,7 @@ class Trainer:
             if n.env_steps > c.warmup_steps:
                 self.update()
             n.wall_s = wall0 + time.monotonic() - started
-            if n.env_steps % c.eval_every == 0:
+            if is_eval_step(n.env_steps, c):
                 self.run_evaluation()
             progress.update(1)
             if ts.last:

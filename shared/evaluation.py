@@ -35,11 +35,26 @@ def draws_restarter(env: PixelEnv, same_episodes: bool) -> Callable[[], None]:
     return lambda: env.set_rng_state(start)
 
 
+def is_eval_step(step: int, config: TrainConfig) -> bool:
+    """The run evaluates at each multiple of eval_every and at the end of its step budget (the
+    final policy's, also where the budget is no multiple), step 0 only with eval_at_start."""
+    if step == 0:
+        return config.eval_at_start
+    return 0 < step <= config.steps and (step % config.eval_every == 0 or step == config.steps)
+
+
+def newest_eval_step(env_steps: int, config: TrainConfig) -> int:
+    """The newest eval step reached at `env_steps` (0 before the first; see is_eval_step)."""
+    if env_steps >= config.steps:
+        return config.steps
+    return (env_steps // config.eval_every) * config.eval_every
+
+
 def eval_due(env_steps: int, config: TrainConfig, done: int) -> int | None:
-    """The eval step to evaluate now: the newest multiple of eval_every reached (within the step
-    budget), if newer than `done` (-1: nothing evaluated yet, so step 0 is due). Steps between are
-    skipped when evaluating is slower than training."""
-    target = (min(env_steps, config.steps) // config.eval_every) * config.eval_every
+    """The eval step to evaluate now: the newest eval step reached, if newer than `done` (-1:
+    nothing evaluated yet, so step 0 is due). Steps between are skipped when evaluating is slower
+    than training."""
+    target = newest_eval_step(env_steps, config)
     return target if target > done else None
 
 

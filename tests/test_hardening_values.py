@@ -276,19 +276,3 @@ def test_an_eval_result_at_a_step_the_run_never_evaluates_is_refused_and_blocks_
     learner._on_eval(_sample(wire.encode(wire.EvalResult(50, 1, [1.0, 2.0]))))
     assert core.record_eval(learner._evals.get_nowait())["mean"] == 1.5
 
-
-def test_a_run_with_no_evaluation_step_does_not_wait_for_one_at_its_end():
-    """eval_every past the step budget and no step-0 evaluation: nothing is due, so nothing is
-    awaited (it waited the whole final-evaluation timeout for step 0)."""
-    from shared.service import StopFlag
-    from tests.tiny import tiny_config
-
-    drained: list[int] = []
-    learner = Learner.__new__(Learner)
-    learner.core = SimpleNamespace(config=tiny_config(steps=500, eval_every=1000, eval_at_start=False),
-                                   env_steps=500, eval={"step": None})
-    learner.args = SimpleNamespace(final_eval_wait_s=2.0)
-    learner.stop, learner._evaluators, learner.log = StopFlag(), {"evaluator"}, Log("learner")
-    learner._drain = lambda: drained.append(1)
-    learner._wait_final_eval()
-    assert drained == []

@@ -53,6 +53,15 @@ def test_seeded_run_is_deterministic_and_writes_the_run_folder(tmp_path):
     assert stable_rows(tmp_path / "a" / "eval.csv") == stable_rows(tmp_path / "b" / "eval.csv")
 
 
+def test_a_budget_that_ends_mid_episode_evaluates_the_final_policy_and_extends_exactly(tmp_path):
+    """Step 60 is neither an eval step (every 40) nor an episode end (every 40): the final policy is
+    evaluated there all the same; a longer budget resumes from the checkpoint at 40 and drops it."""
+    Trainer.create(tiny_config(steps=60), tmp_path / "run").run()
+    assert [r["step"] for r in read_rows(tmp_path / "run" / "eval.csv")] == ["0", "40", "60"]
+    Trainer.resume(tmp_path / "run", steps=80).run()
+    assert [r["step"] for r in read_rows(tmp_path / "run" / "eval.csv")] == ["0", "40", "80"]
+
+
 @pytest.mark.parametrize("algo", ["nasa_td3", "sac_ae"])
 def test_resume_continues_exactly(tmp_path, algo):
     Trainer.create(tiny_config(algo, steps=80), tmp_path / "straight").run()

@@ -20,6 +20,7 @@ from services.learner.status import StatusBoard
 from shared import checkpoint, wire
 from shared.agents import batch_to_device, make_agent
 from shared.agents.base import nonfinite_skips
+from shared.evaluation import is_eval_step
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
@@ -139,7 +140,7 @@ class LearnerCore:
         """Why an evaluation result cannot be this run's (None: it can). One recorded at a step
         the run never evaluates would hold back every real one after it."""
         c = self.config
-        if r.step > c.steps or r.step % c.eval_every or (r.step == 0 and not c.eval_at_start):
+        if not is_eval_step(r.step, c):
             return f"step {r.step} is not an evaluation step of this run (every {c.eval_every} to {c.steps})"
         if len(r.returns) != c.eval_episodes:
             return f"{len(r.returns)} returns, the run evaluates {c.eval_episodes} episodes"

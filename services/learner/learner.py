@@ -45,7 +45,7 @@ from services.learner.metrics import LearnerMetrics
 from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.device import resolve_device
-from shared.evaluation import first_done
+from shared.evaluation import newest_eval_step
 from shared.prefetch import DevicePrefetcher, PrefetchError
 from shared.replay.client import Prefetcher, ZenohReplayClient
 from shared.service import Log, StopFlag
@@ -343,9 +343,7 @@ class Learner:
 
     def _wait_final_eval(self) -> None:
         c = self.core.config
-        last = (min(self.core.env_steps, c.steps) // c.eval_every) * c.eval_every
-        if last <= first_done(c):  # the run has no evaluation step at all (eval_every past its steps)
-            return
+        last = newest_eval_step(self.core.env_steps, c)  # the budget's own, at the end
         start = time.monotonic()
         while not self.stop and time.monotonic() < start + self.args.final_eval_wait_s:
             self._drain()
