@@ -75,6 +75,11 @@ class WeightsSubscriber:
         self._ask()
         return self
 
+    @property
+    def epoch(self) -> int | None:
+        """The epoch (the learner's incarnation) of the weights held; None before any."""
+        return None if self._held is None else self._held[0]
+
     def close(self) -> None:
         self._stack.close()
 

@@ -24,10 +24,10 @@ def _service(**overrides: object) -> EvaluatorService:
     return EvaluatorService(EvaluatorArgs(config=run.config), None, StopFlag(), run)
 
 
-def _weights(ev: EvaluatorService, version: int, env_steps: int = 0) -> None:
+def _weights(ev: EvaluatorService, version: int, env_steps: int = 0, epoch: int = 1) -> None:
     """The learner's evaluation weights of update `version`, sent at its env step `env_steps`."""
     tensors = wire.pack_tensors(ev.agent.policy_state_dict())
-    ev.weights.offer(wire.encode(wire.Weights(1, version, env_steps, tensors)))
+    ev.weights.offer(wire.encode(wire.Weights(epoch, version, env_steps, tensors)))
 
 
 def test_step_zero_then_the_newest_multiple_reached_each_once_and_capped_at_the_budget():
@@ -225,3 +225,33 @@ def test_an_evaluator_flag_it_cannot_run_with_is_refused_up_front(flag, value, s
 
     with pytest.raises(bad_input_errors(), match=says):
         check_args(EvaluatorArgs(config=tiny_config(), **{flag: value}))
+
+
+def test_a_budget_that_is_no_multiple_of_eval_every_is_evaluated_at_its_end():
+    """The final policy is evaluated however the budget falls, and by every runner alike."""
+    from shared.evaluation import eval_due, is_eval_step
+
+    c = tiny_config(steps=120)  # evaluations every 50
+    assert [s for s in range(0, 200) if is_eval_step(s, c)] == [0, 50, 100, 120]
+    assert eval_due(60, c, done=0) == 50 and eval_due(119, c, done=50) == 100
+    assert eval_due(120, c, done=100) == 120 and eval_due(10_000, c, done=100) == 120
+    assert eval_due(10_000, c, done=120) is None
+    between = BetweenUpdates(c, _service().agent, done_step=100)
+    assert between.due(125) == 120
+
+
+def test_a_restarted_learner_gets_the_newest_step_evaluated_again():
+    """The result of step 100 went out while the learner was restarting (Zenoh keeps nothing):
+    the restarted learner's first weights have step 100 played again."""
+    ev = _service()
+    _weights(ev, version=0)
+    ev.evaluate(ev.due())
+    _weights(ev, version=7, env_steps=130)
+    assert ev.evaluate(ev.due()).step == 100  # ... and lost
+    _weights(ev, version=8, env_steps=140)
+    assert ev.due() is None  # the same learner: nothing new
+    _weights(ev, version=3, env_steps=120, epoch=2)  # restarted from an earlier checkpoint
+    assert ev.due() == 100
+    ev.evaluate(100)
+    _weights(ev, version=4, env_steps=145, epoch=2)
+    assert ev.due() is None

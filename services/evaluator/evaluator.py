@@ -95,6 +95,7 @@ class EvaluatorService(MessageGuard):
         self.evaluations = 0
         self.done = first_done(c)  # the newest step evaluated
         self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
+        self._epoch: int | None = None  # the learner's incarnation whose weights it holds
 
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every the learner's weights
@@ -102,6 +103,12 @@ class EvaluatorService(MessageGuard):
         self.weights.maybe_load()
         if self.weights.version is None:
             return None
+        if self.weights.epoch != self._epoch:
+            if self._epoch is not None:
+                # A restarted learner: the result of the step last evaluated may have gone out while
+                # it was down. Evaluate the newest step again; one it holds already is not recorded twice.
+                self.done = first_done(self.config)
+            self._epoch = self.weights.epoch
         return eval_due(self.weights.env_steps, self.config, self.done)
 
     def _env_ready(self) -> bool:
