@@ -5,7 +5,8 @@ surprise = MSE(mean_k P_k(Enc(obs), a), Enc(next_obs))
 
 The SSIM reproduces scikit-image's `structural_similarity` defaults, which the
 reference calls per transition: a 7x7 uniform window, sample covariance,
-K1 = 0.01, K2 = 0.03, data_range = max - min of the target image, the mean of
+K1 = 0.01, K2 = 0.03, data_range = max - min of the target image (at least
+`ssim_kernel.RANGE_FLOOR`, where the reference has no floor), the mean of
 the SSIM map over the valid (border-cropped) region, averaged over channels.
 On the CPU it runs as a compiled kernel (`ssim_kernel`), elsewhere in torch
 (`ssim_torch`); tests check both against scikit-image on rendered frames.
@@ -70,10 +71,13 @@ def _ssim(x: torch.Tensor, y: torch.Tensor, x_scale: float, y_logits: bool = Fal
     return torch.from_numpy(values).float()
 
 
-def ssim_torch(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """`ssim` in torch ops, for devices other than the CPU (x, y float, in [0, 1])."""
+def ssim_torch(
+    x: torch.Tensor, y: torch.Tensor, range_floor: float = ssim_kernel.RANGE_FLOOR
+) -> torch.Tensor:
+    """`ssim` in torch ops, for devices other than the CPU (x, y float, in [0, 1]);
+    `range_floor` as in `ssim_kernel.batch_ssim`."""
     batch, channels, height, width = x.shape
-    data_range = (x.amax(dim=(1, 2, 3)) - x.amin(dim=(1, 2, 3))).view(-1, 1, 1, 1)
+    data_range = (x.amax(dim=(1, 2, 3)) - x.amin(dim=(1, 2, 3))).clamp(min=range_floor).view(-1, 1, 1, 1)
     c1 = (0.01 * data_range) ** 2
     c2 = (0.03 * data_range) ** 2
     n = WIN * WIN

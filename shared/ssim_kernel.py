@@ -31,6 +31,12 @@ if "NUMBA_THREADING_LAYER" not in os.environ and os.environ.get("OMP_WAIT_POLICY
     numba.config.THREADING_LAYER = "workqueue"
 
 WIN = 7
+RANGE_FLOOR = 0.2
+"""The least data range SSIM takes (images in [0, 1]). The reference takes max - min of the
+observation, which is 0 for a uniform stack (black, grey, an overexposed camera): both SSIM
+constants vanish and the score is 0/0 plus rounding. Just above 0 it is still rounding, as the
+constants fall below float32's error in the window variances, so the floor sits where they
+dominate it. Observations whose range is at least the floor score as in the reference."""
 _LANES = 16  # float32 lanes of an AVX-512 vector: rows are padded to a multiple
 # Reassociation lets LLVM vectorise the sums; the no-NaN/no-Inf assumptions of full
 # fastmath are left out (no faster here). error_model="numpy": a division by zero
@@ -125,7 +131,7 @@ def _plane_ssim_sum(x, y, scale, c1, c2, row, ring, window, valid, bf16, logits,
 
 
 @numba.njit(parallel=True, **_JIT)
-def _batch_ssim(x, y, scale, bf16, logits):
+def _batch_ssim(x, y, scale, range_floor, bf16, logits):
     batch, channels, height, width = x.shape
     cols = width - WIN + 1
     span = (cols + _LANES - 1) // _LANES * _LANES
@@ -133,6 +139,7 @@ def _batch_ssim(x, y, scale, bf16, logits):
     valid[:cols] = 1.0
     out = np.empty(batch, np.float64)
     scale = np.float32(scale)
+    range_floor = np.float32(range_floor)
     for b in numba.prange(batch):
         row = np.zeros((4, span + WIN - 1), np.float32)  # zero padding past the image
         ring = np.empty((WIN, 4, span), np.float32)
@@ -145,7 +152,7 @@ def _batch_ssim(x, y, scale, bf16, logits):
         for i in range(pixels.size):
             lo = min(lo, pixels[i])
             hi = max(hi, pixels[i])
-        data_range = (np.float32(hi) - np.float32(lo)) * scale
+        data_range = max((np.float32(hi) - np.float32(lo)) * scale, range_floor)
         c1 = (np.float32(0.01) * data_range) ** 2
         c2 = (np.float32(0.03) * data_range) ** 2
         total = 0.0
@@ -162,13 +169,14 @@ _lock = threading.Lock()
 
 
 def batch_ssim(
-    x: np.ndarray, y: np.ndarray, x_scale: float, threads: int, y_bf16: bool = False, y_logits: bool = False
+    x: np.ndarray, y: np.ndarray, x_scale: float, threads: int, y_bf16: bool = False, y_logits: bool = False,
+    range_floor: float = RANGE_FLOOR,
 ) -> np.ndarray:
     """Mean SSIM per sample of (B, C, H, W) arrays of any strides: x * x_scale and y in [0, 1].
 
     `y_bf16`: y is int16, the bits of bfloat16 values. `y_logits`: y holds logits, and the
-    SSIM is taken with their sigmoid."""
+    SSIM is taken with their sigmoid. `range_floor`: the least data range (0: the reference's)."""
     x = np.ascontiguousarray(x)
     with _lock:
         numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-        return _batch_ssim(x, y, x_scale, y_bf16, y_logits)
+        return _batch_ssim(x, y, x_scale, range_floor, y_bf16, y_logits)

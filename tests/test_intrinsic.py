@@ -111,6 +111,55 @@ def test_ssim_of_an_image_with_itself_is_one(rendered_stacks, ssim):
     torch.testing.assert_close(ssim(x, x), torch.ones(len(x)))
 
 
+def uniform_stacks_and_reconstructions() -> tuple[torch.Tensor, torch.Tensor]:
+    """Uniform stacks (black, greys, white: a dark or overexposed camera) against smooth
+    reconstructions, flat or with a little noise, as an autoencoder gives them."""
+    rng = np.random.default_rng(2)
+    levels = np.array([0, 1, 64, 128, 200, 255], np.uint8)
+    obs = np.repeat(levels, 4)[:, None, None, None] * np.ones((1, 9, 32, 32), np.uint8)
+    means = rng.uniform(0.05, 0.95, (len(obs), 1, 1, 1))
+    noise = np.tile([0.0, 0.0, 0.002, 0.02], len(levels))[:, None, None, None]
+    reconstruction = np.clip(means + noise * rng.standard_normal(obs.shape), 0, 1).astype(np.float32)
+    return torch.from_numpy(obs), torch.from_numpy(reconstruction)
+
+
+def test_novelty_of_uniform_stacks_is_finite_bounded_and_the_same_in_both_implementations():
+    """A uniform stack has data range 0: without a floor both SSIM constants vanish and the
+    score is 0/0 plus rounding (NaN in torch, any size in the kernel)."""
+    obs, reconstruction = uniform_stacks_and_reconstructions()
+    cpu = intrinsic.novelty(obs, reconstruction).numpy()
+    in_torch = torch_novelty(obs, reconstruction).numpy()
+    for ours in (cpu, in_torch):
+        assert np.all(np.isfinite(ours)) and np.all((ours > -0.1) & (ours < 2.1))  # 1 - SSIM, SSIM in [-1, 1]
+    floor = ssim_kernel.RANGE_FLOOR
+    pairs = zip(obs.numpy().astype(np.float64), reconstruction.numpy().astype(np.float64), strict=True)
+    expected = np.array([
+        1 - structural_similarity(o / 255, r, data_range=floor, channel_axis=0) for o, r in pairs
+    ])
+    for ours in (cpu, in_torch):
+        # float32 rounding of a flat window's variance is still felt against the floor's constants
+        np.testing.assert_allclose(ours, expected, atol=0.1)
+    np.testing.assert_allclose(cpu, in_torch, atol=0.1)
+
+
+def test_the_range_floor_leaves_ordinary_frames_bit_identical(rendered_stacks):
+    """Frames whose range is above the floor (any camera frame with contrast) give exactly what
+    the unfloored formula, the reference's, gives."""
+    rng = np.random.default_rng(3)
+    # Real-looking frames: smooth random shapes (coarse noise upsampled) plus sensor noise.
+    coarse = rng.integers(0, 256, (16, 9, 12, 12)).astype(np.float64)
+    smooth = np.kron(coarse, np.ones((7, 7)))
+    frames = np.clip(smooth + rng.normal(0, 4, smooth.shape), 0, 255).astype(np.uint8)
+    obs = np.concatenate([frames, rendered_stacks])
+    reconstruction = np.clip(obs / 255 + rng.normal(0, 0.05, obs.shape), 0, 1).astype(np.float32)
+    assert (np.ptp(obs.reshape(len(obs), -1), axis=1) / 255 > ssim_kernel.RANGE_FLOOR).all()
+    floored = ssim_kernel.batch_ssim(obs, reconstruction, 1 / 255, 1)
+    unfloored = ssim_kernel.batch_ssim(obs, reconstruction, 1 / 255, 1, range_floor=0.0)
+    np.testing.assert_array_equal(floored, unfloored)
+    x, y = torch.from_numpy(obs).float() / 255, torch.from_numpy(reconstruction)
+    assert torch.equal(intrinsic.ssim_torch(x, y), intrinsic.ssim_torch(x, y, range_floor=0.0))
+
+
 def test_ssim_rejects_mismatched_shapes_and_tiny_images():
     with pytest.raises(ValueError, match="one shape"):
         intrinsic.ssim(torch.zeros(1, 3, 16, 16), torch.zeros(1, 3, 16, 8))
