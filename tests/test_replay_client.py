@@ -157,6 +157,17 @@ def test_set_intrinsic_puts_the_scores():
     np.testing.assert_array_equal(np.frombuffer(msg.value, "<f4"), [0.5, 0.25])
 
 
+def test_set_intrinsic_sends_more_scores_than_the_replay_takes_at_once_in_parts_it_accepts():
+    """The warm-up's zeros go out as one call of warmup_steps rows, which can exceed MAX_BATCH."""
+    c = client([])
+    n = 2 * wire.MAX_BATCH + 5
+    c.set_intrinsic(np.arange(n), np.zeros(n))
+    parts = [wire.decode(payload, wire.SetIntrinsic, c.bounds) for _, payload in c.session.puts]
+    assert [len(p.index) // 8 for p in parts] == [wire.MAX_BATCH, wire.MAX_BATCH, 5]
+    sent = np.concatenate([np.frombuffer(p.index, "<i8") for p in parts])
+    np.testing.assert_array_equal(sent, np.arange(n))
+
+
 def test_prefetcher_keeps_batches_ready_and_counts_misses():
     class Flaky:
         """Not ready on every other request."""

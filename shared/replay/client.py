@@ -244,9 +244,13 @@ class ZenohReplayClient:
     def set_intrinsic(self, index: np.ndarray, values: np.ndarray) -> None:
         import zenoh
 
-        msg = wire.SetIntrinsic(np.asarray(index, "<i8").tobytes(), np.asarray(values, "<f4").tobytes())
+        index, values = np.asarray(index, "<i8"), np.asarray(values, "<f4")
         block = zenoh.CongestionControl.BLOCK
-        self.session.put(self.keys.intrinsic, wire.encode(msg), congestion_control=block)
+        # The replay refuses a message of more than MAX_BATCH scores (the warm-up's zeros can be more).
+        for start in range(0, len(index), wire.MAX_BATCH):
+            part = slice(start, start + wire.MAX_BATCH)
+            msg = wire.SetIntrinsic(index[part].tobytes(), values[part].tobytes())
+            self.session.put(self.keys.intrinsic, wire.encode(msg), congestion_control=block)
 
 
 # -- prefetching -----------------------------------------------------------------------------
