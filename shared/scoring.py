@@ -10,7 +10,10 @@ the scorer owns the rule that warm-up rows (global index < warmup_steps) score
 that still brings an unscored row (the scorer fell behind, or a write-back was
 lost to a replay restart) is scored before the update uses it, so an update
 never sees NaN. A small cache keeps the first score of a row whose write-back
-has not landed yet, so no row is scored twice with different networks.
+has not landed yet, so no row is scored twice with different networks. A score
+is stored finite and within the replay's reward bound: one that is not finite
+(diverged networks) scores 0, and a larger one is clipped, as the replay refuses
+a write-back with either and the row would stay unscored.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
+from shared import wire
 from shared.agents import Agent
 from shared.config import TrainConfig
 from shared.replay.client import Batch, ReplayClient
@@ -32,12 +36,13 @@ def collect_scoring(agent: Agent, config: TrainConfig) -> bool:
 
 class IntrinsicScorer:
     def __init__(self, agent: Agent, client: ReplayClient, warmup_steps: int, batch_size: int,
-                 cache_size: int = 100_000) -> None:
+                 cache_size: int = 100_000, max_abs_score: float = wire.Bounds.max_abs_reward) -> None:
         self.agent = agent
         self.client = client
         self.warmup_steps = warmup_steps
         self.batch_size = batch_size
         self.cache_size = cache_size
+        self.max_abs_score = max_abs_score  # the replay refuses scores beyond its reward bound
         self.scored = 0  # transitions whose score was computed
         self.scored_at_first_sample = 0  # of those, rows a training batch brought first
         self.means: dict[str, float | None] = {"novelty": None, "surprise": None}
@@ -113,6 +118,7 @@ class IntrinsicScorer:
             )
         finally:
             torch.set_num_threads(threads)
+        scores = {k: self._bounded(v) for k, v in scores.items()}
         values = scores["intrinsic"].float().cpu().numpy()
         batch["intrinsic"][rows] = values[inverse]
         for i, v in zip(index[sel].tolist(), values.tolist(), strict=True):
@@ -120,6 +126,11 @@ class IntrinsicScorer:
         while len(self._cache) > self.cache_size:
             self._cache.popitem(last=False)
         self._account(scores, len(sel), on_arrival)
+
+    def _bounded(self, values: torch.Tensor) -> torch.Tensor:
+        """Non-finite scores as 0, the rest clipped to the replay's bound."""
+        b = self.max_abs_score
+        return torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0).clamp(-b, b)
 
     def _account(self, scores: dict[str, torch.Tensor], n: int, on_arrival: bool) -> None:
         total = self.scored + n

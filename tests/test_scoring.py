@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from shared import wire
 from shared.agents import make_agent
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
@@ -89,6 +90,29 @@ def test_a_lost_write_back_returns_the_first_score_not_a_second_one():
     scorer.score_batch(again)
     np.testing.assert_array_equal(again["intrinsic"], first["intrinsic"])
     assert scorer.scored == scored
+
+
+def test_a_score_that_is_not_finite_or_beyond_the_replays_bound_is_stored_as_zero_or_clipped():
+    """The replay refuses a non-finite or out-of-bound score (the in-process store raises), and
+    the update must not train on one: the stored, cached and accounted score is bounded."""
+    store, agent = filled_store(40), nasa_agent()
+    scorer = IntrinsicScorer(agent, LocalReplay(store, np.random.default_rng(0)), WARMUP, batch_size=16)
+    bound = wire.Bounds.max_abs_reward  # what a replay accepts unless told less
+    real = agent.score
+
+    def diverged(obs, action, next_obs):  # noqa: ANN001, ANN202
+        scores = {k: v.clone() for k, v in real(obs, action, next_obs).items()}
+        for v in scores.values():
+            v[0], v[1], v[2] = float("nan"), float("inf"), 10 * bound
+        return scores
+
+    agent.score = diverged
+    batch = store.get(np.arange(30, 34))
+    scorer.score_batch(batch)
+    np.testing.assert_array_equal(batch["intrinsic"][:3], [0.0, 0.0, bound])
+    np.testing.assert_array_equal(store.get(np.arange(30, 34))["intrinsic"], batch["intrinsic"])
+    assert [scorer._cache[i] for i in (30, 31, 32)] == [0.0, 0.0, bound]
+    assert np.isfinite([scorer.means["novelty"], scorer.means["surprise"]]).all()
 
 
 def test_episode_means_are_per_scored_transition_and_reset_when_taken():
