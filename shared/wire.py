@@ -450,6 +450,7 @@ MAX_INT = 2**62
 MAX_TEXT = 4096
 MAX_BATCH = 4096
 MAX_LIST = 10_000
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 TENSOR_DTYPES = frozenset({"<f2", "<f4", "<f8", "|u1", "|i1", "<i2", "<i4", "<i8", "|b1"})
 
 
@@ -567,7 +568,8 @@ def check_weights(m: Weights, b: Bounds) -> None:
         _need(dtype in TENSOR_DTYPES, f"tensor {name!r}: dtype {dtype!r} not in {sorted(TENSOR_DTYPES)}")
         a = array(data, dtype, _shape(shape, f"tensor {name!r}"))
         if a.dtype.kind == "f":
-            _finite(a, f"tensor {name!r}")
+            # A float64 value beyond float32's range becomes inf in the float32 parameters it loads into.
+            _finite(a, f"tensor {name!r}", _FLOAT32_MAX)
 
 
 def check_actor_status(m: ActorStatus, b: Bounds) -> None:

@@ -89,6 +89,9 @@ def test_the_reward_bound_is_configurable():
     (wire.EvalResult, wire.EvalResult(10, 1, [1.0]), {"returns": ["1.0"]}, "returns"),
     (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<q9", [1], b"\0" * 4]}}, "dtype"),
     (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<f4", [1], _f4(math.nan)]}}, "non-finite"),
+    # finite as float64, inf once loaded into float32 parameters
+    (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<f8", [1], np.float64(1e39).tobytes()]}},
+     "beyond"),
     (wire.Weights, wire.Weights(1, 1, 0, {}), {"tensors": {"w": ["<f4", [2**62, 2**62], b""]}}, "shape"),
 ])
 def test_request_and_report_values_are_checked(cls, msg, fields, match):
@@ -182,6 +185,21 @@ def test_weights_with_an_unknown_dtype_do_not_crash_an_actor():
     assert not sub.maybe_load() and len(bad) == 2
     sub.offer(_message(learner, epoch=1, version=5))
     assert sub.maybe_load() and sub.version == 5
+
+
+def test_float64_weights_beyond_float32s_range_are_refused_and_the_actor_keeps_its_own():
+    actor, learner = _agent(0), _agent(1)
+    bad: list[str] = []
+    sub = WeightsSubscriber(actor, bad.append)
+    body = msgpack.unpackb(_message(learner, epoch=1, version=5), raw=False)
+    name, (dtype, shape, data) = next((k, v) for k, v in body["tensors"].items() if v[0] == "<f4")
+    values = np.frombuffer(data, "<f4").astype("<f8")
+    values[0] = 1e39
+    body["tensors"][name] = ["<f8", shape, values.tobytes()]
+    before = {k: v.clone() for k, v in actor.policy_state_dict().items()}
+    sub.offer(msgpack.packb(body, use_bin_type=True))
+    assert not sub.maybe_load() and len(bad) == 1 and sub.version is None
+    assert all(v.equal(before[k]) for k, v in actor.policy_state_dict().items())
 
 
 def test_an_actor_status_with_bad_entries_does_not_crash_the_learner():
