@@ -396,6 +396,11 @@ def encode_frames(frames: np.ndarray) -> bytes:
 def decode_frames(blob: bytes, n: int, shape: tuple[int, ...]) -> np.ndarray:
     size = n * math.prod(shape)
     try:
+        # The decompressor sizes its output from the header's content size when it has one: a
+        # corrupt header claiming a huge one would raise MemoryError before any check of it.
+        declared = zstd.frame_content_size(blob)
+        if declared not in (-1, size):
+            raise WireError(f"frames declare {declared} bytes, expected {size} for {n} x {shape}")
         raw = zstd.ZstdDecompressor().decompress(blob, max_output_size=size)
     except zstd.ZstdError as err:
         raise WireError(f"frames do not decompress: {err}") from err

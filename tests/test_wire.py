@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import struct
 
 import msgpack
 import numpy as np
@@ -75,6 +76,15 @@ def test_field_types_are_checked():
     batch = wire.TransitionBatch(1, 2, 3, 8, 1, [3, 8, 8], frame, None, f4(0.0), f4(0.0), f4(1.0), b"\0",
                                  np.int64(0).tobytes())
     assert wire.decode(wire.encode(batch), wire.TransitionBatch).first_frame is None
+
+
+def test_frames_whose_header_claims_a_huge_size_are_refused_before_allocating_it():
+    """The decompressor allocates the size a frame's header declares: a corrupt one is a
+    WireError, not a MemoryError."""
+    header = struct.pack("<I", 0xFD2FB528) + bytes([0xE0]) + struct.pack("<Q", 2**62)  # 8-byte content size
+    block = ((1 << 3) | 1).to_bytes(3, "little")  # one raw byte, the last block
+    with pytest.raises(wire.WireError, match="declare"):
+        wire.decode_frames(header + block + b"\0", 1, (3, 84, 84))
 
 
 def test_frames_round_trip_and_compress():
