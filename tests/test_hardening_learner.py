@@ -5,12 +5,14 @@ checkpoint write keeps the previous one and is retried later. In process, no Zen
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 from services.learner.core import CHECKPOINT, all_finite
+from services.learner.learner import Learner
 from shared import checkpoint, wire
 from shared.agents.base import adam, nonfinite_skips, optimizer_step
 from tests.test_learner import core_on
@@ -105,6 +107,23 @@ def test_a_batch_with_a_non_finite_value_is_dropped_with_its_rows(tmp_path):
     status = core.status("r", 1.0)["nonfinite"]
     assert status["dropped_batches"] == 1
     assert status["dropped_rows"] == [int(batch["index"][3]), int(batch["index"][5])]
+
+
+def test_a_dropped_batch_does_not_publish_the_same_weights_again(tmp_path):
+    learner = Learner.__new__(Learner)  # publishing needs the core, the flag and the publishers
+    learner.core, learner.args, learner._latest = core_on(tmp_path), SimpleNamespace(publish_every=2), {}
+    learner._published, sent = None, []
+    learner._publishers = {"policy": SimpleNamespace(put=sent.append)}
+    learner.publish_weights()  # the loop's first publish, before any update
+    for dropped in (True, False, True, False, True):
+        batch = learner.core.scorer.client.sample(16)
+        if dropped:
+            batch["reward"][0] = np.nan
+        learner.core.train_on(batch)
+        learner.publish_due_weights()
+    assert learner.core.agent.num_updates == 2
+    versions = [wire.decode(m, wire.Weights).version for m in sent]
+    assert versions == [0, 2]
 
 
 def test_non_finite_weights_are_neither_published_nor_checkpointed(tmp_path):

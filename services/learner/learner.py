@@ -72,6 +72,7 @@ class Learner:
         self._episodes: queue.Queue[tuple[float, int]] = queue.Queue()
         self._latest: dict[str, bytes] = {}  # the newest message of each weights key, for `.../latest`
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._published: int | None = None  # the update count of the actors' weights last published
         self.wall_s = self.core.counters.wall_s
         self.metrics = LearnerMetrics(self.status)
         self.history = History()  # read by its own thread, never the update loop
@@ -167,6 +168,15 @@ class Learner:
             which = "evaluation" if evaluation else "policy"
             self._latest[which] = msg
             self._publishers[which].put(msg)
+            if not evaluation:
+                self._published = self.core.agent.num_updates
+
+    def publish_due_weights(self) -> None:
+        """The actors' weights every `publish_every` updates, once per update count: a dropped batch
+        leaves the count where it was, and the same weights would otherwise go out again."""
+        n = self.core.agent.num_updates
+        if n % self.args.publish_every == 0 and n != self._published:
+            self.publish_weights()
 
     def publish_eval_weights(self) -> None:
         """The evaluator's weights, once an eval step is reached (none when the learner evaluates)."""
@@ -293,8 +303,7 @@ class Learner:
                 self.metrics.update_seconds.observe(time.perf_counter() - began)
                 self.metrics.scoring_seconds.observe(core.last_scoring_s)
                 core.board.seen_env_steps(self.client.num_inserted)
-                if core.agent.num_updates % self.args.publish_every == 0:
-                    self.publish_weights()
+                self.publish_due_weights()
         self._finish(finished)
 
     def _finish(self, finished: bool) -> None:
