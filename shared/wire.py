@@ -469,11 +469,23 @@ class Bounds:
     max_abs_reward: float = 1e3
     """Rewards beyond this are refused: a huge finite reward overflows the critic's loss."""
     max_batch: int = MAX_BATCH
+    steps: int | None = None
+    """The run's step budget: a replay's count of stored transitions beyond it (and `STEP_SLACK`) is
+    refused, as each receiver keeps the largest count it has seen, so one bad count would stay."""
 
     @classmethod
-    def of(cls, spec: Any, max_abs_reward: float = 1e3) -> Bounds:
-        """The bounds of a run's EnvSpec (shared.envs)."""
-        return cls(tuple(spec.frame_shape), spec.frame_stack, spec.action_dim, max_abs_reward)
+    def of(cls, spec: Any, max_abs_reward: float = 1e3, steps: int | None = None) -> Bounds:
+        """The bounds of a run's EnvSpec (shared.envs) and step budget."""
+        return cls(tuple(spec.frame_shape), spec.frame_stack, spec.action_dim, max_abs_reward, steps=steps)
+
+
+STEP_SLACK = MAX_BATCH
+"""How far past the step budget a count may go: the replay stores none past it, and the slack keeps
+this check from being the tightest in the system."""
+
+
+def _count(n: int, what: str, b: Bounds) -> None:
+    _need(b.steps is None or n <= b.steps + STEP_SLACK, f"{what} {n} beyond the run's {b.steps} steps")
 
 
 def _need(ok: bool, what: str) -> None:
@@ -540,6 +552,7 @@ def check_unscored_request(m: UnscoredRequest, b: Bounds) -> None:
 
 
 def check_sample_reply(m: SampleReply, b: Bounds) -> None:
+    _count(m.num_inserted, "num_inserted", b)
     if not m.ok:
         return
     n = m.batch_size
@@ -553,6 +566,14 @@ def check_sample_reply(m: SampleReply, b: Bounds) -> None:
     _steps(n, b.action_dim, b, m.action, m.reward, m.discount, m.policy_version)
     _finite(array(m.intrinsic, "<f4", (n,)), "intrinsic", b.max_abs_reward, nan_ok=True)
     _need(bool((array(m.index, "<i8", (n,)) >= 0).all()), "negative indices")
+
+
+def check_insert_ack(m: InsertAck, b: Bounds) -> None:
+    _count(m.num_inserted, "num_inserted", b)
+
+
+def check_replay_stats(m: ReplayStats, b: Bounds) -> None:
+    _count(m.num_inserted, "num_inserted", b)
 
 
 def check_set_intrinsic(m: SetIntrinsic, b: Bounds) -> None:
@@ -607,6 +628,8 @@ CHECKS: dict[type[Message], Any] = {
     SampleRequest: check_sample_request,
     UnscoredRequest: check_unscored_request,
     SampleReply: check_sample_reply,
+    InsertAck: check_insert_ack,
+    ReplayStats: check_replay_stats,
     SetIntrinsic: check_set_intrinsic,
     Weights: check_weights,
     ActorStatus: check_actor_status,

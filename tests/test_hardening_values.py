@@ -217,6 +217,18 @@ def test_an_actor_status_with_bad_entries_does_not_crash_the_learner():
     assert learner._episodes.get_nowait() == (12.5, 10)
 
 
+def test_replay_stats_counting_past_the_step_budget_are_refused_and_env_steps_stay():
+    """The learner keeps the largest count it has seen (and checkpoints it): one bad count would stay."""
+    learner = Learner.__new__(Learner)
+    learner.core = SimpleNamespace(board=StatusBoard())
+    learner.log = Log("learner")
+    learner.bounds = wire.Bounds.of(SPEC, steps=200)
+    learner._on_stats(_sample(wire.encode(wire.ReplayStats(60, 1, 2**61, 60, 0, 0, 0, False))))
+    assert learner.core.board.invalid == 1 and learner.core.board.env_steps == 0
+    learner._on_stats(_sample(wire.encode(wire.ReplayStats(60, 1, 61, 61, 0, 0, 0, False))))
+    assert learner.core.board.invalid == 1 and learner.core.board.env_steps == 61
+
+
 def test_a_bad_stop_message_is_counted_and_a_good_one_stops_the_service(tmp_path):
     svc = make_service(tmp_path)
     svc._on_stop(_sample(b"\xc1 not msgpack"))

@@ -141,6 +141,15 @@ def test_zenoh_client_decodes_good_replies_and_counts_bad_ones():
     assert c.sample(4, wait_s=0.0) is None and c.invalid == 1
 
 
+def test_zenoh_client_refuses_a_count_past_the_step_budget_and_keeps_its_own():
+    """The client keeps the largest count it has seen: one bad count would stay."""
+    bad = ok_reply(wire.SampleReply(False, "rate limited", 2**61))
+    c = ZenohReplayClient(FakeSession([bad]), wire.Keys("t"), SPEC, Log("test"), timeout_s=1.0, steps=200)
+    assert c.sample(4, wait_s=0.0) is None and c.invalid == 1 and c.num_inserted == 0
+    c.session.replies = [ok_reply(wire.SampleReply(False, "rate limited", 30))]
+    assert c.sample(4, wait_s=0.0) is None and c.invalid == 1 and c.num_inserted == 30
+
+
 def test_zenoh_client_without_a_replay_claims_nothing_scored():
     c = client([])  # nobody answered
     assert c.sample(4, wait_s=0.0) is None

@@ -160,9 +160,10 @@ class FakePublisher:
         self.sent.append(wire.decode(payload, wire.TransitionBatch))
 
 
-def make_writer(send_batch=3, max_in_flight=8) -> tuple[ZenohWriter, FakePublisher]:
+def make_writer(send_batch=3, max_in_flight=8, budget=None) -> tuple[ZenohWriter, FakePublisher]:
     writer = ZenohWriter(None, wire.Keys("t"), actor_id=4, incarnation=9, frame_shape=SHAPE,
-                         send_batch=send_batch, max_in_flight=max_in_flight, stop=StopFlag(), log=Log("test"))
+                         send_batch=send_batch, max_in_flight=max_in_flight, stop=StopFlag(), log=Log("test"),
+                         budget=budget)
     writer._publisher = publisher = FakePublisher()
     writer.window.on_replay(True)
     return writer, publisher
@@ -194,6 +195,16 @@ def test_steps_go_in_batches_with_the_first_frame_once_and_the_last_batch_short(
     writer.add_first(f[0])  # the next episode numbers on
     writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[1], True, 7)
     assert (pub.sent[-1].episode, pub.sent[-1].start) == (1, 0)
+
+
+def test_a_count_past_the_step_budget_is_refused_and_does_not_end_the_acting():
+    writer, _ = make_writer(budget=200)
+    writer._on_ack(ack(4, 9, 2**61))
+    stats = wire.encode(wire.ReplayStats(60, 1, 2**61, 60, 0, 0, 0, False))
+    writer._on_stats(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: stats)))
+    assert writer.invalid == 2 and writer.global_steps == 0 and not writer.replay_done
+    writer._on_ack(ack(4, 9, 200))
+    assert writer.invalid == 2 and writer.replay_done
 
 
 def test_acks_of_another_incarnation_are_ignored():

@@ -63,10 +63,10 @@ class Learner:
         self.args, self.session, self.stop = args, session, stop
         self.keys = wire.Keys(args.run_id)
         self.log = Log("learner")
-        self.bounds = wire.Bounds.of(run.spec)
+        self.bounds = wire.Bounds.of(run.spec, steps=run.config.steps)
         if args.threads > 0:
             torch.set_num_threads(args.threads)
-        self.client = ZenohReplayClient(session, self.keys, run.spec, self.log)
+        self.client = ZenohReplayClient(session, self.keys, run.spec, self.log, steps=run.config.steps)
         self.core = LearnerCore(run, args.data, self.client, resolve_device(run.config.device))
         self._evals: queue.Queue[wire.EvalResult] = queue.Queue()
         self._episodes: queue.Queue[tuple[float, int]] = queue.Queue()

@@ -204,6 +204,7 @@ class ZenohWriter:
                  stop: StopFlag, log: Log, budget: int | None = None) -> None:
         self.session, self.keys, self.stop, self.log = session, keys, stop, log
         self.budget = budget  # the run's step budget: an ack that reaches it ends the acting
+        self.bounds = wire.Bounds(steps=budget)  # and a count far past it is refused
         self.actor_id, self.incarnation = actor_id, incarnation
         self.frame_shape = tuple(frame_shape)
         self.send_batch = max(1, send_batch)
@@ -273,7 +274,7 @@ class ZenohWriter:
 
     def _on_ack(self, sample) -> None:
         try:
-            ack = wire.decode(sample.payload.to_bytes(), wire.InsertAck)
+            ack = wire.decode(sample.payload.to_bytes(), wire.InsertAck, self.bounds)
         except wire.WireError as err:
             return self._invalid(f"ack: {err}")
         if ack.actor_id == self.actor_id and ack.incarnation == self.incarnation:
@@ -281,7 +282,7 @@ class ZenohWriter:
 
     def _on_stats(self, sample) -> None:
         try:
-            stats = wire.decode(sample.payload.to_bytes(), wire.ReplayStats)
+            stats = wire.decode(sample.payload.to_bytes(), wire.ReplayStats, self.bounds)
         except wire.WireError as err:
             return self._invalid(f"replay stats: {err}")
         self.window.observe(stats.num_inserted, stats.done)

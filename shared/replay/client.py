@@ -163,11 +163,12 @@ class ZenohReplayClient:
     the call returns None: the caller asks again.
     """
 
-    def __init__(self, session, keys: wire.Keys, spec: EnvSpec, log: Log, timeout_s: float = 30.0) -> None:
+    def __init__(self, session, keys: wire.Keys, spec: EnvSpec, log: Log, timeout_s: float = 30.0,
+                 steps: int | None = None) -> None:
         self.session = session
         self.keys = keys
         self.spec = spec
-        self.bounds = wire.Bounds.of(spec)
+        self.bounds = wire.Bounds.of(spec, steps=steps)  # `steps`: the run's budget, bounding counts
         self.log = log
         self.timeout_s = timeout_s
         self.invalid = 0
