@@ -195,6 +195,26 @@ class ReproduceCommand:
     """Print the plan (start / resume / skip per run) and start nothing."""
 
 
+# Each run's own flags (and --steps, which planning reads): after `--` they would override them.
+RUN_FLAGS = ("--seed", "--task", "--algo", "--out", "--preset", "--device", "--resume", "--steps")
+
+
+def check_extra(extra: list[str], probe: Run, preset: str, device: str, steps: int | None) -> None:
+    """Refuse flags after `--` that would override a run's own, then parse one run's full
+    `nasa train` command line as `nasa train` does: a bad value is one error here, not one
+    failed run per task, algorithm and seed."""
+    from nasa.cli import parse_train
+
+    # tyro reads --flag=VALUE and --flag_name as --flag and --flag-name.
+    given = {a.split("=", 1)[0].replace("_", "-") for a in extra if a.startswith("--")}
+    clashes = [flag for flag in RUN_FLAGS if flag in given]
+    if clashes:
+        raise ConfigError(
+            f"{', '.join(clashes)} after -- would override what nasa reproduce sets for each run; "
+            "use nasa reproduce's --tasks, --algos, --seeds, --results, --preset, --device and --steps")
+    parse_train(start_args(probe, preset, device, steps, extra))
+
+
 def parse_list(text: str) -> list[str]:
     """A comma list without blanks or repeats, in the order given."""
     return list(dict.fromkeys(item.strip() for item in text.split(",") if item.strip()))
@@ -217,12 +237,14 @@ def reproduce(argv: list[str]) -> None:
         raise ConfigError(f"--seeds must be >= 1, got {cmd.seeds}")
     if cmd.steps is not None and cmd.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {cmd.steps}")
+    if cmd.parallel is not None and cmd.parallel < 1:
+        raise ConfigError(f"--parallel must be >= 1, got {cmd.parallel}")
+    probe = Run(tasks[0], algos[0], 0, run_folder(cmd.results, tasks[0], algos[0], 0), "start")
+    check_extra(extra, probe, cmd.preset, cmd.device, cmd.steps)
     from shared.device import resolve_device  # imports torch: after the cheap checks
 
     device = resolve_device(cmd.device)
-    parallel = cmd.parallel or (CUDA_PARALLEL if device.type == "cuda" else 1)
-    if parallel < 1:
-        raise ConfigError(f"--parallel must be >= 1, got {parallel}")
+    parallel = cmd.parallel if cmd.parallel is not None else CUDA_PARALLEL if device.type == "cuda" else 1
 
     if cmd.results.exists() and not cmd.results.is_dir():
         raise ConfigError(f"--results {cmd.results} is a file, not a folder")

@@ -220,3 +220,36 @@ def test_runs_made_with_another_preset_are_not_resumed_or_counted_as_this_ones(
     assert done.value.code == 2 and "other settings than --preset paper" in err and "seed0" in err
     main([*args, "--preset", "cpu-small"])  # the settings it was made with: resumed
     assert "0 to start, 1 to resume" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("extra", [["--seed", "7"], ["--out=elsewhere"], ["--task", "walker-walk"],
+                                   ["--preset", "cpu-small"], ["--device", "cuda"], ["--resume", "x"],
+                                   ["--algo", "sac_ae"], ["--steps", "10"]])
+def test_flags_after_dashes_may_not_override_each_runs_own(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([*base_args(tmp_path / "results"), "--dry-run", "--", *extra])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "would override what nasa reproduce sets for each run" in err
+    assert extra[0].split("=")[0] in err and not (tmp_path / "results").exists()
+
+
+def test_a_bad_value_after_dashes_is_one_error_before_any_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(rep, "execute", lambda *a, **k: pytest.fail("runs were started"))
+    with pytest.raises(SystemExit) as exc:
+        main([*base_args(tmp_path / "results"), "--", "--batch-size", "0"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "batch_size must be >= 1" in err and "Traceback" not in err
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("value", ["0", "-1"])
+def test_parallel_below_one_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([*base_args(tmp_path / "results"), "--dry-run", "--parallel", value])
+    assert exc.value.code == 2 and f"--parallel must be >= 1, got {value}" in capsys.readouterr().err
