@@ -48,7 +48,7 @@ from typing import Annotated, Literal
 import tyro
 
 from nasa import layout
-from shared import envs, run_config
+from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, parse_with_preset
@@ -318,6 +318,11 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
             "torch, and hundreds of them exhaust the machine's memory; more actors go on other hosts "
             "(docs/deployment.md)"
         )
+    if cmd.run_id is not None:
+        try:
+            wire.check_run_id(cmd.run_id)  # a key prefix: before the run folder is made
+        except ValueError as err:
+            raise ConfigError(f"--run-id: {err}") from None
     check_bridge(cmd)
     if cmd.bridge == "hardware":
         # tyro takes --image-size, --image_size, and either with `=VALUE`

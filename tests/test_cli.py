@@ -242,3 +242,12 @@ def test_nasa_up_refuses_a_port_that_is_not_one(tmp_path, capsys, flag, value):
     code, err = up_in_process([flag, value, "--data", str(tmp_path / "run")], capsys)
     assert code == 2 and f"{flag} must be a TCP port" in err and "Traceback" not in err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("run_id", ["a/b", "", "run*"])
+def test_nasa_up_refuses_a_run_id_that_cannot_be_a_key_prefix_before_making_the_folder(
+        tmp_path, capsys, monkeypatch, run_id):
+    monkeypatch.setattr("nasa.up.Supervisor.add", lambda *a, **k: pytest.fail("a service was started"))
+    code, err = up_in_process(["--run-id", run_id, "--data", str(tmp_path / "run")], capsys)
+    assert code == 2 and "nasa up: error: --run-id: run id" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
