@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import tyro
 
@@ -51,11 +53,7 @@ def auth(argv: list[str]) -> None:
         tls(argv[1:])
         return
     cmd = tyro.cli(AuthInit, args=argv[1:], prog="nasa auth init")
-    try:
-        folder = zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force)
-    except (ValueError, FileExistsError) as err:  # a run id that cannot be a key prefix; no --force
-        print(f"nasa auth: error: {err}", file=sys.stderr)
-        sys.exit(2)
+    folder = write(cmd.folder, lambda: zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force))
     roles = ", ".join(zenoh_auth.AUTH_ROLES)
     print(f"nasa auth: credentials for {roles} in {folder / zenoh_auth.USERS_FILE} (0600); "
           f"ACL for run {cmd.run_id!r} in {folder / zenoh_auth.ACL_FILE}", flush=True)
@@ -63,11 +61,24 @@ def auth(argv: list[str]) -> None:
 
 def tls(argv: list[str]) -> None:
     cmd = tyro.cli(AuthTls, args=argv, prog="nasa auth tls")
-    try:
-        out = zenoh_tls.init(cmd.folder, list(cmd.host), cmd.force)
-    except (ValueError, FileExistsError) as err:  # AuthError is a ValueError
-        print(f"nasa auth: error: {err}", file=sys.stderr)
-        sys.exit(2)
+    out = write(cmd.folder, lambda: zenoh_tls.init(cmd.folder, list(cmd.host), cmd.force))
     hosts = ", ".join((out / "hosts.txt").read_text().split())
     print(f"nasa auth: a CA, the router's certificate (for {hosts}) and one client certificate per role "
           f"in {out} (keys 0600)", flush=True)
+
+
+def write(folder: Path, make: Callable[[], Path]) -> Path:
+    """Run `make` (it writes into `folder`); bad input or a folder it cannot write is one line, exit 2."""
+    if folder.exists() and not folder.is_dir():
+        _fail(f"{folder} is a file, not a folder: name a folder to write the credentials in")
+    try:
+        return make()
+    except (ValueError, FileExistsError) as err:  # a bad run id or host (AuthError); no --force
+        _fail(str(err))
+    except OSError as err:  # under a file, not writable, a full disk
+        _fail(f"cannot write {folder}: {err}")
+
+
+def _fail(message: str) -> NoReturn:
+    print(f"nasa auth: error: {message}", file=sys.stderr)
+    sys.exit(2)

@@ -365,3 +365,20 @@ def test_nasa_up_turns_logins_on_by_default_with_the_run_folders_own(tmp_path: P
     monkeypatch.setenv("NASA_ZENOH_AUTH", str(tmp_path / "shared"))
     mine, _ = parse_up([])
     assert up_auth(mine, data, RUN, {}) == tmp_path / "shared"
+
+
+@pytest.mark.parametrize("command", [["init"], ["tls", "--host", "example.org"]])
+def test_nasa_auth_names_a_folder_it_cannot_write_in_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str]) -> None:
+    from nasa import cli
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for folder, said in ((afile, f"{afile} is a file, not a folder"),
+                         (afile / "auth", f"cannot write {afile / 'auth'}: "),
+                         (Path("/proc/nasa-auth"), "cannot write /proc/nasa-auth: ")):
+        with pytest.raises(SystemExit) as done:
+            cli.main(["auth", command[0], str(folder), *command[1:]])
+        err = capsys.readouterr().err
+        assert done.value.code == 2 and err.startswith(f"nasa auth: error: {said}"), err
+        assert len(err.strip().splitlines()) == 1
