@@ -16,7 +16,7 @@ from nasa.reproduce import reproduce
 from shared import run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.device import resolve_device
-from shared.service import EXIT_BAD_INPUT, bad_input_errors, parse_with_preset
+from shared.service import EXIT_BAD_INPUT, bad_input_errors, given_flags, parse_with_preset
 
 if TYPE_CHECKING:
     from nasa.train import Trainer
@@ -63,11 +63,17 @@ def parse_train(argv: list[str]) -> tuple[TrainCommand, str, int | None]:
     if folder is None:
         cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train")
         return cmd, preset, None
+    if "--preset" in given_flags(argv):
+        raise ConfigError(f"--resume {folder} with --preset: a resumed run keeps the settings in its "
+                          "config.json; leave --preset out")
     path = folder / run_config.CONFIG_FILE
     if not path.exists():
         raise ConfigError(f"--resume {folder}: no run there ({path} does not exist)")
     saved = run_config.read_config(path)
     cmd, preset = parse_with_preset(TrainCommand, argv, "nasa train", base=saved)
+    if cmd.out is not None and cmd.out.resolve() != folder.resolve():
+        raise ConfigError(f"--resume {folder} with --out {cmd.out}: a resumed run goes on in its own "
+                          "folder; leave --out out")
     # The device is compared too: Trainer.resume continues on the run's.
     fields = run_config.differing_fields(cmd.config, saved, ignore=run_config.RESUME_MAY_CHANGE)
     if fields:

@@ -25,6 +25,7 @@ from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_task
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import read_rows
+from shared.service import given_flags
 
 Action = Literal["start", "resume", "skip"]
 CUDA_PARALLEL = 4
@@ -205,9 +206,7 @@ def check_extra(extra: list[str], probe: Run, preset: str, device: str, steps: i
     failed run per task, algorithm and seed."""
     from nasa.cli import parse_train
 
-    # tyro reads --flag=VALUE and --flag_name as --flag and --flag-name.
-    given = {a.split("=", 1)[0].replace("_", "-") for a in extra if a.startswith("--")}
-    clashes = [flag for flag in RUN_FLAGS if flag in given]
+    clashes = [flag for flag in RUN_FLAGS if flag in given_flags(extra)]
     if clashes:
         raise ConfigError(
             f"{', '.join(clashes)} after -- would override what nasa reproduce sets for each run; "

@@ -51,7 +51,7 @@ from nasa import layout
 from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.run_config import RunConfig
-from shared.service import EXIT_BAD_INPUT, parse_with_preset
+from shared.service import EXIT_BAD_INPUT, given_flags, parse_with_preset
 from shared.zenoh_auth import USERS_FILE
 
 RUN_AUTH = "run"
@@ -325,9 +325,7 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
             raise ConfigError(f"--run-id: {err}") from None
     check_bridge(cmd)
     if cmd.bridge == "hardware":
-        # tyro takes --image-size, --image_size, and either with `=VALUE`
-        given = {a.split("=", 1)[0].replace("_", "-") for a in argv}
-        explicit = preset == "run" or "--image-size" in given
+        explicit = preset == "run" or "--image-size" in given_flags(argv)
         take_camera_size(cmd, explicit)
     return cmd, preset
 

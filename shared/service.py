@@ -67,6 +67,12 @@ def bad_input_errors() -> tuple[type[Exception], ...]:
     return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError, AuthError)
 
 
+def given_flags(argv: list[str]) -> set[str]:
+    """The flags on a command line as tyro reads them: `--flag=VALUE` and `--flag_name` are
+    `--flag` and `--flag-name`."""
+    return {a.split("=", 1)[0].replace("_", "-") for a in argv if a.startswith("--")}
+
+
 def parse(cls: type[T], argv: list[str] | None, prog: str) -> tuple[T, str]:
     """Parse a service's dataclass (fields `config` and `preset`); returns it and the preset used."""
     die_with_parent()
@@ -95,6 +101,9 @@ def parse_with_preset(
         raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
     run_file = known.run_config if _has_field(cls, "run_config") else None
     if run_file is not None:
+        if "--preset" in given_flags(argv):  # the run's settings are the defaults, not a preset's
+            raise ConfigError(f"--preset {known.preset} with --run-config {run_file}: the run's "
+                              "config.json holds its settings; leave --preset out")
         base = _read_run_config(run_file)
     if base is not None:
         preset, config = "run", from_dict(to_dict(base))

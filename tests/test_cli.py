@@ -72,6 +72,22 @@ def test_resume_refuses_other_settings_naming_them(resumed, capsys, flags, named
     assert calls == []
 
 
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--out", "elsewhere"], "with --out elsewhere: a resumed run goes on in its own folder"),
+    (["--preset", "paper"], "with --preset: a resumed run keeps the settings in its config.json"),
+    (["--preset=cpu-small"], "with --preset: a resumed run keeps the settings in its config.json"),
+])
+def test_resume_refuses_an_out_or_preset_it_would_ignore(resumed, capsys, flags, named):
+    out, calls = resumed
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--resume", str(out), *flags])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and f"nasa train: error: --resume {out} {named}" in err
+    assert calls == []
+    cli.main(["train", "--resume", str(out), "--out", str(out)])  # its own folder: no contradiction
+    assert calls == [None]
+
+
 def test_resume_of_a_folder_without_a_run_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["train", "--resume", str(tmp_path / "none")])

@@ -135,6 +135,15 @@ def test_a_service_started_with_the_run_config_takes_its_settings_and_refuses_ot
         parse_with_preset(ServiceArgs, ["--run-config", path, "--warmup-steps", "34"], "svc")
 
 
+
+@pytest.mark.parametrize("preset", [["--preset", "paper"], ["--preset=cpu-small"]])
+def test_a_service_given_a_preset_and_the_run_config_refuses_the_preset(tmp_path, preset):
+    run_config.open_folder(small(), tmp_path)
+    path = str(tmp_path / "config.json")
+    with pytest.raises(ConfigError, match="with --run-config .*leave --preset out"):
+        parse_with_preset(ServiceArgs, ["--run-config", path, *preset], "svc")
+
+
 @pytest.fixture
 def zenoh_pair():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
