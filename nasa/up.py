@@ -323,6 +323,7 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
             wire.check_run_id(cmd.run_id)  # a key prefix: before the run folder is made
         except ValueError as err:
             raise ConfigError(f"--run-id: {err}") from None
+    check_evaluator(cmd)
     check_bridge(cmd)
     if cmd.bridge == "hardware":
         explicit = preset == "run" or "--image-size" in given_flags(argv)
@@ -330,11 +331,24 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
     return cmd, preset
 
 
+def check_evaluator(cmd: UpCommand) -> None:
+    """--no-evaluator means no evaluations (nasa.layout), so a choice of where they run, or of the
+    evaluator process's priority, contradicts it; so does a priority for evaluations in the learner."""
+    if not cmd.evaluator and cmd.evaluate_in != "auto":
+        raise ConfigError(f"--no-evaluator with --evaluate-in {cmd.evaluate_in}: --no-evaluator turns "
+                          "evaluations off; leave one of them out")
+    if cmd.evaluator_nice is not None and not cmd.evaluator:
+        raise ConfigError("--no-evaluator with --evaluator-nice: there is no evaluator process to renice")
+    if cmd.evaluator_nice is not None and cmd.evaluate_in == "learner":
+        raise ConfigError("--evaluate-in learner with --evaluator-nice: evaluations run in the learner, "
+                          "there is no evaluator process to renice")
+
+
 def check_bridge(cmd: UpCommand) -> None:
     """--bridge needs a task a bridge serves; the real gripper needs its config, and is one gripper."""
+    if cmd.bridge != "hardware" and cmd.bridge_config is not None:
+        raise ConfigError(f"--bridge-config is for --bridge hardware, not --bridge {cmd.bridge}")
     if cmd.bridge == "off":
-        if cmd.bridge_config is not None:
-            raise ConfigError("--bridge-config is for --bridge hardware")
         return
     try:
         envs.check_remote(cmd.config.env)

@@ -114,6 +114,9 @@ def test_nasa_up_bridge_checks_its_flags() -> None:
         parse_up(["--task", "gripper-valve", "--bridge", "stand-in", "--action-repeat", "8"])
     with pytest.raises(ConfigError, match="for --bridge hardware"):
         parse_up(["--task", "gripper-valve", "--bridge-config", "g.toml"])
+    for bridge in ("stand-in", "emulator"):  # the config of a real gripper, which these do not drive
+        with pytest.raises(ConfigError, match=f"for --bridge hardware, not --bridge {bridge}"):
+            parse_up(["--task", "gripper-valve", "--bridge", bridge, "--bridge-config", EXAMPLE_TOML])
 
 
 def test_nasa_up_with_the_real_gripper_learns_at_its_cameras_image_size(tmp_path) -> None:

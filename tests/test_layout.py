@@ -28,9 +28,11 @@ def test_with_a_gpu_the_spare_cores_go_to_actors():
 
 
 def test_flags_override_each_choice():
-    cmd, _ = parse_up(["--actors", "3", "--learner-threads", "1", "--evaluator-nice", "0", "--no-evaluator"])
+    cmd, _ = parse_up(["--actors", "3", "--learner-threads", "1", "--evaluator-nice", "0"])
     lay = layout_of(cmd, gpu=False, cores=2)
-    assert (lay.actors, lay.learner_threads, lay.evaluator, lay.evaluator_nice) == (3, 1, False, 0)
+    assert (lay.actors, lay.learner_threads, lay.evaluator, lay.evaluator_nice) == (3, 1, True, 0)
+    off, _ = parse_up(["--no-evaluator"])
+    assert not layout_of(off, gpu=False, cores=2).evaluator
     default, _ = parse_up([])
     assert layout_of(default, gpu=False, cores=2) == choose(2, gpu=False)
 
@@ -116,3 +118,15 @@ def test_evaluations_run_in_their_own_process_or_between_the_learners_updates():
     # A gripper behind a bridge is evaluated through a bridge of its own, by the evaluator process.
     with pytest.raises(ConfigError, match="--evaluate-in process"):
         parse_up(["--task", "gripper-valve", "--bridge", "stand-in", "--evaluate-in", "learner"])
+
+
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--no-evaluator", "--evaluator-nice", "5"], "--no-evaluator with --evaluator-nice"),
+    (["--evaluate-in", "learner", "--evaluator-nice", "5"], "--evaluate-in learner with --evaluator-nice"),
+    (["--no-evaluator", "--evaluate-in", "learner"], "--no-evaluator with --evaluate-in learner"),
+    (["--no-evaluator", "--evaluate-in", "process"], "--no-evaluator with --evaluate-in process"),
+])
+def test_evaluator_flags_that_contradict_each_other_are_refused(flags, named):
+    # --no-evaluator means no evaluations at all: neither a process nor the learner plays them.
+    with pytest.raises(ConfigError, match=named):
+        parse_up(flags)
