@@ -171,6 +171,24 @@ def check_algo(algo: str) -> None:
 MAX_IMAGE_SIZE = 480
 
 
+def check_types(config: TrainConfig) -> None:
+    """Each field holds a value of its type: a hand-written config.json's "300" or null would
+    otherwise fail deep in a run, and its "yes" would read as true. A float field takes a whole
+    number too, as JSON writes 1.0; bools are not numbers here."""
+    for prefix, section in (("", config), ("env.", config.env), ("agent.", config.agent)):
+        for f in dataclasses.fields(section):
+            value, name = getattr(section, f.name), prefix + f.name
+            if f.type == "bool" and not isinstance(value, bool):
+                raise ConfigError(f"{name} must be true or false, got {value!r}")
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            if f.type == "int" and not (number and isinstance(value, int)):
+                raise ConfigError(f"{name} must be a whole number, got {value!r}")
+            if f.type == "float" and not (number and math.isfinite(value)):
+                raise ConfigError(f"{name} must be a finite number, got {value!r}")
+            if f.type == "str" and not isinstance(value, str):
+                raise ConfigError(f"{name} must be a string, got {value!r}")
+
+
 def validate(config: TrainConfig) -> TrainConfig:
     """Reject values that cannot work, naming the field and the rule."""
     check_algo(config.algo)
@@ -194,10 +212,7 @@ def validate(config: TrainConfig) -> TrainConfig:
         "agent.policy_delay": config.agent.policy_delay,
         "agent.ensemble_every": config.agent.ensemble_every,
     }
-    for prefix, section in (("", config), ("env.", config.env), ("agent.", config.agent)):
-        for f in dataclasses.fields(section):  # a hand-written config's "yes" would read as true
-            if f.type == "bool" and not isinstance(value := getattr(section, f.name), bool):
-                raise ConfigError(f"{prefix}{f.name} must be true or false, got {value!r}")
+    check_types(config)
     for name, value in positive.items():
         if value < 1:
             raise ConfigError(f"{name} must be >= 1, got {value}")

@@ -88,6 +88,24 @@ def test_resume_refuses_an_out_or_preset_it_would_ignore(resumed, capsys, flags,
     assert calls == [None]
 
 
+@pytest.mark.parametrize(("field", "value"), [("steps", "300"), ("seed", None), ("batch_size", 64.5)])
+def test_a_wrongly_typed_config_json_is_one_line_naming_the_field(resumed, capsys, field, value):
+    from shared.service import parse_with_preset
+    from shared.zenoh_session import ServiceArgs
+
+    out, calls = resumed
+    body = json.loads((out / "config.json").read_text())
+    body[field] = value
+    (out / "config.json").write_text(json.dumps(body))
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train", "--resume", str(out)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.startswith(f"nasa train: error: {field} must be a whole number")
+    assert len(err.strip().splitlines()) == 1 and calls == []
+    with pytest.raises(ConfigError, match=f"{field} must be a whole number"):  # a service's --run-config
+        parse_with_preset(ServiceArgs, ["--run-config", str(out / "config.json")], "svc")
+
+
 def test_resume_of_a_folder_without_a_run_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["train", "--resume", str(tmp_path / "none")])

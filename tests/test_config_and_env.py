@@ -29,7 +29,7 @@ from shared.device import DeviceError, resolve_device
         ("steps", -5, "steps must be >= 1"),
         ("warmup_steps", -1, "warmup_steps must be >= 0"),
         ("agent.gamma", 1.5, r"agent.gamma must be in \(0, 1\]"),
-        ("agent.critic_lr", float("nan"), "agent.critic_lr must be a finite number > 0"),
+        ("agent.critic_lr", float("nan"), "agent.critic_lr must be a finite number"),
         ("agent.exploration_noise", -0.1, "exploration_noise must be a finite number >= 0"),
         ("agent.intrinsic_timing", "later", "intrinsic_timing must be collect or fresh"),
         ("env.render_quality", "ultra", "render_quality must be one of paper, fast, plain"),
@@ -48,6 +48,13 @@ from shared.device import DeviceError, resolve_device
         ("agent.random_shift", 22, r"random_shift .* got 22"),
         ("agent.random_shift", 2.5, r"random_shift .* got 2.5"),
         ("agent.random_shift", True, r"random_shift .* got True"),
+        ("steps", "300", "steps must be a whole number, got '300'"),
+        ("seed", None, "seed must be a whole number, got None"),
+        ("batch_size", 64.5, "batch_size must be a whole number, got 64.5"),
+        ("env.frame_stack", True, "env.frame_stack must be a whole number, got True"),
+        ("agent.tau", "0.1", "agent.tau must be a finite number, got '0.1'"),
+        ("agent.log_std_max", float("inf"), "agent.log_std_max must be a finite number, got inf"),
+        ("env.task", 5, "env.task must be a string, got 5"),
     ],
 )
 def test_bad_values_are_rejected_with_a_clear_message(path, value, message):
@@ -59,6 +66,12 @@ def test_bad_values_are_rejected_with_a_clear_message(path, value, message):
     setattr(target, name, value)
     with pytest.raises(ConfigError, match=message):
         validate(config)
+
+
+def test_a_whole_number_is_a_float_fields_value_too():
+    config = TrainConfig()
+    config.agent.gamma, config.agent.log_std_min = 1, -10  # JSON may write 1.0 as 1
+    validate(config)
 
 
 def test_defaults_are_the_reference_settings():
