@@ -169,6 +169,8 @@ def check_algo(algo: str) -> None:
 
 
 MAX_IMAGE_SIZE = 480
+MIN_IMAGE_SIZE = 7
+"""The SSIM window (shared.ssim_kernel.WIN) of the novelty and surprise scores."""
 
 
 def check_types(config: TrainConfig) -> None:
@@ -187,6 +189,12 @@ def check_types(config: TrainConfig) -> None:
                 raise ConfigError(f"{name} must be a finite number, got {value!r}")
             if f.type == "str" and not isinstance(value, str):
                 raise ConfigError(f"{name} must be a string, got {value!r}")
+
+
+def conv_output_size(image_size: int, num_conv_layers: int) -> int:
+    """Height (and width) of the encoder's conv stack output (shared.nets.Encoder): a 3x3
+    stride-2 convolution, then 3x3 stride-1 ones, none padded."""
+    return (image_size - 3) // 2 + 1 - 2 * (num_conv_layers - 1)
 
 
 def validate(config: TrainConfig) -> TrainConfig:
@@ -223,11 +231,30 @@ def validate(config: TrainConfig) -> TrainConfig:
     if config.env.image_size > MAX_IMAGE_SIZE:
         raise ConfigError(f"env.image_size must be <= {MAX_IMAGE_SIZE} (the height of the suite's "
                           f"offscreen frame buffer), got {config.env.image_size}")
-    if config.env.image_size < 2 * config.agent.num_conv_layers + 8:
+    if conv_output_size(config.env.image_size, config.agent.num_conv_layers) < 1:
         raise ConfigError(
-            f"env.image_size {config.env.image_size} is too small for "
-            f"{config.agent.num_conv_layers} conv layers"
+            f"env.image_size {config.env.image_size} is too small for {config.agent.num_conv_layers} "
+            f"conv layers: they need at least {4 * config.agent.num_conv_layers - 1} pixels"
         )
+    if config.env.image_size < MIN_IMAGE_SIZE:
+        raise ConfigError(f"env.image_size must be >= {MIN_IMAGE_SIZE} (the SSIM window of the novelty "
+                          f"score), got {config.env.image_size}")
+    if config.env.camera_id < 0:
+        raise ConfigError(f"env.camera_id must be >= 0 (a camera of the task's model), "
+                          f"got {config.env.camera_id}")
+    from shared.wire import MAX_BATCH  # imports numpy: not at the top, which --help reads
+
+    if config.batch_size > MAX_BATCH:
+        raise ConfigError(
+            f"batch_size must be <= {MAX_BATCH}, got {config.batch_size}: the replay service refuses "
+            "larger sample requests, so the distributed runner (nasa up) would stall; nasa train "
+            "shares the config, and its limit")
+    first_fill = min(config.warmup_steps, config.replay_capacity)  # what the replay holds at the first update
+    if config.sample_without_replacement and first_fill < config.batch_size:
+        raise ConfigError(
+            f"sample_without_replacement draws batch_size ({config.batch_size}) distinct transitions, "
+            f"so the replay must hold that many at the first update: warmup_steps ({config.warmup_steps}) "
+            f"and replay_capacity ({config.replay_capacity}) must each be >= batch_size")
     agent = config.agent
     for name in ("actor_lr", "critic_lr", "encoder_lr", "decoder_lr", "ensemble_lr", "alpha_lr"):
         value = getattr(agent, name)
@@ -245,6 +272,13 @@ def validate(config: TrainConfig) -> TrainConfig:
         value = getattr(agent, name)
         if not (math.isfinite(value) and value >= 0):
             raise ConfigError(f"agent.{name} must be a finite number >= 0, got {value}")
+    for name in ("alpha_beta", "actor_beta", "critic_beta"):  # Adam's beta1 of SAC-AE's optimizers
+        value = getattr(agent, name)
+        if not 0.0 <= value < 1.0:
+            raise ConfigError(f"agent.{name} must be in [0, 1), got {value}")
+    if not agent.log_std_min < agent.log_std_max:
+        raise ConfigError(f"agent.log_std_min ({agent.log_std_min}) must be below agent.log_std_max "
+                          f"({agent.log_std_max})")
     if agent.intrinsic_timing not in ("collect", "fresh"):
         raise ConfigError(f"agent.intrinsic_timing must be collect or fresh, got {agent.intrinsic_timing!r}")
     if agent.pixel_precision not in PIXEL_PRECISIONS:

@@ -55,6 +55,12 @@ from shared.device import DeviceError, resolve_device
         ("agent.tau", "0.1", "agent.tau must be a finite number, got '0.1'"),
         ("agent.log_std_max", float("inf"), "agent.log_std_max must be a finite number, got inf"),
         ("env.task", 5, "env.task must be a string, got 5"),
+        ("agent.alpha_beta", 1.0, r"agent.alpha_beta must be in \[0, 1\), got 1.0"),
+        ("agent.actor_beta", -0.1, r"agent.actor_beta must be in \[0, 1\)"),
+        ("agent.critic_beta", 1.5, r"agent.critic_beta must be in \[0, 1\)"),
+        ("agent.log_std_min", 2.0, r"agent.log_std_min \(2.0\) must be below agent.log_std_max \(2.0\)"),
+        ("env.camera_id", -1, "env.camera_id must be >= 0"),
+        ("batch_size", 4097, "batch_size must be <= 4096, got 4097: the replay service refuses"),
     ],
 )
 def test_bad_values_are_rejected_with_a_clear_message(path, value, message):
@@ -72,6 +78,39 @@ def test_a_whole_number_is_a_float_fields_value_too():
     config = TrainConfig()
     config.agent.gamma, config.agent.log_std_min = 1, -10  # JSON may write 1.0 as 1
     validate(config)
+
+
+def test_sampling_without_replacement_needs_a_batch_in_the_replay_at_the_first_update():
+    config = TrainConfig(sample_without_replacement=True, batch_size=128, warmup_steps=127)
+    with pytest.raises(ConfigError, match=r"warmup_steps \(127\) and replay_capacity .* >= batch_size"):
+        validate(config)
+    config.warmup_steps, config.replay_capacity = 1000, 100
+    with pytest.raises(ConfigError, match="sample_without_replacement draws batch_size"):
+        validate(config)
+    config.replay_capacity = 128
+    validate(config)
+    validate(TrainConfig(sample_without_replacement=False, warmup_steps=0))  # with replacement: any
+
+
+@pytest.mark.parametrize("layers", [1, 2, 4, 5, 6, 8])
+def test_the_image_size_bound_is_the_encoders_at_its_edge(layers):
+    from shared.config import MIN_IMAGE_SIZE
+    from shared.nets import Decoder, Encoder
+    from shared.ssim_kernel import WIN
+
+    assert MIN_IMAGE_SIZE == WIN
+    smallest = max(4 * layers - 1, MIN_IMAGE_SIZE)
+    config = TrainConfig()
+    config.agent.num_conv_layers, config.env.image_size = layers, smallest
+    validate(config)
+    encoder = Encoder((3, smallest, smallest), 8, num_filters=4, num_layers=layers)
+    Decoder((3, smallest, smallest), encoder.conv_shape, 8, num_filters=4, num_layers=layers)
+    config.env.image_size = smallest - 1
+    with pytest.raises(ConfigError, match="too small|must be >= 7"):
+        validate(config)
+    if smallest - 1 < 4 * layers - 1:  # the conv stack's own edge: torch refuses what validate does
+        with pytest.raises(RuntimeError):
+            Encoder((3, smallest - 1, smallest - 1), 8, num_filters=4, num_layers=layers)
 
 
 def test_defaults_are_the_reference_settings():
