@@ -97,9 +97,10 @@ def train(argv: list[str]) -> None:
             run_until_stopped(trainer, cmd.resume)
         return
     c = cmd.config
-    from shared.envs import check_task
+    from shared.envs import check_camera, check_task
 
     check_task(c.env.task)  # before the first line names it and before the run folder is made
+    check_camera(c.env)
     check_update_device(c.agent, device)
     out = cmd.out or Path("runs") / f"{c.env.task}-{c.algo}-s{c.seed}"
     how = f"{preset} (auto: {device.type})" if cmd.preset == "auto" else preset

@@ -11,6 +11,7 @@ running the command again after an interruption continues where it stopped:
 
 from __future__ import annotations
 
+import dataclasses
 import shlex
 import subprocess
 import sys
@@ -22,7 +23,7 @@ from typing import Literal
 import tyro
 
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
-from shared.envs import PAPER_TASKS, check_task
+from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import read_rows
 from shared.service import given_flags
@@ -200,10 +201,11 @@ class ReproduceCommand:
 RUN_FLAGS = ("--seed", "--task", "--algo", "--out", "--preset", "--device", "--resume", "--steps")
 
 
-def check_extra(extra: list[str], probe: Run, preset: str, device: str, steps: int | None) -> None:
+def check_extra(extra: list[str], tasks: list[str], probe: Run, preset: str, device: str,
+                steps: int | None) -> None:
     """Refuse flags after `--` that would override a run's own, then parse one run's full
-    `nasa train` command line as `nasa train` does: a bad value is one error here, not one
-    failed run per task, algorithm and seed."""
+    `nasa train` command line as `nasa train` does, and check a --camera-id against each task:
+    a bad value is one error here, not one failed run per task, algorithm and seed."""
     from nasa.cli import parse_train
 
     clashes = [flag for flag in RUN_FLAGS if flag in given_flags(extra)]
@@ -211,7 +213,10 @@ def check_extra(extra: list[str], probe: Run, preset: str, device: str, steps: i
         raise ConfigError(
             f"{', '.join(clashes)} after -- would override what nasa reproduce sets for each run; "
             "use nasa reproduce's --tasks, --algos, --seeds, --results, --preset, --device and --steps")
-    parse_train(start_args(probe, preset, device, steps, extra))
+    wanted, _, _ = parse_train(start_args(probe, preset, device, steps, extra))
+    if "--camera-id" in given_flags(extra):
+        for task in tasks:
+            check_camera(dataclasses.replace(wanted.config.env, task=task))
 
 
 def parse_list(text: str) -> list[str]:
@@ -239,7 +244,7 @@ def reproduce(argv: list[str]) -> None:
     if cmd.parallel is not None and cmd.parallel < 1:
         raise ConfigError(f"--parallel must be >= 1, got {cmd.parallel}")
     probe = Run(tasks[0], algos[0], 0, run_folder(cmd.results, tasks[0], algos[0], 0), "start")
-    check_extra(extra, probe, cmd.preset, cmd.device, cmd.steps)
+    check_extra(extra, tasks, probe, cmd.preset, cmd.device, cmd.steps)
     from shared.device import resolve_device  # imports torch: after the cheap checks
 
     device = resolve_device(cmd.device)

@@ -465,6 +465,7 @@ def up(argv: list[str]) -> None:
     from shared.faults import check_port_free, lock_run
 
     envs.check_task(c.env.task)  # an unknown task leaves no folder behind
+    envs.check_camera(c.env)
     if cmd.router_port and cmd.router_port == cmd.port:
         raise ConfigError(f"--port and --router-port are both {cmd.port}: the status API and the router "
                           "each need a port of their own")

@@ -188,6 +188,27 @@ def check_remote(config: EnvConfig, error: type[Exception] | None = None) -> Non
                     f"not {config.action_repeat}")
 
 
+def check_camera(config: EnvConfig) -> None:
+    """Raise ConfigError unless `config.camera_id` is a camera of the task's MuJoCo model: a bad one
+    fails only at the first render, after the run folder is written. Loads the model, renders nothing."""
+    from shared.config import ConfigError
+
+    source = source_for(config.task).name
+    if source == "dmc":
+        count = _load_suite_task(config.task, 0).physics.model.ncam
+    elif source == "gripper":
+        import mujoco
+
+        from shared.gripper.sim import MODEL_PATH
+
+        count = mujoco.MjModel.from_xml_path(str(MODEL_PATH)).ncam
+    else:
+        return  # a source of its own: its make() checks
+    if not 0 <= config.camera_id < count:
+        raise ConfigError(f"env.camera_id {config.camera_id} is not a camera of {config.task}: its model "
+                          f"has {count} (ids 0 to {count - 1})")
+
+
 def spec(config: EnvConfig) -> EnvSpec:
     """The spec of the environment `config` describes, from its source; renders nothing."""
     return source_for(config.task).spec(config)

@@ -285,3 +285,26 @@ def test_nasa_up_refuses_a_run_id_that_cannot_be_a_key_prefix_before_making_the_
     code, err = up_in_process(["--run-id", run_id, "--data", str(tmp_path / "run")], capsys)
     assert code == 2 and "nasa up: error: --run-id: run id" in err and "Traceback" not in err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("command", [["train", "--device", "cpu", "--out"],
+                                     ["up", "--router-port", "0", "--data"]])
+@pytest.mark.parametrize(("task", "camera"), [("cartpole-balance", "99"), ("gripper-valve", "7")])
+def test_a_camera_the_tasks_model_lacks_is_refused_before_the_run_folder_is_made(
+        tmp_path, capsys, monkeypatch, command, task, camera):
+    monkeypatch.setattr("nasa.up.Supervisor.add", lambda *a, **k: pytest.fail("a service was started"))
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*command, str(tmp_path / "run"), "--task", task, "--camera-id", camera])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and f"env.camera_id {camera} is not a camera of {task}: its model has" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_camera_check_takes_every_camera_of_the_model():
+    from shared.config import EnvConfig
+    from shared.envs import _load_suite_task, check_camera
+
+    count = _load_suite_task("cartpole-balance", 0).physics.model.ncam
+    check_camera(EnvConfig(task="cartpole-balance", camera_id=count - 1))
+    with pytest.raises(ConfigError, match=f"has {count} \\(ids 0 to {count - 1}\\)"):
+        check_camera(EnvConfig(task="cartpole-balance", camera_id=count))

@@ -253,3 +253,13 @@ def test_parallel_below_one_is_refused(
     with pytest.raises(SystemExit) as exc:
         main([*base_args(tmp_path / "results"), "--dry-run", "--parallel", value])
     assert exc.value.code == 2 and f"--parallel must be >= 1, got {value}" in capsys.readouterr().err
+
+
+def test_a_camera_after_dashes_is_checked_against_every_task(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([*base_args(tmp_path / "results"), "--dry-run", "--", "--camera-id", "99"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "env.camera_id 99 is not a camera of cartpole-balance" in err
+    assert not (tmp_path / "results").exists()
