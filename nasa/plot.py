@@ -96,16 +96,21 @@ def run_identity(folder: Path) -> tuple[str, str, int] | None:
         env = config.get("env")
         task = env.get("task") if isinstance(env, dict) else None
         if task is not None and "algo" in config and "seed" in config:
-            return task, config["algo"], int(config["seed"])
+            algo = config["algo"]
+            if not isinstance(task, str) or not isinstance(algo, str):
+                raise ConfigError(
+                    f"{config_path}: env.task and algo must be names, got {task!r} and {algo!r}")
+            return task, algo, int(config["seed"])
     if folder.name.startswith("seed") and folder.name[4:].isdigit():
         return folder.parent.parent.name, folder.parent.name, int(folder.name[4:])
     return None
 
 
-def find_runs(results_dir: Path) -> list[SeedCurve]:
-    """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed. A run
-    whose files cannot be read (a damaged file, a row cut short) is named and skipped, so one bad
-    folder does not hide the others' curves."""
+def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
+    """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed, with
+    the wall-clock time of each step (train.csv) when `walls`. A run whose files cannot be read (a
+    damaged file, a row cut short) is named and skipped, so one bad folder does not hide the
+    others' curves; train.csv is read only for `walls`, so its damage hides no step curve."""
     runs: list[SeedCurve] = []
     seen: dict[tuple[str, str, int, str], Path] = {}
     for path in sorted(Path(results_dir).rglob("eval.csv")):
@@ -120,7 +125,7 @@ def find_runs(results_dir: Path) -> list[SeedCurve]:
                 continue  # a run that has not evaluated yet
             steps = np.array([int(float(r["step"])) for r in rows])
             means = np.array([float(r["mean"]) for r in rows])
-            walls = eval_walls(path.parent, steps.tolist())
+            at = eval_walls(path.parent, steps.tolist()) if walls else {}
         except ConfigError as err:
             print(f"nasa plot: skipping {path}: {err}", file=sys.stderr)
             continue
@@ -134,7 +139,7 @@ def find_runs(results_dir: Path) -> list[SeedCurve]:
             continue
         seen[(*identity, runner)] = path
         runs.append(SeedCurve(*identity, steps=steps, means=means, path=path, runner=runner,
-                              walls=np.array([walls.get(int(s), np.nan) for s in steps])))
+                              walls=np.array([at.get(int(s), np.nan) for s in steps])))
     return runs
 
 
@@ -267,7 +272,7 @@ def plot(argv: list[str]) -> None:
     cmd = tyro.cli(PlotCommand, args=argv, prog="nasa plot")
     if not cmd.results.is_dir():
         _fail(f"{cmd.results} is not a folder")
-    runs = find_runs(cmd.results)
+    runs = find_runs(cmd.results, walls=cmd.x == "minutes")
     if not runs:
         _fail(f"no run with an evaluation under {cmd.results}")
     out = cmd.out or cmd.results

@@ -171,7 +171,7 @@ def test_a_distributed_run_is_its_own_curve_and_minutes_come_from_train_csv(tmp_
             log.append({"step": step, "wall_s": 60.0 * minutes * step / 10})
         if runner == "up":
             (folder / "learner").mkdir()  # what the distributed system's learner leaves
-    runs = find_runs(root)
+    runs = find_runs(root, walls=True)
     assert sorted(r.series for r in runs) == ["nasa_td3", "nasa_td3, nasa up"]
     fig = plot_curves(runs, x="minutes")
     (ax,) = fig.axes
@@ -182,6 +182,7 @@ def test_a_distributed_run_is_its_own_curve_and_minutes_come_from_train_csv(tmp_
     assert ax.get_xlabel() == "wall-clock minutes"
 
 
+BAD_TASK = '{"env": {"task": 5}, "algo": "td3", "seed": 1}'
 BAD_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": "x"}'
 
 
@@ -193,7 +194,7 @@ BAD_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": "x"}'
         (lambda f: (f / "config.json").write_text("{not json"), "config.json is unreadable: Expecting"),
         (lambda f: (f / "config.json").write_text("[1, 2]"), "config.json is unreadable: it does not hold"),
         (lambda f: (f / "config.json").write_text(BAD_SEED), "ValueError"),
-        (lambda f: (f / "train.csv").write_text("step,wall_s\nten,1.0\n"), "ValueError"),
+        (lambda f: (f / "config.json").write_text(BAD_TASK), "env.task and algo must be names, got 5"),
     ],
 )
 def test_a_damaged_run_is_named_and_skipped_and_the_others_still_plot(
@@ -227,3 +228,17 @@ def test_seeds_that_share_one_step_still_show(tmp_path: Path) -> None:
     (line,) = [line for line in ax.get_lines() if line.get_label().startswith("nasa_td3")]
     assert line.get_marker() == "o" and line.get_xdata().tolist() == [0]
     assert "to step 0" in line.get_label()
+
+
+def test_a_damaged_train_csv_hides_only_the_wall_clock_axis(
+    results: tuple[Path, dict], capsys: pytest.CaptureFixture[str]
+) -> None:
+    root, data = results
+    damaged = root / "other" / "nasa_td3-1"
+    (damaged / "train.csv").write_text("step,wall_s\nten,1.0\n")
+    assert {(r.task, r.algo, r.seed) for r in find_runs(root)} == set(data)  # steps need no train.csv
+    plot([str(root)])
+    assert "nasa plot: 12 runs" in capsys.readouterr().out
+    runs = find_runs(root, walls=True)
+    assert {(r.task, r.algo, r.seed) for r in runs} == set(data) - {("cheetah-run", "nasa_td3", 1)}
+    assert f"nasa plot: skipping {damaged / 'eval.csv'}: unreadable (ValueError" in capsys.readouterr().err
