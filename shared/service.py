@@ -38,6 +38,7 @@ from shared.config import (
     ConfigError,
     TrainConfig,
     auto_preset,
+    check_types,
     default_config,
     from_dict,
     to_dict,
@@ -106,6 +107,7 @@ def parse_with_preset(
                               "config.json holds its settings; leave --preset out")
         base = _read_run_config(run_file)
     if base is not None:
+        check_types(base)  # before tyro, which warns of a default of another type
         preset, config = "run", from_dict(to_dict(base))
     else:
         preset = known.preset

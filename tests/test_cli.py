@@ -88,6 +88,7 @@ def test_resume_refuses_an_out_or_preset_it_would_ignore(resumed, capsys, flags,
     assert calls == [None]
 
 
+@pytest.mark.filterwarnings("error")  # tyro's warning of a default of another type is a second line
 @pytest.mark.parametrize(("field", "value"), [("steps", "300"), ("seed", None), ("batch_size", 64.5)])
 def test_a_wrongly_typed_config_json_is_one_line_naming_the_field(resumed, capsys, field, value):
     from shared.service import parse_with_preset
