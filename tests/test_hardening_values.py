@@ -306,3 +306,17 @@ def test_an_eval_result_at_a_step_the_run_never_evaluates_is_refused_and_blocks_
     learner._on_eval(_sample(wire.encode(wire.EvalResult(50, 1, [1.0, 2.0]))))
     assert core.record_eval(learner._evals.get_nowait())["mean"] == 1.5
 
+
+
+@pytest.mark.parametrize(("flag", "value", "says"), [
+    ("max_in_flight", 0, "--max-in-flight must be >= 1"), ("send_batch", 0, "--send-batch must be >= 1"),
+    ("threads", 0, "--threads must be >= 1"), ("status_every_s", math.nan, "--status-every-s"),
+    ("actor_device", "banana", "banana"),
+])
+def test_an_actor_flag_it_cannot_run_with_is_refused_up_front(flag, value, says):
+    from services.actor.actor import ActorArgs, check_args
+    from shared.service import bad_input_errors
+    from tests.tiny import tiny_config
+
+    with pytest.raises(bad_input_errors(), match=says):
+        check_args(ActorArgs(config=tiny_config(), **{flag: value}))

@@ -156,7 +156,7 @@ def test_transitions_past_the_step_budget_are_dropped_without_calling_them_orpha
     ("--max-abs-reward", "nan", "max-abs-reward"), ("--max-abs-reward", "1e6", "at most 1000"),
     ("--max-abs-reward", "-1", "max-abs-reward"), ("--stats-every-s", "0", "stats-every-s"),
     ("--snapshot-every", "0", "snapshot-every"), ("--sample-threads", "0", "sample-threads"),
-    ("--error-buffer", "inf", "error-buffer"),
+    ("--error-buffer", "inf", "error-buffer"), ("--camera-id", "7", "camera"),
 ])
 def test_a_flag_it_cannot_serve_with_is_refused_before_it_connects(tmp_path, flag, value, says):
     # No router listens here: the flag must be the error, with exit 2 and nothing opened.

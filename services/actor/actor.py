@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import math
 import os
 import random
 import threading
@@ -309,4 +310,17 @@ def main(argv: list[str] | None = None) -> None:
         run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
         ActorService(args, session, stop, run).run()
 
-    run_service(ActorArgs, argv, "python -m services.actor", run)
+    run_service(ActorArgs, argv, "python -m services.actor", run, check_args)
+
+
+def check_args(args: ActorArgs) -> None:
+    """The actor's flags that its parser cannot check (exit 2 before it connects, not a traceback
+    that its supervisor would restart in a loop)."""
+    from shared.device import resolve_device
+
+    resolve_device(args.actor_device)
+    for name in ("send_batch", "max_in_flight", "threads"):
+        if getattr(args, name) < 1:
+            raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if not (math.isfinite(args.status_every_s) and args.status_every_s > 0):
+        raise ConfigError(f"--status-every-s must be a finite number > 0, got {args.status_every_s}")

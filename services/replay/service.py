@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from shared import faults, run_config, wire
+from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
@@ -93,6 +93,9 @@ def check_args(args: ReplayArgs) -> None:
     for name in ("snapshot_every", "sample_threads"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    # The replay's config is the run's (every other service joins it): its camera must exist before
+    # any actor renders with it.
+    envs.check_camera(args.config.env)
 
 
 def default_error_buffer(updates_per_step: int) -> float:
