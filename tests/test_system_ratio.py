@@ -48,7 +48,7 @@ def test_a_learner_killed_after_its_checkpoint_makes_up_the_updates_it_lost(tmp_
         assert final["updates"] == steps - WARMUP, system.logs()
         # With no evaluator in the run, the learner does not wait out the final evaluation's timeout.
         learner_log = (data / "logs" / "learner.log").read_text()
-        assert "no evaluator is running: eval step 0 is left unevaluated" in learner_log, system.logs()
+        assert f"no evaluator is running: eval step {steps} is left unevaluated" in learner_log, system.logs()
     finally:
         system.close()
 

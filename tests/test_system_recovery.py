@@ -108,8 +108,8 @@ def test_a_second_launch_of_an_actor_id_takes_it_over_and_the_first_stops(tmp_pa
         assert again.exited is None and again.restarts == 0
         log = (data / "logs" / "actor-0.log").read_text()
         assert "actor id 0 was started again" in log and "give each actor its own --actor-id" in log
-        again_log = (data / "logs" / "actor-0-again.log").read_text()
-        assert "still running: it stops, this one goes on" in again_log
+        # The newer one logs the older one's token only if it sees it before the older has gone,
+        # which it may not (Zenoh's liveliness history races the older one's exit): not asserted.
     finally:
         system.close()
     assert system.leftover_pids() == []
