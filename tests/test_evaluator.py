@@ -255,3 +255,44 @@ def test_a_restarted_learner_gets_the_newest_step_evaluated_again():
     ev.evaluate(100)
     _weights(ev, version=4, env_steps=145, epoch=2)
     assert ev.due() is None
+
+
+def _evaluations(ev: EvaluatorService, steps: list[int]) -> list[list[float]]:
+    out = []
+    for version, step in enumerate(steps):
+        _weights(ev, version=version, env_steps=step)
+        out.append(ev.evaluate(ev.due()).returns)
+    return out
+
+
+def test_a_restarted_evaluator_plays_the_episodes_an_uninterrupted_one_would(tmp_path):
+    """Its evaluation draws go on from where they stood (in its run folder), as nasa train's do."""
+    def service(data):  # noqa: ANN001, ANN202
+        torch.manual_seed(0)  # the same policy in each
+        run = tiny_run("td3_ae", steps=500)
+        args = EvaluatorArgs(config=run.config, data=data, video_every=0)
+        return EvaluatorService(args, None, StopFlag(), run)
+
+    straight = _evaluations(service(tmp_path / "straight"), [0, 50, 100])
+    first = _evaluations(service(tmp_path / "restarted"), [0, 50])
+    again = service(tmp_path / "restarted")  # the same folder, after a restart
+    again.done = 50
+    assert _evaluations(again, [100]) == straight[2:]
+    assert first == straight[:2] and straight[2] != straight[0]
+
+
+def test_a_resumed_learner_evaluating_between_updates_goes_on_with_its_draws(tmp_path):
+    from tests.test_learner import core_on
+
+    c = tiny_config("td3_ae", steps=500)
+    torch.manual_seed(0)
+    agent = _service().agent
+    straight = BetweenUpdates(c, agent, done_step=None)
+    returns = [straight.run(step).returns for step in (0, 50, 100)]
+    before = BetweenUpdates(c, agent, done_step=None)
+    before.run(0), before.run(50)
+    core = core_on(tmp_path)  # the learner's checkpoint carries the draws
+    core.eval_draws = before.draws
+    assert core.save_checkpoint(1.0)
+    restored = core_on(tmp_path).restored_eval_draws
+    assert BetweenUpdates(c, agent, done_step=50, draws=restored).run(100).returns == returns[2]

@@ -38,7 +38,7 @@ import zenoh
 
 from services.evaluator.media import AutoencoderTap, EvalMedia
 from services.robot_bridge.client import BridgePresence
-from shared import envs, faults, run_config, wire
+from shared import checkpoint, envs, faults, run_config, wire
 from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
 from shared.device import resolve_device
@@ -50,6 +50,7 @@ from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
+DRAWS_FILE = "draws.pt"
 
 
 @dataclass
@@ -96,6 +97,10 @@ class EvaluatorService(MessageGuard):
         self.done = first_done(c)  # the newest step evaluated
         self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
         self._epoch: int | None = None  # the learner's incarnation whose weights it holds
+        # Where the evaluation draws stood after the last evaluation, so a restarted evaluator plays
+        # the episodes an uninterrupted one would (no run folder: they start from the seed again).
+        self.draws_file = Path(args.data) / "evaluator" / DRAWS_FILE if args.data else None
+        self._restore_draws()
 
     def due(self) -> int | None:
         """The eval step to evaluate now (the newest multiple of eval_every the learner's weights
@@ -153,6 +158,7 @@ class EvaluatorService(MessageGuard):
             self.log(f"step {target}: evaluation failed, no result for this step: {err}")
             return None
         self.done, self.evaluations = target, self.evaluations + 1
+        self._save_draws()
         self._kept = (obs, cameras, first, video, version)
         return wire.EvalResult(target, version, [float(r) for r in returns])
 
@@ -172,6 +178,22 @@ class EvaluatorService(MessageGuard):
                 self.log(f"step {target}: video {path}")
         except OSError as err:
             self.log.every("media", 60.0, f"step {target}: pictures not written: {err}")
+
+    def _restore_draws(self) -> None:
+        if self.env is None or self.draws_file is None or not self.draws_file.exists():
+            return  # through a bridge the draws live in the bridge
+        try:
+            self.env.set_rng_state(checkpoint.load(self.draws_file)["draws"])
+        except (checkpoint.CheckpointError, OSError, KeyError, TypeError, ValueError) as err:
+            self.log(f"{self.draws_file} cannot be read ({err}): evaluation draws start from the seed")
+
+    def _save_draws(self) -> None:
+        if self.env is None or self.draws_file is None:
+            return
+        try:
+            checkpoint.save(self.draws_file, {"draws": self.env.rng_state()})
+        except (OSError, RuntimeError) as err:  # a full disk: only a restart's episodes would differ
+            self.log.every("draws", 60.0, f"evaluation draws not saved: {err}")
 
     def _first_episode(self, keep: bool, video: bool) -> tuple[float, list[np.ndarray], list]:
         """One deterministic episode (as shared.evaluation's), keeping its observations if asked."""

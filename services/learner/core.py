@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +64,9 @@ class LearnerCore:
         # Orders weights across learner restarts; past the checkpoint's, should this host's clock
         # be behind the one the run's last learner ran on (actors keep the newest epoch's weights).
         self.epoch = wire.restart_stamp(1000, 62)
+        # Evaluations between updates: their environment's draws, into and out of the checkpoint.
+        self.eval_draws: Callable[[], dict | None] = lambda: None
+        self.restored_eval_draws: dict | None = None
         if (self.out / CHECKPOINT).exists():
             self.restore(checkpoint.load(self.out / CHECKPOINT, device))
 
@@ -184,7 +188,8 @@ class LearnerCore:
             counters = dataclasses.replace(self.counters, env_steps=self.env_steps, wall_s=wall_s)
             try:
                 self.recorder.checkpoint(self.out / CHECKPOINT, self.agent, self.rng, counters,
-                                         policy_version=self.policy_version, epoch=self.epoch)
+                                         policy_version=self.policy_version, epoch=self.epoch,
+                                         eval_env_rng=self.eval_draws())
             except (OSError, RuntimeError) as err:  # a full disk (torch.save raises RuntimeError): retry
                 self.checkpoint_error = f"{type(err).__name__}: {err}"
             else:
@@ -204,6 +209,7 @@ class LearnerCore:
             self.counters.wall_s = max(self.counters.wall_s, last[1])
         self.policy_version = int(state["policy_version"])
         self.epoch = max(self.epoch, int(state.get("epoch", -1)) + 1)
+        self.restored_eval_draws = state.get("eval_env_rng")
         self.last_checkpoint_step = self.counters.env_steps
         self.board.seen_env_steps(self.counters.env_steps)
         self.resumed = True

@@ -21,12 +21,18 @@ from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
 
 
 class BetweenUpdates:
-    def __init__(self, config: TrainConfig, agent: Agent, done_step: int | None) -> None:
+    def __init__(self, config: TrainConfig, agent: Agent, done_step: int | None,
+                 draws: dict | None = None) -> None:
         self.config, self.agent = config, agent
         # A resumed run does not evaluate again the steps its eval.csv holds.
         self.done = first_done(config) if done_step is None else done_step
         self.env: PixelEnv | None = None  # made at the first evaluation
         self.restart_draws: Callable[[], None] = lambda: None
+        self._draws = draws  # where a resumed run's evaluation draws stood (its checkpoint's)
+
+    def draws(self) -> dict | None:
+        """The evaluation environment's draws now, for the learner's checkpoint (None: none made)."""
+        return None if self.env is None else self.env.rng_state()
 
     def due(self, env_steps: int) -> int | None:
         if self.done < 0 and self.agent.num_updates == 0:
@@ -40,6 +46,8 @@ class BetweenUpdates:
         if self.env is None:
             self.env = envs.from_config(c.env, c.seed + EVAL_SEED_OFFSET)
             self.restart_draws = draws_restarter(self.env, c.eval_same_episodes)
+            if self._draws:  # go on from the checkpoint's, as an uninterrupted run would
+                self.env.set_rng_state(self._draws)
         self.restart_draws()
         self.done = target
         returns = evaluate(self.agent, self.env, c.eval_episodes)

@@ -78,8 +78,11 @@ class Learner:
         self.history = History()  # read by its own thread, never the update loop
         self._scalars_at = 0.0
         self._checkpoint_asked = threading.Event()  # POST /control/checkpoint; the loop writes it
-        self.between = (BetweenUpdates(self.core.config, self.core.agent, self.core.eval["step"])
+        self.between = (BetweenUpdates(self.core.config, self.core.agent, self.core.eval["step"],
+                                       self.core.restored_eval_draws)
                         if args.eval_between_updates else None)
+        if self.between is not None:
+            self.core.eval_draws = self.between.draws
         self._evaluators: set[str] = set()  # liveliness keys of the run's evaluators
         if self.core.resumed:
             self.log(f"resumed from checkpoint: {self.core.agent.num_updates} updates, "
