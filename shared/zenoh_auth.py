@@ -96,6 +96,8 @@ def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
     lines = "".join(f"{role}:{secrets.token_urlsafe(24)}\n" for role in AUTH_ROLES)
     tmp = users.with_suffix(".tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    # O_CREAT's mode applies to a new file only: a users.tmp left by a crash keeps its own.
+    os.fchmod(fd, 0o600)
     with os.fdopen(fd, "w") as f:
         f.write(lines)
     os.replace(tmp, users)
@@ -115,19 +117,32 @@ def check_acl(folder: Path, run_id: str) -> None:
     """AuthError unless the folder's acl.json is the one `init` makes today for `run_id` or every run:
     an ACL for another run, or from an older wiring, would deny this run's messages."""
     path = folder / ACL_FILE
-    held = json.loads(path.read_text()) if path.exists() else None
+    text = _read(path, folder) if path.exists() else "null"
+    try:
+        held = json.loads(text)
+    except ValueError:  # a damaged one: made anew by the same command
+        held = None
     if held not in (acl(routes(run_id)), acl(routes(ANY))):
         raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
                         f"`nasa auth init {folder} --run-id {run_id} --force` makes it anew")
 
 
+def _read(path: Path, folder: Path) -> str:
+    """The text of one of the auth folder's files; AuthError (one line) if it cannot be read."""
+    if not path.exists():
+        raise AuthError(f"no {path}: make the auth folder with `nasa auth init {folder}`")
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:  # a folder in its place, not this user's, garbled
+        raise AuthError(f"cannot read {path} ({err.__class__.__name__}: {err}): check its owner and mode, "
+                        f"or make it anew with `nasa auth init {folder} --force`") from err
+
+
 def credentials(folder: Path) -> dict[str, str]:
     """role -> password, from `folder`/users.txt."""
     path = folder / USERS_FILE
-    if not path.exists():
-        raise AuthError(f"no {path}: make the auth folder with `nasa auth init {folder}`")
     out = {}
-    for line in path.read_text().splitlines():
+    for line in _read(path, folder).splitlines():
         user, sep, password = line.strip().partition(":")
         if sep and user and password:
             out[user] = password
@@ -146,10 +161,18 @@ def apply_router(config: zenoh.Config, folder: Path) -> None:
     """Require a login from the dictionary and enforce the folder's ACL."""
     users, rules = folder / USERS_FILE, folder / ACL_FILE
     known = credentials(folder)
-    if not rules.exists():
-        raise AuthError(f"no {rules}: make the auth folder with `nasa auth init {folder}`")
+    # Zenoh turns logins off for an empty dictionary: every client would get in unnamed.
+    if missing := [role for role in ROLES if role not in known]:
+        raise AuthError(f"{users} holds no credential for {', '.join(missing)}: a router needs every "
+                        f"role's; `nasa auth init {folder} --force` writes them all")
+    text = _read(rules, folder)
+    try:
+        json.loads(text)
+    except ValueError as err:  # else Zenoh's multi-line parse error, as if the port were at fault
+        raise AuthError(f"{rules} is not JSON ({err}): "
+                        f"`nasa auth init {folder} --force` makes it anew") from err
     usrpwd: dict[str, str] = {"dictionary_file": str(users.resolve())}
     if ROUTER in known:  # what this router presents when it connects to another site's
         usrpwd |= {"user": ROUTER, "password": known[ROUTER]}
     config.insert_json5("transport/auth/usrpwd", json.dumps(usrpwd))
-    config.insert_json5("access_control", rules.read_text())
+    config.insert_json5("access_control", text)

@@ -382,3 +382,59 @@ def test_nasa_auth_names_a_folder_it_cannot_write_in_one_line(
         err = capsys.readouterr().err
         assert done.value.code == 2 and err.startswith(f"nasa auth: error: {said}"), err
         assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.system  # router processes
+@pytest.mark.parametrize("damage", ["users-binary", "users-folder", "users-empty", "users-no-replay",
+                                    "acl-folder", "acl-not-json"])
+def test_a_router_with_a_damaged_auth_folder_says_which_file_in_one_line(tmp_path: Path, damage: str) -> None:
+    """Not a traceback, not Zenoh's parse error blamed on the port, and never a router that lets
+    every client in unnamed (Zenoh's reading of an empty dictionary)."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    users, rules = folder / zenoh_auth.USERS_FILE, folder / zenoh_auth.ACL_FILE
+    if damage == "users-binary":
+        users.write_bytes(b"\xff\xfe\x00garbage")
+    elif damage == "users-folder":
+        users.unlink()
+        users.mkdir()
+    elif damage == "users-empty":
+        users.write_text("")
+    elif damage == "users-no-replay":
+        users.write_text("".join(line + "\n" for line in users.read_text().splitlines()
+                                 if not line.startswith("replay:")))
+    elif damage == "acl-folder":
+        rules.unlink()
+        rules.mkdir()
+    else:
+        rules.write_text("{not json")
+    out = subprocess.run([sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
+                          "--auth", str(folder)], cwd=REPO, capture_output=True, text=True, timeout=20)
+    assert out.returncode == 2, out.stderr
+    assert "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert ("users.txt" if damage.startswith("users") else "acl.json") in out.stderr
+    assert "cannot listen" not in out.stderr
+
+
+def test_a_client_with_an_unreadable_users_file_gets_an_auth_error(tmp_path: Path) -> None:
+    """A service names the file (exit 2) rather than dying on a UnicodeDecodeError or IsADirectoryError."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    (folder / zenoh_auth.USERS_FILE).write_bytes(b"actor:\xff\xfe\n")
+    with pytest.raises(zenoh_auth.AuthError, match="users.txt"):
+        open_client("tcp/127.0.0.1:1", timeout_s=0.1, role="actor", auth=folder)
+
+
+def test_a_damaged_acl_is_refused_like_a_missing_one(tmp_path: Path) -> None:
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    (folder / zenoh_auth.ACL_FILE).write_text('{"enabled": tr')
+    with pytest.raises(zenoh_auth.AuthError, match="--force"):
+        zenoh_auth.check_acl(folder, RUN)
+
+
+def test_rotation_over_a_stale_temporary_file_keeps_the_credentials_private(tmp_path: Path) -> None:
+    """A users.tmp left world-readable by an interrupted init must not hand its mode to users.txt."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    stale = (folder / zenoh_auth.USERS_FILE).with_suffix(".tmp")
+    stale.write_text("")
+    stale.chmod(0o644)
+    zenoh_auth.init(folder, RUN, force=True)
+    assert stat.S_IMODE((folder / zenoh_auth.USERS_FILE).stat().st_mode) == 0o600
