@@ -133,7 +133,37 @@ def _files(folder: Path, name: str) -> tuple[Path, Path, Path]:
     if missing:
         raise AuthError(f"a tls/ endpoint needs the run's certificates, and {', '.join(missing)} "
                         f"is missing: make them with `nasa auth tls {folder} --host ROUTER_HOST`")
+    _check(folder, *paths)
     return tuple(p.resolve() for p in paths)  # type: ignore[return-value]
+
+
+def _check(folder: Path, ca_path: Path, cert_path: Path, key_path: Path) -> None:
+    """AuthError unless the certificate is the CA's, in date, and the key is its own: Zenoh would
+    refuse such a link only at the handshake, which a client cannot tell from a router not up."""
+    from cryptography import x509
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives import serialization
+
+    anew = f"`nasa auth tls {folder} --host ROUTER_HOST --force` issues every certificate anew"
+    try:
+        ca = x509.load_pem_x509_certificate(ca_path.read_bytes())
+        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+    except (OSError, ValueError, TypeError) as err:  # unreadable, damaged, a passphrase on the key
+        raise AuthError(f"cannot read the certificates {ca_path}, {cert_path}, {key_path} "
+                        f"({err.__class__.__name__}: {err}): {anew}") from err
+    now = datetime.datetime.now(datetime.UTC)
+    for path, held in ((ca_path, ca), (cert_path, cert)):
+        if not held.not_valid_before_utc <= now <= held.not_valid_after_utc:
+            raise AuthError(f"{path} is valid from {held.not_valid_before_utc:%Y-%m-%d %H:%M} to "
+                            f"{held.not_valid_after_utc:%Y-%m-%d %H:%M} UTC, not now: {anew}")
+    try:
+        cert.verify_directly_issued_by(ca)
+    except (ValueError, TypeError, InvalidSignature) as err:
+        raise AuthError(f"{cert_path} is not issued by {ca_path} (from another `nasa auth tls`?): "
+                        f"{anew}") from err
+    if key.public_key() != cert.public_key():
+        raise AuthError(f"{key_path} is not the key of {cert_path}: {anew}")
 
 
 def apply_client(config: zenoh.Config, folder: Path, role: str) -> None:

@@ -108,3 +108,47 @@ def test_nasa_auth_tls_command(tmp_path: Path) -> None:
     bad = subprocess.run([*run, "tls", str(tmp_path / "x"), "--host", "a b"], cwd=REPO,
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "not a host name" in bad.stderr
+
+
+def _reissue(tls: Path, name: str, days: tuple[int, int]) -> None:
+    """Re-sign `name`'s certificate by the run's CA, valid from days[0] to days[1] days from now."""
+    import datetime
+
+    from cryptography.hazmat.primitives import hashes, serialization
+
+    ca_key = serialization.load_pem_private_key((tls / "ca.key").read_bytes(), None)
+    cert = x509.load_pem_x509_certificate((tls / f"{name}.pem").read_bytes())
+    now = datetime.datetime.now(datetime.UTC)
+    builder = (x509.CertificateBuilder().subject_name(cert.subject).issuer_name(cert.issuer)
+               .public_key(cert.public_key()).serial_number(x509.random_serial_number())
+               .not_valid_before(now + datetime.timedelta(days=days[0]))
+               .not_valid_after(now + datetime.timedelta(days=days[1])))
+    for ext in cert.extensions:
+        builder = builder.add_extension(ext.value, ext.critical)
+    signed = builder.sign(ca_key, hashes.SHA256())  # type: ignore[arg-type]
+    (tls / f"{name}.pem").write_bytes(signed.public_bytes(serialization.Encoding.PEM))
+
+
+@pytest.mark.parametrize("fault", ["expired", "not-yet-valid", "wrong-key", "other-ca", "garbled-key"])
+def test_a_certificate_the_handshake_would_refuse_is_named_up_front(tmp_path: Path, fault: str) -> None:
+    """Zenoh refuses such a link only at the handshake, which a client reads as "no router" and
+    retries forever, and a router as a port it cannot listen on: name the file instead."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    tls = zenoh_tls.init(folder, [])
+    for name in ("actor", "router"):
+        if fault == "expired":
+            _reissue(tls, name, (-10, -1))
+        elif fault == "not-yet-valid":
+            _reissue(tls, name, (1, 10))
+        elif fault == "wrong-key":
+            shutil.copy(tls / "learner.key", tls / f"{name}.key")
+        elif fault == "garbled-key":
+            (tls / f"{name}.key").write_text("-----BEGIN PRIVATE KEY-----\nnot a key\n")
+    if fault == "other-ca":
+        other = zenoh_tls.init(zenoh_auth.init(tmp_path / "other", RUN), [])
+        shutil.copy(other / "ca.pem", tls / "ca.pem")
+    port = free_port()
+    with pytest.raises(zenoh_auth.AuthError, match="--force"):
+        open_client(f"tls/127.0.0.1:{port}", timeout_s=1.0, role="actor", auth=folder)
+    with pytest.raises(zenoh_auth.AuthError, match="--force"):
+        open_router(f"tls/127.0.0.1:{port}", auth=folder)
