@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,12 +50,30 @@ class RouterUnreachable(zenoh.ZError):
     do; a service's main names it in one line and exits non-zero, for its supervisor to retry."""
 
 
+class SessionRefused(RouterUnreachable):
+    """The router's port is open but no session opened: a refused login or TLS certificate, most
+    likely. Still retried (the router may be restarted with the folder it should have)."""
+
+
+def _listening(endpoint: str, timeout_s: float = 1.0) -> bool:
+    """Whether a tcp/ or tls/ endpoint's host:port accepts a TCP connection."""
+    proto, _, rest = endpoint.partition("/")
+    host, _, port = rest.split("?")[0].split("#")[0].rpartition(":")
+    if proto not in ("tcp", "tls") or not port.isdigit():
+        return False
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
 def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
                 auth: Path | None = None) -> zenoh.Session:
     """A client session to the router(s) in `connect` (comma-separated endpoints), retried until up.
 
     With an auth folder (`auth`, else env NASA_ZENOH_AUTH) it logs in as `role`; a router that
-    refuses the login looks like one that is not up, so this raises RouterUnreachable after `timeout_s`."""
+    refuses the login raises SessionRefused (a RouterUnreachable) after `timeout_s`."""
     endpoints = [e.strip() for e in connect.split(",") if e.strip()]
     if not endpoints:
         raise ValueError("no Zenoh endpoint to connect to (set --connect or NASA_ZENOH_CONNECT)")
@@ -77,6 +96,14 @@ def open_client(connect: str, timeout_s: float = 30.0, role: str | None = None,
             return zenoh.open(config)
         except zenoh.ZError as err:
             if time.monotonic() >= deadline:
+                # Zenoh's error is the same for a refused login as for no router: tell them apart,
+                # else a wrong password reads as a network fault for ever.
+                if up := [e for e in endpoints if _listening(e)]:
+                    who = (f"{role!r}'s login from {folder} (a password its users.txt lacks: rotated "
+                           "without restarting it?)" if folder is not None else "a session without a login")
+                    raise SessionRefused(
+                        f"the Zenoh router at {', '.join(up)} is up but refused {who}"
+                        + (" or this role's TLS certificate" if tls else "") + f": {err}") from err
                 login = f"; or it refused {role!r}'s login from {folder}" if folder is not None else ""
                 raise RouterUnreachable(
                     f"no Zenoh router answered at {connect} within {timeout_s:g} s (is it up? `nasa up` "

@@ -81,10 +81,13 @@ def test_router_refuses_a_wrong_or_missing_password(router: str, auth_dir: Path,
     forged = tmp_path / "forged"
     forged.mkdir()
     (forged / zenoh_auth.USERS_FILE).write_text("actor:not-the-password\n")
-    with pytest.raises(zenoh.ZError):
+    # A refused login says so, rather than "is it up?" (still a ZError: a supervisor retries).
+    with pytest.raises(zenoh.ZError, match="is up but refused 'actor'"):
         open_client(router, timeout_s=1.0, role="actor", auth=forged)
-    with pytest.raises(zenoh.ZError):
+    with pytest.raises(zenoh.ZError, match="is up but refused a session without a login"):
         open_client(router, timeout_s=1.0)  # no credentials at all
+    with pytest.raises(zenoh.ZError, match="is it up"):
+        open_client(f"tcp/127.0.0.1:{free_port()}", timeout_s=0.5, role="actor", auth=forged)
     with pytest.raises(zenoh_auth.AuthError):
         open_client(router, timeout_s=1.0, auth=auth_dir)  # a folder but no role
     with login(router, auth_dir, "actor") as session:
