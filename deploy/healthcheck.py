@@ -37,18 +37,27 @@ def tcp_open(host: str, port: int) -> bool:
         return False
 
 
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *args: object, **kwargs: object) -> None:
+        return None  # the 3xx itself is the answer: an HTTPError, so unhealthy
+
+
 def learner() -> bool:
+    """The learner's /healthz answers 200 "ok" itself: a redirect (to a page that answers 200) or
+    another server's 200 on the port is not the learner being healthy."""
     port = int(os.environ.get("NASA_STATUS_PORT", "8000"))
+    opener = urllib.request.build_opener(_NoRedirect)
     try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=TIMEOUT_S) as response:
-            return response.status == 200
+        with opener.open(f"http://127.0.0.1:{port}/healthz", timeout=TIMEOUT_S) as response:
+            return response.status == 200 and response.read(64).startswith(b"ok")
     except OSError:
         return False
 
 
 def router() -> bool:
-    _, port = _host_port(os.environ.get("NASA_ZENOH_LISTEN", "tcp/0.0.0.0:7447"), 7447)
-    return tcp_open("127.0.0.1", port)
+    host, port = _host_port(os.environ.get("NASA_ZENOH_LISTEN", "tcp/0.0.0.0:7447"), 7447)
+    # Listening on every interface: loopback is one of them; on one address: only that one.
+    return tcp_open("127.0.0.1" if host in ("0.0.0.0", "::", "") else host, port)
 
 
 def _token_seen(key: str, role: str) -> bool:
