@@ -441,3 +441,22 @@ def test_rotation_over_a_stale_temporary_file_keeps_the_credentials_private(tmp_
     stale.chmod(0o644)
     zenoh_auth.init(folder, RUN, force=True)
     assert stat.S_IMODE((folder / zenoh_auth.USERS_FILE).stat().st_mode) == 0o600
+
+
+@pytest.mark.system  # a router process
+def test_a_router_warns_of_credentials_every_user_can_read(tmp_path: Path) -> None:
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    (folder / zenoh_auth.USERS_FILE).chmod(0o644)
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    cmd = [sys.executable, "-m", "services.router", "--listen", listen, "--auth", str(folder)]
+    proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = []
+        while not lines or "listening on" not in lines[-1]:
+            line = proc.stderr.readline()  # type: ignore[union-attr]
+            assert line, "".join(lines)
+            lines.append(line)
+        assert any("readable by every user" in line for line in lines), "".join(lines)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

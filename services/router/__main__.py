@@ -15,7 +15,7 @@ import tyro
 import zenoh
 
 from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
-from shared.zenoh_auth import AuthError, env_auth
+from shared.zenoh_auth import USERS_FILE, AuthError, env_auth
 from shared.zenoh_session import open_router
 
 
@@ -50,6 +50,10 @@ def main(argv: list[str] | None = None) -> None:
               file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
     with router:
+        if args.auth is not None and (args.auth / USERS_FILE).stat().st_mode & 0o004:
+            # Anyone on the host could log in as any role: say so (a mount may not allow a chmod).
+            log(f"warning: {args.auth / USERS_FILE} is readable by every user of this host: "
+                f"chmod 600 it (or 640 for the router's group)")
         log(f"listening on {args.listen}" + (f", joining {args.join}" if args.join else "")
             + (f"; logins and ACL from {args.auth}" if args.auth else ""))
         stop.wait()
