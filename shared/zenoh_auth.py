@@ -11,7 +11,7 @@ An auth folder (`nasa auth init DIR`) holds:
 
 With NASA_ZENOH_AUTH=DIR (or the router's --auth DIR) sessions authenticate; without it they
 connect with no credentials, as before. A client refused by the router (wrong or no password)
-fails to open like a router that is not there.
+fails to open with SessionRefused (shared/zenoh_session.py): the router's port is open, the login not.
 """
 
 from __future__ import annotations
