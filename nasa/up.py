@@ -552,7 +552,10 @@ def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Pat
     if cmd.zenoh_auth == RUN_AUTH:
         # The run's own folder: its ACL follows the code that runs it (a resume after an
         # upgrade); its passwords stay.
-        zenoh_auth.write_acl(folder, run_id)
+        try:
+            zenoh_auth.write_acl(folder, run_id)
+        except OSError as err:  # a read-only or full disk on a resume
+            raise ConfigError(f"--zenoh-auth {folder}: cannot write the run's access rules: {err}") from None
     zenoh_auth.check_acl(folder, run_id)
     env["NASA_ZENOH_AUTH"] = str(folder.resolve())
     print(f"nasa up: Zenoh logins and access control from {folder} (--zenoh-auth off: none)", flush=True)
