@@ -460,3 +460,16 @@ def test_a_router_warns_of_credentials_every_user_can_read(tmp_path: Path) -> No
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def test_nasa_up_names_a_run_folder_whose_access_rules_it_cannot_write(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from nasa.up import up_auth
+    from shared.config import ConfigError
+
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    (folder / zenoh_auth.ACL_FILE).unlink()
+    (folder / zenoh_auth.ACL_FILE).mkdir()  # cannot be replaced by a file
+    with pytest.raises(ConfigError, match="cannot write the run's access rules"):
+        up_auth(SimpleNamespace(zenoh_auth="run"), tmp_path, RUN, {})
