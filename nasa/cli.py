@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 from dataclasses import dataclass, field
@@ -87,13 +88,16 @@ def train(argv: list[str]) -> None:
     device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL
     from shared.agents import check_update_device
-    from shared.faults import lock_run
+    from shared.faults import RunFolderError, lock_run
 
     if cmd.resume is not None:
         check_update_device(cmd.config.agent, device)  # --cuda-graph may be asked for on resuming
         with lock_run(cmd.resume, "nasa train --resume"):
             print(f"nasa train: resuming {cmd.resume}", flush=True)
-            trainer = Trainer.resume(cmd.resume, steps=steps, cuda_graph=cmd.config.agent.cuda_graph)
+            try:
+                trainer = Trainer.resume(cmd.resume, steps=steps, cuda_graph=cmd.config.agent.cuda_graph)
+            except OSError as err:  # a full disk: the resume writes its cut before it runs
+                raise RunFolderError(f"{cmd.resume}: {write_error(err)}") from err
             run_until_stopped(trainer, cmd.resume)
         return
     c = cmd.config
@@ -110,24 +114,44 @@ def train(argv: list[str]) -> None:
         flush=True,
     )
     with lock_run(out, "nasa train", "--out"):
-        run_until_stopped(Trainer.create(c, out), out)
+        try:
+            trainer = Trainer.create(c, out)
+        except OSError as err:
+            raise RunFolderError(f"{out}: {write_error(err)}") from err
+        run_until_stopped(trainer, out)
 
 
 def run_until_stopped(trainer: Trainer, out: Path) -> None:
     """Run to the step budget; on Ctrl-C (SIGINT) or SIGTERM, release the renderers, say how to
-    continue, and exit 128 + the signal (130, 143), the shell's convention."""
+    continue, and exit 128 + the signal (130, 143), the shell's convention. A file the run cannot
+    write (a full disk, a folder made read-only) stops it the same way, with exit 1."""
     signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         trainer.run()
     except (KeyboardInterrupt, Terminated) as err:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one would cut the message short
+        _stopped(trainer, out, "", 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
+    except OSError as err:
+        _stopped(trainer, out, f": {write_error(err)}", 1, "once it can be written again, ")
+
+
+def write_error(err: OSError) -> str:
+    """An OSError in one line, naming its file where it has one."""
+    where = f" ({err.filename})" if err.filename else ""
+    return f"cannot write the run folder: {err.strerror or err}{where}"
+
+
+def _stopped(trainer: Trainer, out: Path, why: str, code: int, when: str = "") -> None:
+    # A second signal would cut the message short; the run is stopping anyway.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):  # closing flushes files the disk may still refuse
         trainer.close()
-        saved = trainer.last_checkpoint_step
-        where = (f"its last checkpoint holds step {saved}" if saved
-                 else "it has no checkpoint yet, so --resume starts it over")
-        print(f"\nnasa train: stopped at step {trainer.counters.env_steps}; {where}; "
-              f"continue with: nasa train --resume {out}", file=sys.stderr, flush=True)
-        sys.exit(128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
+    saved = trainer.last_checkpoint_step
+    where = (f"its last checkpoint holds step {saved}" if saved
+             else "it has no checkpoint yet, so --resume starts it over")
+    print(f"\nnasa train: stopped at step {trainer.counters.env_steps}{why}; {where}; "
+          f"{when}continue with: nasa train --resume {out}", file=sys.stderr, flush=True)
+    sys.exit(code)
 
 
 def up(argv: list[str]) -> None:

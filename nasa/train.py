@@ -100,6 +100,7 @@ class Trainer:
         else:  # killed before its first checkpoint: start over
             trainer.store.truncate(0)
             trainer.recorder.clear()
+            trainer.scalars.purge_step = 0  # and hide the events of the attempt before
         if changed:
             run_config.write_folder(out, trainer.run_config)
         return trainer
@@ -172,10 +173,14 @@ class Trainer:
         """Release the environments' renderers and the run's files: at the end of a run, or when
         it is stopped (the replay's log is safe however it stops; a resume starts from the last
         checkpoint)."""
-        self.env.close()
-        self.eval_env.close()
-        self.store.close()
-        self.scalars.close()
+        failed: list[OSError] = []
+        for close in (self.env.close, self.eval_env.close, self.store.close, self.scalars.close):
+            try:  # each, even when one fails (a full disk refuses a flush): the others still close
+                close()
+            except OSError as err:
+                failed.append(err)
+        if failed:
+            raise failed[0]
 
     def update(self) -> None:
         """G updates on batches from the replay."""

@@ -64,8 +64,15 @@ def save(path: str | Path, state: dict) -> None:
             torch.save({"format": CHECKPOINT_FORMAT, **state}, f)
             f.flush()
             os.fsync(f.fileno())
-    except BaseException:
+    except BaseException as err:
         tmp.unlink(missing_ok=True)  # a full disk: free what the failed write took; `path` is intact
+        # torch's zip writer answers a failed write with an error of its own about file
+        # positions: the disk's error is the one to report, naming the file.
+        disk = err.__context__ if isinstance(err, RuntimeError) else err
+        if isinstance(disk, OSError) and disk.filename is None:
+            raise OSError(disk.errno, disk.strerror, str(tmp)) from err
+        if disk is not err and isinstance(disk, OSError):
+            raise disk from None
         raise
     os.replace(tmp, path)
 

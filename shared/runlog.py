@@ -89,10 +89,14 @@ class CsvLog:
 
     def truncate(self, rows: int) -> None:
         """Keep the header and the first `rows` rows (a resumed run drops what came after its checkpoint)."""
-        with open(self.path, "rb") as f:
-            lines = f.readlines()
-        with open(self.path, "wb") as f:
-            f.writelines(lines[: rows + 1])
+        # Cut in place, never rewritten: a rewrite on a full disk would lose the rows it keeps.
+        with open(self.path, "r+b") as f:
+            end = 0
+            for _ in range(rows + 1):
+                if not (line := f.readline()):
+                    return
+                end += len(line)
+            f.truncate(end)
 
 
 def eval_walls(run: str | Path, steps: list[int]) -> dict[int, float]:

@@ -19,6 +19,7 @@ package's own format. Every point's step is the env step. Tags:
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,22 @@ def status_scalars(s: dict) -> dict[str, float | None]:
     }
 
 
+def _quiet_writer_threads() -> None:
+    """Keep an OSError in tensorboard's writing thread (a full disk) from printing a traceback:
+    the writer raises it again at the next add, flush or close, where the runner reports it."""
+    if getattr(threading.excepthook, "quiet_writer_threads", False):
+        return
+    previous = threading.excepthook
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        if isinstance(args.exc_value, OSError) and type(args.thread).__name__ == "_AsyncWriterThread":
+            return
+        previous(args)
+
+    hook.quiet_writer_threads = True
+    threading.excepthook = hook
+
+
 class Scalars:
     """A SummaryWriter opened on first use (importing tensorboard costs a second or two)."""
 
@@ -66,6 +83,7 @@ class Scalars:
         if self._writer is None:
             from torch.utils.tensorboard import SummaryWriter
 
+            _quiet_writer_threads()
             self._writer = SummaryWriter(str(self.logdir), flush_secs=self.flush_secs,
                                          purge_step=self.purge_step)
         return self._writer
@@ -97,6 +115,6 @@ class Scalars:
             self._writer.flush()
 
     def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.close()  # may raise the error its writing thread met (a full disk), once

@@ -336,3 +336,170 @@ def test_a_checkpoint_with_a_damaged_byte_or_of_another_algorithm_is_refused(tmp
         with pytest.raises(checkpoint.CheckpointError, match="does not fit this run's algorithm"):
             Recorder(tmp_path / algo, 2).restore(state, other, np.random.default_rng(0), truncate=False)
         assert all(torch.equal(before[k], v) for k, v in other.policy_state_dict().items())
+
+
+class DiskFull:
+    """ENOSPC at one of the run's writes once the run reaches `at` steps (a disk that fills)."""
+
+    def __init__(self, monkeypatch, where: str, trainer: Trainer, at: int = 70) -> None:
+        import errno
+        import os
+
+        from shared import checkpoint, runlog
+
+        self.trainer, self.at, self.fired = trainer, at, False
+        full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        if where == "csv":
+            real_append = runlog.CsvLog.append
+
+            def append(log, row):
+                if self.due():
+                    with open(log.path, "ab") as f:
+                        f.write(b"80,3,12.5")  # the part of the row that fitted
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(log.path))
+                real_append(log, row)
+
+            monkeypatch.setattr(runlog.CsvLog, "append", append)
+        elif where == "checkpoint":
+            class Full:  # the checkpoint's file: its writes fail part way (torch then raises its own)
+                def __init__(self, f):
+                    self.f, self.written = f, 0
+
+                def write(self, data):
+                    if self.written > 1000:
+                        raise full
+                    self.written += len(data)
+                    return self.f.write(data)
+
+                def __getattr__(self, name):
+                    return getattr(self.f, name)
+
+                def __enter__(self):
+                    return self
+
+                def __exit__(self, *exc):
+                    self.f.close()
+
+            def fake_open(path, mode="r", *a, **k):
+                f = open(path, mode, *a, **k)
+                return Full(f) if self.due() else f
+
+            monkeypatch.setattr(checkpoint, "open", fake_open, raising=False)
+        elif where == "replay":
+            real_write = os.write
+
+            def write(fd, data):
+                log = trainer.store._log
+                if log is not None and fd == log._fd and self.due():
+                    return real_write(fd, bytes(data)[: len(data) // 2])  # a short write
+                return real_write(fd, data)
+
+            monkeypatch.setattr(os, "write", write)
+        else:  # tensorboard: its writing thread meets the full disk; the writer raises it later
+            from tensorboard.summary.writer.record_writer import RecordWriter
+
+            real_write_record = RecordWriter.write
+
+            def write_record(writer, data):
+                if self.due():
+                    raise full
+                real_write_record(writer, data)
+
+            monkeypatch.setattr(RecordWriter, "write", write_record)
+
+    def due(self) -> bool:
+        self.fired = self.fired or self.trainer.counters.env_steps >= self.at
+        return self.fired
+
+
+@pytest.fixture(scope="module")
+def straight_120(tmp_path_factory) -> Path:
+    """An uninterrupted 120-step run, the one a resumed run must equal."""
+    out = tmp_path_factory.mktemp("straight") / "run"
+    Trainer.create(tiny_config(steps=120), out).run()
+    return out
+
+
+@pytest.mark.parametrize("where", ["csv", "checkpoint", "replay", "tensorboard"])
+def test_a_full_disk_stops_the_run_in_one_line_and_the_run_resumes_exactly(
+    tmp_path, monkeypatch, capsys, where, straight_120
+):
+    from nasa.cli import run_until_stopped
+
+    out = tmp_path / "full"
+    trainer = Trainer.create(tiny_config(steps=120), out)
+    with monkeypatch.context() as patch:
+        fault = DiskFull(patch, where, trainer)
+        with pytest.raises(SystemExit) as stop:
+            run_until_stopped(trainer, out)
+    assert fault.fired
+    err = capsys.readouterr().err
+    assert stop.value.code == 1, err
+    assert "cannot write the run folder: No space left on device" in err, err
+    assert f"continue with: nasa train --resume {out}" in err
+    assert "Traceback" not in err, err
+    held = trainer.last_checkpoint_step
+    assert 0 < held < 120 or where == "tensorboard", held
+    resumed = Trainer.resume(out)
+    assert resumed.counters.env_steps == held
+    resumed.run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(out / name) == stable_rows(straight_120 / name)
+
+
+def test_cutting_a_run_log_writes_nothing_so_a_full_disk_loses_none_of_its_rows(tmp_path, monkeypatch):
+    import builtins
+    import errno
+    import os
+
+    from shared import runlog
+
+    path = tmp_path / "train.csv"
+    path.write_bytes(b"step,mean\r\n0,1\r\n1,2\r\n2,3\r\n")
+    log = runlog.CsvLog(path, ["step", "mean"])
+
+    class Full:
+        def __init__(self, f):
+            self.f = f
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        writelines = write
+
+    monkeypatch.setattr(runlog, "open", lambda *a, **k: Full(builtins.open(*a, **k)), raising=False)
+    log.truncate(2)
+    assert path.read_bytes() == b"step,mean\r\n0,1\r\n1,2\r\n"
+
+
+def test_a_resume_on_a_full_disk_is_one_line_and_keeps_the_run(tmp_path, monkeypatch, capsys):
+    import errno
+    import os
+
+    from nasa import cli
+    from shared.replay.store import ReplayStore
+
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=60), run).run()  # its checkpoint holds step 40
+
+    def full(store, n):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(run / "replay" / "log-000002.bin"))
+
+    monkeypatch.setattr(ReplayStore, "truncate", full)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["train", "--resume", str(run), "--steps", "80"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "cannot write the run folder: No space left on device" in err, err
+    monkeypatch.undo()
+    trainer = Trainer.resume(run, steps=80)
+    assert trainer.counters.env_steps == 40
+    trainer.close()

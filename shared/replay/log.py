@@ -131,11 +131,14 @@ class LogWriter:
         try:
             n = os.write(self._fd, data)
             if n != len(data):  # a short write on a regular file means the disk is full
-                raise OSError(errno.ENOSPC, f"short write to {self.path}: {n} of {len(data)} bytes")
-        except OSError:
+                raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} (a short write, {n} of "
+                              f"{len(data)} bytes)", str(self.path))
+        except OSError as err:
             # Cut what part of the record was written: the log never holds a torn record in its
             # middle, and the caller may append again once there is space.
             os.ftruncate(self._fd, self.bytes_written)
+            if err.filename is None:  # os.write names no file: name the log it failed to grow
+                raise OSError(err.errno, err.strerror, str(self.path)) from err
             raise
         self.bytes_written += n
         self.dirty = True
