@@ -124,7 +124,10 @@ def train(argv: list[str]) -> None:
 def run_until_stopped(trainer: Trainer, out: Path) -> None:
     """Run to the step budget; on Ctrl-C (SIGINT) or SIGTERM, release the renderers, say how to
     continue, and exit 128 + the signal (130, 143), the shell's convention. A file the run cannot
-    write (a full disk, a folder made read-only) stops it the same way, with exit 1."""
+    write (a full disk, a folder made read-only), or an environment that faults in episode after
+    episode, stops it the same way, with exit 1."""
+    from nasa.train import EnvFaultsInARow
+
     signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         trainer.run()
@@ -132,6 +135,8 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
         _stopped(trainer, out, "", 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
     except OSError as err:
         _stopped(trainer, out, f": {write_error(err)}", 1, "once it can be written again, ")
+    except EnvFaultsInARow as err:
+        _stopped(trainer, out, f": {err}", 1)
 
 
 def write_error(err: OSError) -> str:

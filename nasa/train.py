@@ -30,6 +30,13 @@ from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
+MAX_FAULTS_IN_A_ROW = 5
+"""Episodes abandoned to an EnvFault with none finished between: the run stops rather than reset
+forever (a policy that acts NaN faults at every step)."""
+
+
+class EnvFaultsInARow(RuntimeError):
+    """The environment faulted in MAX_FAULTS_IN_A_ROW episodes in a row."""
 
 
 class Trainer:
@@ -58,6 +65,7 @@ class Trainer:
         self.counters = Counters()
         self.means = MetricMeans()
         self.last_checkpoint_step = 0
+        self.faults_in_a_row = 0  # 0 at every checkpoint (they are taken at episode ends)
 
     # -- run folder -------------------------------------------------------------
 
@@ -153,7 +161,15 @@ class Trainer:
         while n.env_steps < c.steps:
             warming_up = n.env_steps < c.warmup_steps
             action = collect_action(self.agent, ts.obs, warming_up, self.rng, self.env.spec.action_dim)
-            ts = self.loop.step(action, self.agent.num_updates)
+            try:
+                ts = self.loop.step(action, self.agent.num_updates)
+            except envs.EnvFault as err:
+                # The step did not happen: no transition, no step counted. A reset starts a sound
+                # episode, as the actor does; the same steps fault again on a resume, and are
+                # handled the same way, so the run still continues exactly.
+                self.abandon_episode(err)
+                ts, episode_started = self.loop.reset(), time.monotonic()
+                continue
             n.env_steps += 1
             if self.scorer is not None:
                 self.scorer.score_new()
@@ -164,6 +180,7 @@ class Trainer:
                 self.run_evaluation()
             progress.update(1)
             if ts.last:
+                self.faults_in_a_row = 0
                 self.end_episode(progress, time.monotonic() - episode_started)
                 ts, episode_started = self.loop.reset(), time.monotonic()
         progress.close()
@@ -190,6 +207,20 @@ class Trainer:
                 self.scorer.score_batch(batch)
             self.means.add(self.agent.update(batch_to_device(batch, self.device)))
 
+    def abandon_episode(self, err: envs.EnvFault) -> None:
+        """The episode under way cannot go on: it gets no train.csv row, and its update means are
+        dropped so that the next row describes its own episode. EnvFaultsInARow after too many."""
+        self.faults_in_a_row += 1
+        self.means.take()
+        if self.scorer is not None:
+            self.scorer.take_episode_means()
+        where = f"step {self.counters.env_steps}, episode step {self.loop.episode_length}"
+        if self.faults_in_a_row >= MAX_FAULTS_IN_A_ROW:
+            raise EnvFaultsInARow(
+                f"the environment faulted in {self.faults_in_a_row} episodes in a row (the last at "
+                f"{where}: {err}); a resume would play the same steps, so it would fault again")
+        tqdm.write(f"nasa train: episode abandoned at {where}: {err}")
+
     def end_episode(self, progress: tqdm, elapsed_s: float) -> None:
         c, n, loop = self.config, self.counters, self.loop
         n.episodes += 1
@@ -204,7 +235,12 @@ class Trainer:
 
     def run_evaluation(self) -> None:
         self.restart_eval_draws()
-        returns = evaluate(self.agent, self.eval_env, self.config.eval_episodes)
+        try:
+            returns = evaluate(self.agent, self.eval_env, self.config.eval_episodes)
+        except envs.EnvFault as err:  # as the evaluator and the learner: no row for this step
+            tqdm.write(f"eval step {self.counters.env_steps}: evaluation failed, no result for this "
+                       f"step: {err}")
+            return
         row = self.recorder.eval_row(self.counters.env_steps, returns)
         self.scalars.eval(self.counters.env_steps, row["mean"], row["std"])
         tqdm.write(f"eval step {self.counters.env_steps}: mean return {row['mean']:.1f} +- {row['std']:.1f}")

@@ -503,3 +503,72 @@ def test_a_resume_on_a_full_disk_is_one_line_and_keeps_the_run(tmp_path, monkeyp
     trainer = Trainer.resume(run, steps=80)
     assert trainer.counters.env_steps == 40
     trainer.close()
+
+
+def diverge_at(trainer: Trainer, step: int, episode_step: int) -> None:
+    """The training simulation diverges whenever an episode reaches `episode_step` at run step `step`:
+    a fault that depends on the run's state alone, so an exact resume meets it again."""
+    from shared import envs
+
+    real_step = trainer.env.step
+
+    def step_or_diverge(action):
+        if (trainer.counters.env_steps, trainer.loop.episode_length) == (step, episode_step):
+            raise envs.EnvFault("the simulation diverged: (injected)")
+        return real_step(action)
+
+    trainer.env.step = step_or_diverge
+
+
+def test_an_env_fault_abandons_the_episode_and_a_resume_continues_exactly(tmp_path, capsys):
+    straight = Trainer.create(tiny_config(steps=120), tmp_path / "straight")
+    diverge_at(straight, 50, 10)
+    straight.run()
+    assert "episode abandoned at step 50, episode step 10: the simulation diverged" in capsys.readouterr().out
+    # The abandoned episode has no row, and the next one starts at step 50.
+    assert [r["step"] for r in read_rows(tmp_path / "straight" / "train.csv")] == ["40", "90"]
+    assert [r["episode"] for r in read_rows(tmp_path / "straight" / "train.csv")] == ["1", "2"]
+
+    stopped = Trainer.create(tiny_config(steps=70), tmp_path / "resumed")  # its last checkpoint: 40
+    diverge_at(stopped, 50, 10)
+    stopped.run()
+    resumed = Trainer.resume(tmp_path / "resumed", steps=120)
+    diverge_at(resumed, 50, 10)
+    resumed.run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
+
+
+def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(tmp_path, monkeypatch, capsys):
+    from nasa import train
+    from nasa.cli import run_until_stopped
+
+    def collect_action(agent, obs, warming_up, rng, action_dim):
+        return rng.uniform(-1, 1, action_dim) if warming_up else np.full(action_dim, np.nan)
+
+    monkeypatch.setattr(train, "collect_action", collect_action)
+    trainer = Trainer.create(tiny_config(steps=80), tmp_path / "run")
+    with pytest.raises(SystemExit) as stop:
+        run_until_stopped(trainer, tmp_path / "run")
+    err = capsys.readouterr().err
+    assert stop.value.code == 1
+    assert (f"stopped at step 15: the environment faulted in {train.MAX_FAULTS_IN_A_ROW} episodes in a "
+            "row (the last at step 15, episode step 0: action has non-finite values") in err, err
+    assert "Traceback" not in err
+
+
+def test_an_evaluation_the_environment_faults_in_leaves_no_row_and_the_run_goes_on(tmp_path, capsys):
+    from shared import envs
+
+    trainer = Trainer.create(tiny_config(steps=80), tmp_path / "run")
+    real_step = trainer.eval_env.step
+
+    def step(action):
+        if trainer.counters.env_steps == 40:
+            raise envs.EnvFault("the simulation diverged: (injected)")
+        return real_step(action)
+
+    trainer.eval_env.step = step
+    trainer.run()
+    assert "eval step 40: evaluation failed, no result for this step" in capsys.readouterr().out
+    assert [r["step"] for r in read_rows(tmp_path / "run" / "eval.csv")] == ["0", "80"]
