@@ -283,8 +283,13 @@ class DMCPixels:
         if self._camera is None or self._camera_physics is not physics:
             from dm_control.mujoco import Camera
 
-            self._camera = Camera(physics, self.image_size, self.image_size, self.camera_id)
-            self._camera_physics = physics
+            from shared.checkpoint import stop_signals_deferred
+
+            # A Ctrl-C inside the GL context's making leaves half a context, whose teardown then
+            # prints a traceback of its own: the interrupt waits until it is made.
+            with stop_signals_deferred():
+                self._camera = Camera(physics, self.image_size, self.image_size, self.camera_id)
+                self._camera_physics = physics
         return np.ascontiguousarray(self._camera.render().transpose(2, 0, 1))
 
     def rng_state(self) -> dict:

@@ -169,3 +169,31 @@ def test_a_suite_task_renders_with_one_camera_the_pixels_a_fresh_camera_draws():
         frame, *_ = env.step(np.array([action], dtype=np.float32))
         fresh = env._env.physics.render(48, 48, camera_id=0).transpose(2, 0, 1)
         assert np.array_equal(frame, fresh)
+
+
+def test_a_ctrl_c_while_the_renderer_is_made_waits_until_it_is_made(monkeypatch):
+    """An interrupt inside the GL context's making left half a context, whose teardown printed a
+    traceback of its own after the run's stop message."""
+    import signal
+    import time
+
+    import dm_control.mujoco
+
+    from shared.envs import DMCPixels
+
+    made = []
+
+    class Camera:
+        def __init__(self, physics, height, width, camera_id):
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C, while the context is being made
+            time.sleep(0.05)
+            made.append(self)
+
+        def render(self):
+            return np.zeros((32, 32, 3), np.uint8)
+
+    monkeypatch.setattr(dm_control.mujoco, "Camera", Camera)
+    env = DMCPixels("cartpole-swingup", 0, image_size=32)
+    with pytest.raises(KeyboardInterrupt):
+        env.render()
+    assert made and env._camera is made[0]
