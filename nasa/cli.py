@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import signal
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -88,16 +89,15 @@ def train(argv: list[str]) -> None:
     device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL
     from shared.agents import check_update_device
-    from shared.faults import RunFolderError, lock_run
+    from shared.faults import lock_run
 
     if cmd.resume is not None:
         check_update_device(cmd.config.agent, device)  # --cuda-graph may be asked for on resuming
         with lock_run(cmd.resume, "nasa train --resume"):
             print(f"nasa train: resuming {cmd.resume}", flush=True)
-            try:
-                trainer = Trainer.resume(cmd.resume, steps=steps, cuda_graph=cmd.config.agent.cuda_graph)
-            except OSError as err:  # a full disk: the resume writes its cut before it runs
-                raise RunFolderError(f"{cmd.resume}: {write_error(err)}") from err
+            trainer = open_trainer(
+                lambda: Trainer.resume(cmd.resume, steps=steps, cuda_graph=cmd.config.agent.cuda_graph),
+                cmd.resume)
             run_until_stopped(trainer, cmd.resume)
         return
     c = cmd.config
@@ -114,11 +114,27 @@ def train(argv: list[str]) -> None:
         flush=True,
     )
     with lock_run(out, "nasa train", "--out"):
-        try:
-            trainer = Trainer.create(c, out)
-        except OSError as err:
-            raise RunFolderError(f"{out}: {write_error(err)}") from err
-        run_until_stopped(trainer, out)
+        run_until_stopped(open_trainer(lambda: Trainer.create(c, out), out), out)
+
+
+def open_trainer(make: Callable[[], Trainer], out: Path) -> Trainer:
+    """`make()`: the run's Trainer, made or resumed. A disk that refuses its first writes is a
+    RunFolderError; a Ctrl-C or SIGTERM meanwhile (a resume reading a long replay log) stops it
+    with one line, as in the run: what the folder holds is cut back again on the next resume."""
+    from shared.faults import RunFolderError
+
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        return make()
+    except OSError as err:
+        raise RunFolderError(f"{out}: {write_error(err)}") from err
+    except (KeyboardInterrupt, Terminated) as err:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        how = (f"continue with: nasa train --resume {out}" if (out / run_config.CONFIG_FILE).exists()
+               else "start it again")
+        print(f"\nnasa train: stopped before the run began; {how}", file=sys.stderr, flush=True)
+        sys.exit(128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
 
 
 def run_until_stopped(trainer: Trainer, out: Path) -> None:

@@ -36,6 +36,15 @@ def tiny_config(algo: str = "nasa_td3", steps: int = 80):
     return config
 
 
+@pytest.fixture
+def signals_kept():
+    """run_until_stopped sets the stop signals' handlers; the tests after this one need them back."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for s, handler in saved.items():
+        signal.signal(s, handler)
+
+
 def stable_rows(path):
     return [{k: v for k, v in row.items() if k not in VOLATILE} for row in read_rows(path)]
 
@@ -422,7 +431,7 @@ def straight_120(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("where", ["csv", "checkpoint", "replay", "tensorboard"])
 def test_a_full_disk_stops_the_run_in_one_line_and_the_run_resumes_exactly(
-    tmp_path, monkeypatch, capsys, where, straight_120
+    tmp_path, monkeypatch, capsys, where, straight_120, signals_kept
 ):
     from nasa.cli import run_until_stopped
 
@@ -481,7 +490,7 @@ def test_cutting_a_run_log_writes_nothing_so_a_full_disk_loses_none_of_its_rows(
     assert path.read_bytes() == b"step,mean\r\n0,1\r\n1,2\r\n"
 
 
-def test_a_resume_on_a_full_disk_is_one_line_and_keeps_the_run(tmp_path, monkeypatch, capsys):
+def test_a_resume_on_a_full_disk_is_one_line_and_keeps_the_run(tmp_path, monkeypatch, capsys, signals_kept):
     import errno
     import os
 
@@ -539,7 +548,9 @@ def test_an_env_fault_abandons_the_episode_and_a_resume_continues_exactly(tmp_pa
         assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
 
 
-def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(tmp_path, monkeypatch, capsys):
+def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(
+    tmp_path, monkeypatch, capsys, signals_kept
+):
     from nasa import train
     from nasa.cli import run_until_stopped
 
@@ -572,3 +583,40 @@ def test_an_evaluation_the_environment_faults_in_leaves_no_row_and_the_run_goes_
     trainer.run()
     assert "eval step 40: evaluation failed, no result for this step" in capsys.readouterr().out
     assert [r["step"] for r in read_rows(tmp_path / "run" / "eval.csv")] == ["0", "80"]
+
+
+def test_a_sigterm_while_a_resume_reads_the_replay_log_is_one_line_and_the_run_resumes(
+    tmp_path, monkeypatch, capsys, signals_kept
+):
+    import os
+
+    from nasa import cli
+    from shared.replay.store import ReplayStore
+
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=60), run).run()  # its checkpoint holds step 40
+    real_replay = ReplayStore._replay
+
+    def replay_then_sigterm(store, rtype, payload):
+        real_replay(store, rtype, payload)
+        if store._num_inserted == 30:
+            os.kill(os.getpid(), signal.SIGTERM)  # `docker stop` while the log is read back
+            time.sleep(0.05)
+
+    monkeypatch.setattr(ReplayStore, "_replay", replay_then_sigterm)
+
+    def unhandled(signum, frame):  # where `nasa train` would have died without a word
+        raise RuntimeError("SIGTERM met no handler of nasa train's")
+
+    signal.signal(signal.SIGTERM, unhandled)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["train", "--resume", str(run), "--steps", "80"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 128 + signal.SIGTERM, err
+    assert f"stopped before the run began; continue with: nasa train --resume {run}" in err
+    assert "Traceback" not in err
+    monkeypatch.undo()
+    Trainer.resume(run, steps=80).run()
+    Trainer.create(tiny_config(steps=80), tmp_path / "straight").run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(run / name) == stable_rows(tmp_path / "straight" / name)
