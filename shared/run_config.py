@@ -151,8 +151,12 @@ def write_folder(data: Path, run: RunConfig) -> None:
     data = Path(data)
     data.mkdir(parents=True, exist_ok=True)
     tmp = data / f".{CONFIG_FILE}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(run.to_dict(), indent=2) + "\n")
-    os.replace(tmp, data / CONFIG_FILE)
+    try:
+        tmp.write_text(json.dumps(run.to_dict(), indent=2) + "\n")
+        os.replace(tmp, data / CONFIG_FILE)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk: free what the half-written copy took
+        raise
 
 
 def open_folder(config: TrainConfig, data: Path, may_change: tuple[str, ...] = ()) -> RunConfig:
