@@ -347,6 +347,35 @@ def test_a_checkpoint_with_a_damaged_byte_or_of_another_algorithm_is_refused(tmp
         assert all(torch.equal(before[k], v) for k, v in other.policy_state_dict().items())
 
 
+class FullFile:
+    """A file on a disk with `room` bytes left: writes past it fail with ENOSPC."""
+
+    def __init__(self, f, room: int = 0) -> None:  # noqa: ANN001
+        self.f, self.room = f, room
+
+    def write(self, data):  # noqa: ANN001, ANN201
+        if self.room <= 0:
+            import errno
+            import os
+
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.room -= len(data)
+        return self.f.write(data)
+
+    def writelines(self, lines) -> None:  # noqa: ANN001
+        for line in lines:
+            self.write(line)
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        return getattr(self.f, name)
+
+    def __enter__(self):  # noqa: ANN204
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.f.close()
+
+
 class DiskFull:
     """ENOSPC at one of the run's writes once the run reaches `at` steps (a disk that fills)."""
 
@@ -370,28 +399,10 @@ class DiskFull:
 
             monkeypatch.setattr(runlog.CsvLog, "append", append)
         elif where == "checkpoint":
-            class Full:  # the checkpoint's file: its writes fail part way (torch then raises its own)
-                def __init__(self, f):
-                    self.f, self.written = f, 0
-
-                def write(self, data):
-                    if self.written > 1000:
-                        raise full
-                    self.written += len(data)
-                    return self.f.write(data)
-
-                def __getattr__(self, name):
-                    return getattr(self.f, name)
-
-                def __enter__(self):
-                    return self
-
-                def __exit__(self, *exc):
-                    self.f.close()
-
             def fake_open(path, mode="r", *a, **k):
+                # The checkpoint's writes fail part way (torch then raises its own error).
                 f = open(path, mode, *a, **k)
-                return Full(f) if self.due() else f
+                return FullFile(f, room=1000) if self.due() else f
 
             monkeypatch.setattr(checkpoint, "open", fake_open, raising=False)
         elif where == "replay":
@@ -458,8 +469,6 @@ def test_a_full_disk_stops_the_run_in_one_line_and_the_run_resumes_exactly(
 
 def test_cutting_a_run_log_writes_nothing_so_a_full_disk_loses_none_of_its_rows(tmp_path, monkeypatch):
     import builtins
-    import errno
-    import os
 
     from shared import runlog
 
@@ -467,25 +476,7 @@ def test_cutting_a_run_log_writes_nothing_so_a_full_disk_loses_none_of_its_rows(
     path.write_bytes(b"step,mean\r\n0,1\r\n1,2\r\n2,3\r\n")
     log = runlog.CsvLog(path, ["step", "mean"])
 
-    class Full:
-        def __init__(self, f):
-            self.f = f
-
-        def __getattr__(self, name):
-            return getattr(self.f, name)
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            self.f.close()
-
-        def write(self, data):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-        writelines = write
-
-    monkeypatch.setattr(runlog, "open", lambda *a, **k: Full(builtins.open(*a, **k)), raising=False)
+    monkeypatch.setattr(runlog, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
     log.truncate(2)
     assert path.read_bytes() == b"step,mean\r\n0,1\r\n1,2\r\n"
 
