@@ -24,13 +24,23 @@ if TYPE_CHECKING:
     from nasa.train import Trainer
 
 
-
 class Terminated(Exception):
     """SIGTERM, raised where the run is, as Ctrl-C raises KeyboardInterrupt: the same clean stop."""
 
 
 def _raise_terminated(_signum: int, _frame: object) -> None:
     raise Terminated
+
+
+def _signal_code(err: BaseException) -> int:
+    """128 + the signal that raised `err` (130, 143), the shell's convention."""
+    return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
+
+
+def _ignore_stop_signals() -> None:
+    """A second Ctrl-C or SIGTERM would cut the stop message short; the run is stopping anyway."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @dataclass
@@ -129,12 +139,11 @@ def open_trainer(make: Callable[[], Trainer], out: Path) -> Trainer:
     except OSError as err:
         raise RunFolderError(f"{out}: {write_error(err)}") from err
     except (KeyboardInterrupt, Terminated) as err:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        _ignore_stop_signals()
         how = (f"continue with: nasa train --resume {out}" if (out / run_config.CONFIG_FILE).exists()
                else "start it again")
         print(f"\nnasa train: stopped before the run began; {how}", file=sys.stderr, flush=True)
-        sys.exit(128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
+        sys.exit(_signal_code(err))
 
 
 def run_until_stopped(trainer: Trainer, out: Path) -> None:
@@ -148,7 +157,7 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
     try:
         trainer.run()
     except (KeyboardInterrupt, Terminated) as err:
-        _stopped(trainer, out, "", 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
+        _stopped(trainer, out, "", _signal_code(err))
     except OSError as err:
         _stopped(trainer, out, f": {write_error(err)}", 1, "once it can be written again, ")
     except EnvFaultsInARow as err:
@@ -162,9 +171,7 @@ def write_error(err: OSError) -> str:
 
 
 def _stopped(trainer: Trainer, out: Path, why: str, code: int, when: str = "") -> None:
-    # A second signal would cut the message short; the run is stopping anyway.
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _ignore_stop_signals()
     with contextlib.suppress(OSError):  # closing flushes files the disk may still refuse
         trainer.close()
     saved = trainer.last_checkpoint_step
