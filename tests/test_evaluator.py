@@ -296,3 +296,18 @@ def test_a_resumed_learner_evaluating_between_updates_goes_on_with_its_draws(tmp
     assert core.save_checkpoint(1.0)
     restored = core_on(tmp_path).restored_eval_draws
     assert BetweenUpdates(c, agent, done_step=50, draws=restored).run(100).returns == returns[2]
+
+
+def test_a_damaged_draws_file_is_said_and_the_draws_start_from_the_seed(tmp_path, capsys):
+    (tmp_path / "evaluator").mkdir()
+    (tmp_path / "evaluator" / "draws.pt").write_bytes(b"PK\x03\x04 half a file")
+    run = tiny_run("td3_ae", steps=500)
+    args = EvaluatorArgs(config=run.config, data=tmp_path, video_every=0)
+    ev = EvaluatorService(args, None, StopFlag(), run)
+    assert "cannot be read" in capsys.readouterr().err
+    _weights(ev, version=0)
+    assert ev.evaluate(0) is not None  # and the file is whole again
+    ev.media.close()
+    from shared import checkpoint
+
+    assert checkpoint.load(tmp_path / "evaluator" / "draws.pt")["draws"]
