@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from shared.files import fsync_dir
+
 # 2: the encoder's and decoder's fc layers index conv features in (h, w, c) order.
 # 3: one payload for both runners (shared/recorder.py): env_steps, episodes, wall_s, CSV row counts.
 CHECKPOINT_FORMAT = 3
@@ -75,6 +77,7 @@ def save(path: str | Path, state: dict) -> None:
             raise disk from None
         raise
     os.replace(tmp, path)
+    fsync_dir(path.parent)  # the rename itself, or a power loss could bring back the older one
 
 
 def load(path: str | Path, device: torch.device | str = "cpu") -> dict:

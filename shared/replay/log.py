@@ -30,6 +30,8 @@ import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
+from shared.files import fsync_dir
+
 FORMAT_NAME = "nasa-td3-replay"
 FORMAT_VERSION = 2  # 2: the manifest names the frame compressor (lz4 or zstd); 1 was zstd only
 MANIFEST = "MANIFEST.json"
@@ -82,14 +84,6 @@ def check_manifest(data_dir: Path, config: dict) -> bool:
             f"which differs from the requested {config}"
         )
     return True
-
-
-def fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def list_numbered(data_dir: Path) -> tuple[list[int], list[int]]:
