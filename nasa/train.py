@@ -25,7 +25,7 @@ from shared.evaluation import draws_restarter, evaluate, is_eval_step
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
-from shared.replay.store import open_store
+from shared.replay.store import SNAPSHOT_EVERY, open_store
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 
@@ -66,6 +66,8 @@ class Trainer:
         self.means = MetricMeans()
         self.last_checkpoint_step = 0
         self.faults_in_a_row = 0  # 0 at every checkpoint (they are taken at episode ends)
+        self.snapshot_every = SNAPSHOT_EVERY
+        self.snapshot_error = ""  # the last failed compaction's error, once said
 
     # -- run folder -------------------------------------------------------------
 
@@ -123,6 +125,16 @@ class Trainer:
                 replay_inserted=self.store.num_inserted,
             )
             self.last_checkpoint_step = self.counters.env_steps
+        self.compact_replay()
+
+    def compact_replay(self) -> None:
+        """Compact the replay's log now and then, at a checkpoint: its snapshot then holds the very
+        rows a resume starts from, and a resume reads it instead of the whole run's log. It is
+        written in the background; one that fails (a full disk) loses nothing, the log stays."""
+        if (err := self.store.snapshot_error) and err != self.snapshot_error:
+            tqdm.write(f"nasa train: compacting the replay log failed, the log is kept: {err}")
+        self.snapshot_error = err
+        self.store.snapshot_if_due(self.snapshot_every)
 
     def _restore(self, state: dict) -> None:
         """The rest of a checkpoint's state; the environments' came back at construction."""

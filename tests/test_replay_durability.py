@@ -362,3 +362,26 @@ def test_a_folder_written_before_prioritized_sampling_was_removed_still_opens(tm
     m.write_text(json.dumps(body))
     with pytest.raises(StoreFormatError, match="differs"):
         ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path)
+
+
+def test_a_snapshot_is_due_every_so_many_inserts_counted_from_the_last_one_or_the_opening(
+    tmp_path: Path,
+) -> None:
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(1))  # 37 added
+        assert not store.snapshot_if_due(40)
+        fill(store, range(1, 2))  # 74
+        assert store.snapshot_if_due(40)
+        store._snapshot_thread.join()
+        assert not store.snapshot_if_due(40)  # counted from the snapshot just taken
+        fill(store, range(2, 3))  # 111: 37 since
+        assert not store.snapshot_if_due(40)
+    assert [p.name for p in sorted(tmp_path.glob("snapshot-*"))] == ["snapshot-000002.bin"]
+    assert [p.name for p in sorted(tmp_path.glob("log-*"))] == ["log-000002.bin"]  # the one after it
+    with ReplayStore(50_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        fill(store, range(3, 4))  # 37 since the opening, 74 since the snapshot
+        assert not store.snapshot_if_due(40)
+        check_store(store, 4 * EP_LEN - 1)
+    with ReplayStore(50_000, SHAPE, 3, 2) as memory:  # nothing to compact
+        fill(memory, range(2))
+        assert not memory.snapshot_if_due(1)

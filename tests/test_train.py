@@ -1,5 +1,6 @@
 """The single-process trainer: run folder, determinism, exact resume, CLI errors."""
 
+import errno
 import signal
 import subprocess
 import sys
@@ -12,6 +13,8 @@ import pytest
 from nasa.train import CHECKPOINT_FILE, Trainer
 from shared.config import default_config
 from shared.recorder import Recorder
+from shared.replay import log as rlog
+from shared.replay.log import list_numbered
 from shared.runlog import read_rows
 
 VOLATILE = {"steps_per_s", "wall_s"}  # timing columns differ between runs by nature
@@ -113,6 +116,37 @@ def test_a_resume_that_cannot_get_back_evicted_rows_says_so(tmp_path, capsys):
     capsys.readouterr()
     Trainer.resume(tmp_path / "roomy", steps=80)
     assert "rows it held" not in capsys.readouterr().out
+
+
+def test_the_replay_log_is_compacted_at_checkpoints_and_a_resume_continues_exactly(tmp_path):
+    """A snapshot at a checkpoint replaces the log before it, so the replay folder does not grow
+    with the run's whole history and a resume reads the snapshot, not every record."""
+    Trainer.create(tiny_config(steps=120), tmp_path / "straight").run()
+    stopped = Trainer.create(tiny_config(steps=100), tmp_path / "resumed")  # checkpoints at 40, 80
+    stopped.snapshot_every = 30
+    stopped.run()
+    segments, snapshots = list_numbered(tmp_path / "resumed" / "replay")
+    assert len(snapshots) == 1 and min(segments) == snapshots[0]  # the log before it is gone
+    Trainer.resume(tmp_path / "resumed", steps=120).run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
+
+
+def test_a_compaction_that_fails_is_said_once_and_loses_nothing(tmp_path, monkeypatch, capsys):
+    def no_room(path, sections):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    Trainer.create(tiny_config(steps=120), tmp_path / "straight").run()
+    monkeypatch.setattr(rlog, "write_snapshot", no_room)
+    stopped = Trainer.create(tiny_config(steps=100), tmp_path / "resumed")
+    stopped.snapshot_every = 30
+    stopped.run()
+    monkeypatch.undo()
+    assert capsys.readouterr().out.count("compacting the replay log failed, the log is kept") == 1
+    assert list_numbered(tmp_path / "resumed" / "replay")[1] == []
+    Trainer.resume(tmp_path / "resumed", steps=120).run()
+    for name in ("train.csv", "eval.csv"):
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
 
 
 def test_existing_run_folder_is_not_overwritten(tmp_path):
@@ -268,8 +302,11 @@ def test_a_row_its_writer_did_not_finish_is_dropped_before_the_next_one(tmp_path
     assert Recorder(tmp_path, 2).last_eval()["step"] == 2000
 
 
-def test_a_checkpoint_fsyncs_the_csv_rows_it_counts_before_it_is_written(tmp_path, monkeypatch):
-    """After a power loss the CSVs must hold at least the rows the checkpoint says they hold."""
+def test_a_checkpoint_fsyncs_the_csv_rows_it_counts_before_it_is_written_and_its_rename_after(
+    tmp_path, monkeypatch,
+):
+    """After a power loss the CSVs must hold at least the rows the checkpoint says they hold, and
+    the folder the new checkpoint's name (an fsynced file renamed into place is not enough)."""
     import os
 
     from shared import checkpoint
@@ -288,6 +325,9 @@ def test_a_checkpoint_fsyncs_the_csv_rows_it_counts_before_it_is_written(tmp_pat
     saved = events.index("save")
     synced = {Path(e).name for e in events[:saved]}
     assert {"eval.csv", "train.csv"} <= synced, events
+    after = events[saved + 1:]
+    run = os.path.realpath(tmp_path / "run")
+    assert run in after and after.index(run) > after.index(f"{run}/{CHECKPOINT_FILE}.tmp"), events
 
 
 def test_resume_to_a_total_the_checkpoint_already_holds_is_refused_and_keeps_the_rows(tmp_path):

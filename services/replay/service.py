@@ -50,7 +50,7 @@ from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
-from shared.replay.store import open_store
+from shared.replay.store import SNAPSHOT_EVERY, open_store
 from shared.run_config import RunConfig
 from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
@@ -72,7 +72,7 @@ class ReplayArgs(ServiceArgs):
     """Benchmarks only: sample and insert without the samples-per-insert ratio."""
     sample_threads: int = 2
     stats_every_s: float = 0.5
-    snapshot_every: int = 50_000
+    snapshot_every: int = SNAPSHOT_EVERY
     """Compact the store's log every this many inserts."""
     max_abs_reward: float = wire.Bounds.max_abs_reward
     """Refuse transitions whose reward is beyond +-this (a huge finite reward poisons the critic);
@@ -132,7 +132,6 @@ class ReplayService(MessageGuard):
         self._inserts: queue.Queue[wire.TransitionBatch] = queue.Queue()
         self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
         self._unscored: queue.Queue[tuple[zenoh.Query, wire.UnscoredRequest]] = queue.Queue()
-        self._last_snapshot = self.store.num_inserted
         self._threads: list[threading.Thread] = []
         if self.store.num_inserted:
             self.log(f"reopened {args.data}/replay with {self.store.num_inserted} transitions")
@@ -379,9 +378,7 @@ class ReplayService(MessageGuard):
                     self.log.every("sync", 60.0, f"cannot fsync the log: {err}")
                 if self.store.snapshot_error:  # the log goes on; the next snapshot tries again
                     self.log.every("snapshot", 60.0, f"the last snapshot failed: {self.store.snapshot_error}")
-                if self.store.num_inserted - self._last_snapshot >= self.args.snapshot_every:
-                    self._last_snapshot = self.store.num_inserted
-                    self.store.snapshot(block=False)
+                self.store.snapshot_if_due(self.args.snapshot_every)
             self.log(f"stopping ({self.stop.reason})")
             if self.limiter is not None:
                 self.limiter.close()

@@ -49,6 +49,9 @@ _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+# Transitions added between two compactions of a store's log (snapshot_if_due): the replay
+# service's default and nasa train's.
+SNAPSHOT_EVERY = 50_000
 
 
 @dataclass
@@ -117,6 +120,7 @@ class ReplayStore:
         self._closed = False
         if self._dir is not None:
             self._open_dir()
+        self._snapshot_at = self._num_inserted  # num_inserted at the last snapshot or at opening
 
     def _allocate(self) -> None:
         """The metadata ring (one row per transition) and the empty chunk and episode tables."""
@@ -735,6 +739,7 @@ class ReplayStore:
             self._segment += 1
             seg = self._segment
             self._log = rlog.LogWriter(rlog.segment_path(self._dir, seg))
+            self._snapshot_at = self._num_inserted
             state = self._capture()
         if block:
             self._write_snapshot(seg, state)
@@ -743,6 +748,16 @@ class ReplayStore:
                 target=self._write_snapshot_in_background, args=(seg, state), daemon=True
             )
             self._snapshot_thread.start()
+
+    def snapshot_if_due(self, every: int = SNAPSHOT_EVERY) -> bool:
+        """Start a background snapshot once `every` transitions were added since the last one (or
+        since the store was opened), so the log, and the time to read it back, stay bounded over a
+        long run. True when one started."""
+        with self._lock:
+            if self._dir is None or self._num_inserted - self._snapshot_at < every:
+                return False
+            self.snapshot(block=False)
+            return True
 
     def _write_snapshot_in_background(self, seg: int, state: dict) -> None:
         """A failed snapshot (a full disk) loses nothing: the older snapshot and the log segments
