@@ -29,9 +29,12 @@ ASK_AGAIN_S = 1.0
 
 
 class WeightsSubscriber:
-    def __init__(self, agent: Agent, on_invalid: Callable[[str], None]) -> None:
+    def __init__(self, agent: Agent, on_invalid: Callable[[str], None], steps: int | None = None) -> None:
+        """`steps`: the run's step budget; weights claiming a learner count far beyond it are refused,
+        as the largest count seen is kept (it ends the actor's warm-up, sets the evaluator's step)."""
         self.agent = agent
         self.on_invalid = on_invalid
+        self.bounds = wire.Bounds(steps=steps)
         self.version: int | None = None  # None until the first weights are loaded
         self.env_steps = 0  # the learner's env-step count when it published them
         self._held: tuple[int, int] | None = None
@@ -54,7 +57,7 @@ class WeightsSubscriber:
                 self._ask()
             return False
         try:
-            msg = wire.decode(data, wire.Weights)
+            msg = wire.decode(data, wire.Weights, self.bounds)
             if not wire.newer_weights(msg, self._held):
                 return False
             self.agent.load_policy_state_dict(wire.unpack_tensors(msg.tensors))

@@ -585,6 +585,7 @@ def check_set_intrinsic(m: SetIntrinsic, b: Bounds) -> None:
 
 
 def check_weights(m: Weights, b: Bounds) -> None:
+    _count(m.env_steps, "env_steps", b)
     _need(len(m.tensors) <= 1000, f"{len(m.tensors)} tensors")
     for name, entry in m.tensors.items():
         _need(isinstance(name, str) and len(name) <= 256, f"tensor name {name!r}")

@@ -46,7 +46,7 @@ def test_step_zero_then_the_newest_multiple_reached_each_once_and_capped_at_the_
     _weights(ev, version=7, env_steps=130)  # slower than training: 50 is skipped, 100 is evaluated
     assert ev.due() == 100
     assert ev.evaluate(100).policy_version == 7  # the weights sent at that eval step
-    _weights(ev, version=8, env_steps=10_000)
+    _weights(ev, version=8, env_steps=530)  # past the budget, within the slack counts may have
     assert ev.due() == 500  # never past the run's budget
     ev.evaluate(500)
     assert ev.due() is None

@@ -202,6 +202,18 @@ def test_float64_weights_beyond_float32s_range_are_refused_and_the_actor_keeps_i
     assert all(v.equal(before[k]) for k, v in actor.policy_state_dict().items())
 
 
+def test_weights_claiming_a_count_far_past_the_budget_are_refused_and_the_count_is_kept():
+    """The subscriber keeps the largest learner count it has seen (an actor's warm-up ends by it, the
+    evaluator evaluates at it): one count of 10**15 would have stood for the rest of the run."""
+    actor, learner = _agent(0), _agent(1)
+    bad: list[str] = []
+    sub = WeightsSubscriber(actor, bad.append, steps=1000)
+    sub.offer(_message(learner, epoch=1, version=5, env_steps=10**15))
+    assert not sub.maybe_load() and "env_steps" in bad[0] and sub.env_steps == 0 and sub.version is None
+    sub.offer(_message(learner, epoch=1, version=6, env_steps=900))
+    assert sub.maybe_load() and sub.env_steps == 900
+
+
 def test_an_actor_status_with_bad_entries_does_not_crash_the_learner():
     learner = Learner.__new__(Learner)  # the callbacks need the board, the queue, the log and the bounds
     learner.core = SimpleNamespace(board=StatusBoard())

@@ -151,7 +151,7 @@ class ActorService(MessageGuard):
         device = torch.device(args.actor_device)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device,
                                 updates=False)
-        self.weights = WeightsSubscriber(self.agent, self._invalid)
+        self.weights = WeightsSubscriber(self.agent, self._invalid, steps=c.steps)
         self.writer = ZenohWriter(session, self.keys, self.actor_id, self.incarnation, spec.frame_shape,
                                   args.send_batch, args.max_in_flight, stop, self.log,
                                   budget=self.config.steps)

@@ -91,7 +91,7 @@ class EvaluatorService(MessageGuard):
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device,
                                 updates=False)
         self.tap = AutoencoderTap(self.agent)
-        self.weights = WeightsSubscriber(self.tap, self._invalid)  # type: ignore[arg-type]
+        self.weights = WeightsSubscriber(self.tap, self._invalid, steps=c.steps)  # type: ignore[arg-type]
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
         self.evaluations = 0
         self.done = first_done(c)  # the newest step evaluated
