@@ -171,6 +171,21 @@ def test_replay_callbacks_and_threads_survive_any_value(tmp_path):
     svc.store.close()
 
 
+def test_a_lower_reward_bound_refuses_rewards_but_not_the_scores_the_learner_clips_to_the_wire(
+    tmp_path,
+):
+    """--max-abs-reward 10: a reward of 50 is refused; a score of 50 (within the wire's bound, the
+    scorer's clip) is stored, or its rows would stay unscored and be scored again for ever."""
+    svc = make_service(tmp_path, no_rate_limit=True, max_abs_reward=10.0)
+    msg, _, _ = batch(n=3)
+    svc._on_insert(_sample(_with(msg, rewards=_f4(50, 1, 1))))
+    assert svc.invalid == 1
+    svc.insert_batch(batch(n=5)[0])
+    svc._on_intrinsic(_sample(wire.encode(wire.SetIntrinsic(np.int64(1).tobytes(), _f4(50.0)))))
+    assert svc.invalid == 1 and svc.store._intrinsic[1] == 50.0
+    svc.store.close()
+
+
 def test_weights_with_an_unknown_dtype_do_not_crash_an_actor():
     actor, learner = _agent(0), _agent(1)
     bad: list[str] = []

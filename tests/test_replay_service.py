@@ -23,11 +23,12 @@ SPEC = EnvSpec(SHAPE, 3, 2)
 
 
 def make_service(tmp_path, warmup=4, steps=100, session=None, stop=None, without_replacement=False,
-                 no_rate_limit=False):
+                 no_rate_limit=False, max_abs_reward=wire.Bounds.max_abs_reward):
     config = default_config("nasa_td3", "cpu-small")
     config.env.image_size, config.warmup_steps, config.steps = 16, warmup, steps
     config.sample_without_replacement = without_replacement
-    args = ReplayArgs(config=config, data=tmp_path, error_buffer=4, no_rate_limit=no_rate_limit)
+    args = ReplayArgs(config=config, data=tmp_path, error_buffer=4, no_rate_limit=no_rate_limit,
+                      max_abs_reward=max_abs_reward)
     run = RunConfig(config, SPEC)
     return ReplayService(args, session, StopFlag() if stop is None else stop, run)  # type: ignore[arg-type]
 

@@ -76,7 +76,8 @@ class ReplayArgs(ServiceArgs):
     """Compact the store's log every this many inserts."""
     max_abs_reward: float = wire.Bounds.max_abs_reward
     """Refuse transitions whose reward is beyond +-this (a huge finite reward poisons the critic);
-    at most the wire's bound, which the learner applies to the batches it samples."""
+    at most the wire's bound, which the learner applies to the batches it samples. Intrinsic scores
+    are held to the wire's bound, to which the learner clips them."""
 
 
 def check_args(args: ReplayArgs) -> None:
@@ -113,6 +114,10 @@ class ReplayService(MessageGuard):
         self.frame_shape = run.spec.frame_shape
         self.action_dim = run.spec.action_dim
         self.bounds = wire.Bounds.of(run.spec, args.max_abs_reward)
+        # Scores are the learner's own, clipped by its scorer to the wire's bound: held to a lower
+        # --max-abs-reward, a batch of them was refused, its rows stayed unscored, and every batch
+        # that drew them sent the refused scores again (each counted invalid).
+        self.score_bounds = wire.Bounds.of(run.spec)
         self.store = open_store(run, Path(args.data) / "replay")
         self.limiter: SampleToInsertRatio | None = None
         if not args.no_rate_limit:
@@ -163,7 +168,7 @@ class ReplayService(MessageGuard):
 
     def _on_intrinsic(self, sample: zenoh.Sample) -> None:
         try:
-            msg = wire.decode(sample.payload.to_bytes(), wire.SetIntrinsic, self.bounds)
+            msg = wire.decode(sample.payload.to_bytes(), wire.SetIntrinsic, self.score_bounds)
             index = np.frombuffer(msg.index, "<i8")
             value = wire.array(msg.value, "<f4", index.shape)
             self.store.set_intrinsic(index, value)
