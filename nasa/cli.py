@@ -150,8 +150,9 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
     """Run to the step budget; on Ctrl-C (SIGINT) or SIGTERM, release the renderers, say how to
     continue, and exit 128 + the signal (130, 143), the shell's convention. A file the run cannot
     write (a full disk, a folder made read-only), or an environment that faults in episode after
-    episode, stops it the same way, with exit 1."""
+    episode or at every reset, stops it the same way, with exit 1."""
     from nasa.train import EnvFaultsInARow
+    from shared.envs import EnvFault
 
     signal.signal(signal.SIGTERM, _raise_terminated)
     try:
@@ -160,7 +161,7 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
         _stopped(trainer, out, "", _signal_code(err))
     except OSError as err:
         _stopped(trainer, out, f": {write_error(err)}", 1, "once it can be written again, ")
-    except EnvFaultsInARow as err:
+    except (EnvFaultsInARow, EnvFault) as err:  # a step's EnvFault is handled in the run: a reset's
         _stopped(trainer, out, f": {err}", 1)
 
 

@@ -54,6 +54,9 @@ class EnvFault(ValueError):
     policy's action is not finite. The episode is lost; a reset starts a sound one."""
 
 ACTION_BOUND = 1.0
+RESET_TRIES = 3
+"""Initial states a suite task draws before its reset is an EnvFault: a drawn state the simulation
+cannot hold (MuJoCo's PhysicsError at reset) is drawn again."""
 """Every task's actions lie in [-ACTION_BOUND, ACTION_BOUND]; the wire and the replay refuse others."""
 
 
@@ -304,8 +307,15 @@ class DMCPixels:
         )
 
     def reset(self) -> tuple[np.ndarray, float, float, bool]:
-        self._env.reset()
-        return self.render(), 0.0, 1.0, False
+        # Each try draws a new initial state from the task's random stream, so a resumed run
+        # draws the same ones.
+        for _ in range(RESET_TRIES):
+            try:
+                self._env.reset()
+                return self.render(), 0.0, 1.0, False
+            except self._physics_error as err:
+                error = err
+        raise EnvFault(f"the simulation diverged at each of {RESET_TRIES} resets: {error}") from error
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool]:
         action = np.asarray(action, dtype=np.float64)

@@ -197,3 +197,25 @@ def test_a_ctrl_c_while_the_renderer_is_made_waits_until_it_is_made(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         env.render()
     assert made and env._camera is made[0]
+
+
+def test_an_initial_state_the_simulation_cannot_hold_is_drawn_again_and_then_is_an_env_fault():
+    from dm_control.rl.control import PhysicsError
+
+    env = envs.DMCPixels("cartpole-balance", seed=0, image_size=16)
+    suite, reset = env._env, env._env.reset
+    failures = [1]
+
+    def unstable() -> object:
+        if failures[0] > 0:
+            failures[0] -= 1
+            reset()  # the draw happens, then the state is refused
+            raise PhysicsError("Physics state is invalid. Warning(s) raised: mjWARN_BADQACC")
+        return reset()
+
+    suite.reset = unstable
+    frame, reward, discount, last = env.reset()
+    assert frame.shape == (3, 16, 16) and not last
+    failures[0] = envs.RESET_TRIES
+    with pytest.raises(envs.EnvFault, match="diverged at each of 3 resets"):
+        env.reset()

@@ -599,6 +599,30 @@ def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(
     assert "Traceback" not in err
 
 
+def test_a_reset_the_environment_faults_at_stops_the_run_in_one_line_and_it_resumes(
+    tmp_path, capsys, signals_kept
+):
+    from nasa.cli import run_until_stopped
+    from shared import envs
+
+    trainer = Trainer.create(tiny_config(steps=80), tmp_path / "run")
+    reset = trainer.env.reset
+    calls = [0]
+
+    def reset_faulting_from_the_third(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] >= 2:  # the second episode's reset, after the checkpoint at 40
+            raise envs.EnvFault(f"the simulation diverged at each of {envs.RESET_TRIES} resets: test")
+        return reset(*args, **kwargs)
+
+    trainer.env.reset = reset_faulting_from_the_third
+    with pytest.raises(SystemExit) as stop:
+        run_until_stopped(trainer, tmp_path / "run")
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "diverged at each of 3 resets" in err and "Traceback" not in err
+    assert Trainer.resume(tmp_path / "run").counters.env_steps == 40
+
+
 def test_an_evaluation_the_environment_faults_in_leaves_no_row_and_the_run_goes_on(tmp_path, capsys):
     from shared import envs
 
