@@ -120,9 +120,20 @@ def init(folder: Path, hosts: list[str], force: bool = False) -> Path:
         (tmp / f"{name}.pem").write_bytes(cert.public_bytes(pem))
         _write_private(tmp / f"{name}.key", key_bytes(key))
     (tmp / "hosts.txt").write_text("".join(f"{h}\n" for h in names))
+    # The old set is moved aside, not removed, until the new one is in place: a failure between
+    # leaves a working set where the services look for it.
+    old = folder / (TLS_DIR + ".old")
+    shutil.rmtree(old, ignore_errors=True)
     if out.exists():
-        shutil.rmtree(out)
-    os.replace(tmp, out)
+        os.replace(out, old)
+    try:
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old.exists():
+            os.replace(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
     return out
 
 

@@ -152,3 +152,26 @@ def test_a_certificate_the_handshake_would_refuse_is_named_up_front(tmp_path: Pa
         open_client(f"tls/127.0.0.1:{port}", timeout_s=1.0, role="actor", auth=folder)
     with pytest.raises(zenoh_auth.AuthError, match="--force"):
         open_router(f"tls/127.0.0.1:{port}", auth=folder)
+
+
+def test_reissuing_keeps_the_old_certificates_in_place_until_the_new_ones_are(
+    tmp_path: Path, monkeypatch
+) -> None:
+    tls = zenoh_tls.init(tmp_path, ["lab-router"])
+    before = (tls / "actor.pem").read_bytes()
+    real_replace = zenoh_tls.os.replace
+
+    def failing_for_the_new_set(src, dst) -> None:  # noqa: ANN001
+        if Path(src).name == "tls.tmp":
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(zenoh_tls.os, "replace", failing_for_the_new_set)
+    with pytest.raises(OSError, match="No space"):
+        zenoh_tls.init(tmp_path, ["lab-router"], force=True)
+    monkeypatch.undo()
+    assert (tls / "actor.pem").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tls"]
+    zenoh_tls.init(tmp_path, ["lab-router"], force=True)
+    assert (tls / "actor.pem").read_bytes() != before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tls"]
