@@ -118,10 +118,9 @@ def test_a_resume_that_cannot_get_back_evicted_rows_says_so(tmp_path, capsys):
     assert "rows it held" not in capsys.readouterr().out
 
 
-def test_the_replay_log_is_compacted_at_checkpoints_and_a_resume_continues_exactly(tmp_path):
+def test_the_replay_log_is_compacted_at_checkpoints_and_a_resume_continues_exactly(tmp_path, straight_120):
     """A snapshot at a checkpoint replaces the log before it, so the replay folder does not grow
     with the run's whole history and a resume reads the snapshot, not every record."""
-    Trainer.create(tiny_config(steps=120), tmp_path / "straight").run()
     stopped = Trainer.create(tiny_config(steps=100), tmp_path / "resumed")  # checkpoints at 40, 80
     stopped.snapshot_every = 30
     stopped.run()
@@ -129,14 +128,13 @@ def test_the_replay_log_is_compacted_at_checkpoints_and_a_resume_continues_exact
     assert len(snapshots) == 1 and min(segments) == snapshots[0]  # the log before it is gone
     Trainer.resume(tmp_path / "resumed", steps=120).run()
     for name in ("train.csv", "eval.csv"):
-        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(straight_120 / name)
 
 
-def test_a_compaction_that_fails_is_said_once_and_loses_nothing(tmp_path, monkeypatch, capsys):
+def test_a_compaction_that_fails_is_said_once_and_loses_nothing(tmp_path, straight_120, monkeypatch, capsys):
     def no_room(path, sections):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    Trainer.create(tiny_config(steps=120), tmp_path / "straight").run()
     monkeypatch.setattr(rlog, "write_snapshot", no_room)
     stopped = Trainer.create(tiny_config(steps=100), tmp_path / "resumed")
     stopped.snapshot_every = 30
@@ -146,7 +144,7 @@ def test_a_compaction_that_fails_is_said_once_and_loses_nothing(tmp_path, monkey
     assert list_numbered(tmp_path / "resumed" / "replay")[1] == []
     Trainer.resume(tmp_path / "resumed", steps=120).run()
     for name in ("train.csv", "eval.csv"):
-        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
+        assert stable_rows(tmp_path / "resumed" / name) == stable_rows(straight_120 / name)
 
 
 def test_existing_run_folder_is_not_overwritten(tmp_path):
