@@ -427,3 +427,11 @@ def test_a_status_api_whose_port_is_taken_is_an_error_not_a_silent_thread():
         port = busy.getsockname()[1]
         with pytest.raises(RunFolderError, match=f"cannot listen on 127.0.0.1:{port}"):
             StatusServer(make_app(lambda: STATUS, lambda: []), "127.0.0.1", port).start()
+
+
+@pytest.mark.parametrize("route", ["/static/", "/media/"])
+def test_a_file_name_the_file_system_refuses_is_not_found_not_a_server_error(tmp_path, route):
+    (tmp_path / "media").mkdir()
+    client = TestClient(make_app(lambda: STATUS, lambda: [], data=tmp_path), raise_server_exceptions=False)
+    response = client.get(route + "a" * 300)  # longer than a file name may be
+    assert response.status_code == 404, response.text

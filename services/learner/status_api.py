@@ -158,7 +158,13 @@ def _finite_only(value: object) -> object:
 def _inside(folder: Path, name: str) -> Path:
     """A file directly in `folder` (no path tricks), or 404."""
     path = folder / name
-    if "/" in name or name.startswith(".") or not path.is_file():
+    if "/" in name or name.startswith("."):
+        raise HTTPException(404)
+    try:
+        found = path.is_file()
+    except OSError:  # a name the file system refuses (longer than it allows, ...) names no file
+        found = False
+    if not found:
         raise HTTPException(404)
     return path
 
