@@ -435,3 +435,18 @@ def test_a_file_name_the_file_system_refuses_is_not_found_not_a_server_error(tmp
     client = TestClient(make_app(lambda: STATUS, lambda: [], data=tmp_path), raise_server_exceptions=False)
     response = client.get(route + "a" * 300)  # longer than a file name may be
     assert response.status_code == 404, response.text
+
+
+@pytest.mark.parametrize("every_s", [1e6, 1e300])
+def test_a_damaged_history_interval_does_not_stop_the_series(tmp_path, every_s):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "history.json").write_text(json.dumps({"every_s": every_s, "points": []}))
+    history = History(every_s=0.02)
+    history.restore(tmp_path, wall_s=100.0)
+    assert history.every_s == 0.02
+    history.start(lambda: STATUS)
+    deadline = time.monotonic() + 30
+    while len(history.points()) < 3 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    history.stop()
+    assert len(history.points()) >= 3

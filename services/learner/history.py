@@ -67,7 +67,10 @@ class History:
         every_s = body.get("every_s")
         with self._lock:
             self._points = points + self._points
-            if isinstance(every_s, int | float) and math.isfinite(every_s) and every_s > self.every_s:
+            # The interval doubles only once the series is full, so it never exceeds the time the run
+            # has lasted: a longer one is a damaged file, and waiting it out would end the series.
+            if isinstance(every_s, int | float) and math.isfinite(every_s) \
+                    and self.every_s < every_s <= max(wall_s, self.every_s):
                 self.every_s = float(every_s)
             self._thin()
 
