@@ -198,3 +198,29 @@ def test_the_dashboard_writes_figures_as_a_person_reads_them(tmp_path):
         finally:
             browser.close()
     assert shown == ["1,000", "1,235", "12.3", "0.00123", "5", "–"]
+
+
+def test_a_non_finite_novelty_in_the_media_leaves_the_page_drawing(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    from tests.test_observability import STATUS
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    (tmp_path / "media").mkdir()
+    # What the evaluator writes for an autoencoder that diverged: json.dumps' NaN, served as null.
+    view = {"step": 100, "policy_version": 5, "autoencoder_version": 5, "novelty": [math.nan, 0.5],
+            "image": "autoencoder.png"}
+    (tmp_path / "media" / "media.json").write_text(json.dumps({"autoencoder": view, "videos": []}))
+    with serving_folder(tmp_path) as url, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+        try:
+            page = browser.new_page()
+            page.goto(url + "/")
+            page.wait_for_function("() => document.getElementById('state').textContent !== 'connecting…'")
+            shown = page.evaluate("() => [window.nasaDashboard.state.polls, document.getElementById('state')"
+                                  ".textContent, document.getElementById('ae-novelty').textContent]")
+        finally:
+            browser.close()
+    assert shown[0] > 0 and not shown[1].startswith("no answer"), shown
+    assert shown[2] == "novelty: –  0.500"

@@ -111,7 +111,9 @@ function drawMedia(media) {
     document.getElementById("ae-caption").textContent =
       `eval step ${fmt(ae.step)}, autoencoder of policy ${fmt(ae.autoencoder_version)}`;
     document.getElementById("ae-novelty").textContent =
-      "novelty: " + ae.novelty.map(v => v.toFixed(3)).join("  ");
+      // A non-finite novelty (a diverged autoencoder) comes as null: shown as "–", never a throw
+      // that would leave the whole page on an error.
+      "novelty: " + (ae.novelty || []).map(v => (typeof v === "number" ? v.toFixed(3) : "–")).join("  ");
   }
   const videos = media.videos || [];
   if (videos.length) {
