@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import socket
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -224,3 +225,40 @@ def test_a_non_finite_novelty_in_the_media_leaves_the_page_drawing(tmp_path):
             browser.close()
     assert shown[0] > 0 and not shown[1].startswith("no answer"), shown
     assert shown[2] == "novelty: –  0.500"
+
+
+def test_a_learner_that_stops_answering_is_shown_as_not_answering(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    from tests.test_observability import STATUS
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    port = free_port()
+    server = StatusServer(folder_app(tmp_path), "127.0.0.1", port)
+    server.start()
+    url = f"http://127.0.0.1:{port}"
+    with sync_playwright() as p, socket.socket() as hung:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+        try:
+            page = browser.new_page()
+            wait_listening(url)
+            page.goto(url + "/")
+            page.wait_for_function("() => window.nasaDashboard.state.polls > 0")
+            # The learner's process stops (SIGSTOP, a hang): its port still accepts, nothing answers.
+            server.stop()
+            hung.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            hung.bind(("127.0.0.1", port))
+            hung.listen(64)
+            page.wait_for_function("() => document.getElementById('state').textContent"
+                                   ".startsWith('no answer')", timeout=60_000)
+            state = page.evaluate("() => document.getElementById('state').textContent")
+            polls = page.evaluate("() => window.nasaDashboard.state.polls")
+            hung.close()  # the learner comes back (restarted): the page carries on
+            server = StatusServer(folder_app(tmp_path), "127.0.0.1", port)
+            server.start()
+            page.wait_for_function(f"() => window.nasaDashboard.state.polls > {polls}", timeout=60_000)
+        finally:
+            browser.close()
+            server.stop()
+    assert "no answer in" in state, state

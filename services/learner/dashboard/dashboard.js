@@ -3,6 +3,9 @@
 "use strict";
 
 const POLL_MS = 2000;
+// A learner that accepts and never answers (stopped, hung, its host cut off) would leave a fetch,
+// and so the page's "running", waiting for ever: each request gives up after this long.
+const ANSWER_MS = 10000;
 const COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf"];
 const charts = {};
 const state = { status: null, history: null, polls: 0 };
@@ -155,8 +158,16 @@ function drawStatus(s) {
   }
 }
 
+async function get(path) {
+  try {
+    return await fetch(path, { cache: "no-store", signal: AbortSignal.timeout(ANSWER_MS) });
+  } catch (err) {
+    throw err.name === "TimeoutError" ? new Error(`${path}: no answer in ${ANSWER_MS / 1000} s`) : err;
+  }
+}
+
 async function getJSON(path) {
-  const r = await fetch(path, { cache: "no-store" });
+  const r = await get(path);
   if (!r.ok) throw new Error(`${path}: HTTP ${r.status}`);
   return r.json();
 }
@@ -165,7 +176,7 @@ async function poll() {
   const stateEl = document.getElementById("state");
   try {
     const [s, h] = await Promise.all([getJSON("/status"), getJSON("/history")]);
-    const health = await fetch("/healthz", { cache: "no-store" });
+    const health = await get("/healthz");
     state.status = s;
     state.history = h;
     drawStatus(s);
