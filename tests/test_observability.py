@@ -450,3 +450,18 @@ def test_a_damaged_history_interval_does_not_stop_the_series(tmp_path, every_s):
         time.sleep(0.02)
     history.stop()
     assert len(history.points()) >= 3
+
+
+@pytest.mark.parametrize("damage", [
+    {"intrinsic": None}, {"actors": "none"}, {"updates": "many"}, {"updates": 10**400},
+    {"losses": {"critic_loss": "x"}}, {"nonfinite": {"losses": {"critic_loss": 2}}},
+    {"actors": [STATUS["actors"][0] | {"env_step_seconds": {"le": {"0.1": "x"}, "sum": 1}}, {"alive": 1}]},
+])
+def test_a_damaged_stopped_status_costs_its_own_figures_not_the_scrape(tmp_path, damage):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS | damage))
+    client = TestClient(folder_app(tmp_path), raise_server_exceptions=False)
+    response = client.get("/metrics")
+    assert response.status_code == 200, response.text
+    got = samples(response.text)
+    assert got[("nasa_env_steps_total", ())] == STATUS["env_steps"]

@@ -12,6 +12,7 @@ update loop; the loop only observes two histograms (update time, batch wait).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Histogram, generate_latest
@@ -93,8 +94,8 @@ def unnamed_figures(status: dict, prefix: str = "") -> list[tuple[str, float]]:
             continue
         if isinstance(value, dict):
             out += unnamed_figures(value, path + ".")
-        elif isinstance(value, bool | int | float):
-            out.append((path, float(value)))
+        elif (number := figure(value)) is not None:
+            out.append((path, number))
     return out
 
 
@@ -106,6 +107,22 @@ def lookup(status: dict, path: str) -> object:
             return None
         value = value[key]
     return value
+
+
+def figure(value: object) -> float | None:
+    """A value of /status as a sample's value, or None where it is no number: a stopped run's
+    status.json is read from disk, and a damaged one must cost its own figures, not the scrape."""
+    if not isinstance(value, bool | int | float):
+        return None
+    try:
+        return float(value)
+    except OverflowError:  # an integer beyond a float's range
+        return math.inf if value > 0 else -math.inf
+
+
+def _actors(status: dict) -> list[dict]:
+    actors = lookup(status, "actors")
+    return [a for a in actors if isinstance(a, dict) and "id" in a] if isinstance(actors, list) else []
 
 
 def _family(kind: str, name: str, help_text: str, labels: list[str]) -> Metric:
@@ -128,16 +145,16 @@ class StatusCollector:
         info.add_metric([], {k: str(s.get(k, "")) for k in INFO})
         yield info
         for path, name, kind, help_text in SCALARS:
-            value = lookup(s, path)
-            if value is not None:
+            if (value := figure(lookup(s, path))) is not None:
                 family = _family(kind, name, help_text, [])
-                family.add_metric([], float(value))
+                family.add_metric([], value)
                 yield family
         for path, name, label, help_text in LABELLED:
             family = GaugeMetricFamily(name, help_text, labels=[label])
-            for key, value in (lookup(s, path) or {}).items():  # type: ignore[attr-defined]
-                if value is not None:
-                    family.add_metric([key], float(value))
+            entries = lookup(s, path)
+            for key, value in (entries.items() if isinstance(entries, dict) else ()):
+                if (number := figure(value)) is not None:
+                    family.add_metric([str(key)], number)
             yield family
         yield from self.collect_health(s)
         for path, value in unnamed_figures(s):
@@ -147,16 +164,16 @@ class StatusCollector:
         family = GaugeMetricFamily("nasa_intrinsic_mean", "Running mean of each intrinsic reward",
                                    labels=["name"])
         for key in INTRINSIC_MEANS:
-            if (value := s["intrinsic"][key]) is not None:
-                family.add_metric([key.removesuffix("_mean")], float(value))
+            if (value := figure(lookup(s, f"intrinsic.{key}"))) is not None:
+                family.add_metric([key.removesuffix("_mean")], value)
         yield family
         for key, name, kind, help_text in ACTOR_FIGURES:
             family = _family(kind, name, help_text, ["actor"])
-            for a in s["actors"]:
-                if isinstance(a.get(key), bool | int | float):
-                    family.add_metric([str(a["id"])], float(a[key]))
+            for a in _actors(s):
+                if (value := figure(a.get(key))) is not None:
+                    family.add_metric([str(a["id"])], value)
             yield family
-        yield from self.collect_actor_env(s["actors"])
+        yield from self.collect_actor_env(_actors(s))
 
     @staticmethod
     def collect_actor_env(actors: list[dict]) -> Iterator[Metric]:
@@ -171,8 +188,8 @@ class StatusCollector:
         for a in actors:
             if isinstance(a.get("fault"), str):
                 faults.add_metric([str(a["id"]), a["fault"]], 1.0)
-            if isinstance(h := a.get("env_step_seconds"), dict):
-                steps.add_metric([str(a["id"])], buckets=list(h["le"].items()), sum_value=float(h["sum"]))
+            if (buckets := _buckets(a.get("env_step_seconds"))) is not None:
+                steps.add_metric([str(a["id"])], buckets=buckets[0], sum_value=buckets[1])
         yield faults
         yield steps
 
@@ -181,13 +198,26 @@ class StatusCollector:
         """The non-finite losses by name and whether the replay's writes fail."""
         family = CounterMetricFamily("nasa_nonfinite_losses", "Non-finite values of each loss",
                                      labels=["name"])
-        for key, entry in (lookup(s, "nonfinite.losses") or {}).items():  # type: ignore[attr-defined]
-            family.add_metric([key], float(entry["count"]))
+        entries = lookup(s, "nonfinite.losses")
+        for key, entry in (entries.items() if isinstance(entries, dict) else ()):
+            if isinstance(entry, dict) and (count := figure(entry.get("count"))) is not None:
+                family.add_metric([str(key)], count)
         yield family
         if (error := lookup(s, "replay.write_error")) is not None:
             family = GaugeMetricFamily("nasa_replay_write_failing", "1 while the replay cannot write")
             family.add_metric([], float(bool(error)))
             yield family
+
+
+def _buckets(h: object) -> tuple[list[tuple[str, float]], float] | None:
+    """An actor's env step histogram of /status (step_histogram's form) as (buckets, sum), or None."""
+    if not isinstance(h, dict) or not isinstance(le := h.get("le"), dict):
+        return None
+    total = figure(h.get("sum"))
+    buckets = [(str(bound), n) for bound, count in le.items() if (n := figure(count)) is not None]
+    if total is None or len(buckets) != len(le) or not buckets or buckets[-1][0] != "+Inf":
+        return None  # Prometheus' histogram ends with its +Inf bucket
+    return buckets, total
 
 
 class LearnerMetrics:
