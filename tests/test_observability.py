@@ -465,3 +465,30 @@ def test_a_damaged_stopped_status_costs_its_own_figures_not_the_scrape(tmp_path,
     assert response.status_code == 200, response.text
     got = samples(response.text)
     assert got[("nasa_env_steps_total", ())] == STATUS["env_steps"]
+
+
+def test_idle_connections_cannot_take_the_status_apis_process(monkeypatch):
+    from nasa.up import free_port
+    from services.learner import status_api
+
+    monkeypatch.setattr(status_api, "MAX_CONNECTIONS", 4, raising=False)
+    monkeypatch.setattr(status_api, "REQUEST_HEAD_S", 0.5, raising=False)
+    port = free_port()
+    server = status_api.StatusServer(make_app(lambda: STATUS, lambda: []), "127.0.0.1", port)
+    server.start()
+    held = []
+    try:
+        for _ in range(3):  # connections that never send a request
+            held.append(socket.create_connection(("127.0.0.1", port), timeout=30))
+        half = socket.create_connection(("127.0.0.1", port), timeout=30)  # half of a request head
+        half.sendall(b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        held.append(half)
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as beyond:
+            assert beyond.recv(1) == b""  # one more than the limit is closed on arrival
+        for s in held:  # each closed once its request head is late
+            assert s.recv(1) == b""
+        assert httpx.get(f"http://127.0.0.1:{port}/status", timeout=30).json() == STATUS
+    finally:
+        for s in held:
+            s.close()
+        server.stop()

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import hmac
 import ipaddress
@@ -33,6 +34,7 @@ from pathlib import Path
 import uvicorn
 from fastapi import Depends, FastAPI, Header, HTTPException
 from fastapi.responses import FileResponse, PlainTextResponse, Response
+from uvicorn.protocols.http.h11_impl import H11Protocol, h11  # the h11 that uvicorn's protocol runs on
 
 from services.learner import history as run_history
 from services.learner.metrics import status_metrics
@@ -43,6 +45,10 @@ DASHBOARD = Path(__file__).resolve().parent / "dashboard"
 MEDIA_DIR = "media"
 MEDIA_MANIFEST = "media.json"
 PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
+MAX_CONNECTIONS = 128
+"""Connections the status API holds at once; one more is closed as soon as it is accepted."""
+REQUEST_HEAD_S = 10.0
+"""How long a connection may take to send a whole request line and headers."""
 
 
 def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
@@ -231,11 +237,54 @@ def folder_app(data: Path) -> FastAPI:
     return make_app(lambda: final, lambda: ["the run has stopped"], lambda: points, data=data)
 
 
+class GuardedH11Protocol(H11Protocol):
+    """uvicorn's HTTP/1.1 with the two limits it lacks. It holds a connection that sends no request
+    (or half of one) for ever, so idle connections could take every file descriptor of the
+    learner's process: its checkpoint and log writes would fail, and no other client be served.
+    Here a connection that has not sent a whole request head within REQUEST_HEAD_S is closed, and
+    one beyond MAX_CONNECTIONS at once is closed on arrival."""
+
+    _head_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        if len(self.connections) > MAX_CONNECTIONS:
+            transport.close()
+            return
+        self._await_head()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self.conn.their_state is h11.IDLE:  # part of a request head: it must come whole in time
+            self._await_head()
+        else:
+            self._head_received()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._head_received()
+        super().connection_lost(exc)
+
+    def _await_head(self) -> None:
+        if self._head_timer is None:
+            self._head_timer = self.loop.call_later(REQUEST_HEAD_S, self._head_late)
+
+    def _head_received(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _head_late(self) -> None:
+        self._head_timer = None
+        if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+            self.transport.close()
+
+
 class StatusServer:
     """uvicorn in a daemon thread; stop() ends it."""
 
     def __init__(self, app: FastAPI, host: str, port: int) -> None:
-        config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
+        config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False,
+                                http=GuardedH11Protocol)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self._serve, name="status-api", daemon=True)
 
