@@ -158,3 +158,17 @@ def test_the_learners_initial_weights_are_the_seeds_and_nasa_trains(tmp_path):
     for name, tensor in first.items():
         assert torch.equal(tensor, again[name]) and torch.equal(tensor, trainer[name]), name
     assert any(not torch.equal(tensor, other[name]) for name, tensor in first.items())
+
+
+@pytest.mark.parametrize("content", [None, b"", b"\n\n", b"\xff\xfe\n"])
+def test_a_token_file_that_gives_no_token_is_refused_before_the_learner_connects(tmp_path, monkeypatch,
+                                                                                 content):
+    from services.learner.health import LearnerArgs
+    from services.learner.learner import check_args
+
+    monkeypatch.delenv("NASA_API_TOKEN", raising=False)
+    path = tmp_path / "token"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(ConfigError, match=f"--api-token-file {path}"):
+        check_args(LearnerArgs(api_token_file=path))

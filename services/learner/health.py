@@ -27,7 +27,8 @@ class LearnerArgs(ServiceArgs):
     """Port of the status API (env NASA_STATUS_PORT)."""
     api_token_file: Path | None = None
     """File whose first line is the bearer token of POST /control/* (env NASA_API_TOKEN wins).
-    Neither: the controls are open to whoever reaches the port."""
+    Neither: the controls are open to whoever reaches the port. A file that cannot be read or whose
+    first line is empty is refused at start."""
     publish_every: int = 20
     """K: publish weights every K updates."""
     prefetch: int = 2

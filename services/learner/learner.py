@@ -411,7 +411,10 @@ def main(argv: list[str] | None = None) -> None:
 
 def check_args(args: LearnerArgs) -> None:
     """The learner's flags that its parser cannot check (ConfigError: exit 2 before it connects)."""
+    from services.learner.status_api import api_token
+
     use_device_prefetch(args.device_prefetch, torch.device("cpu"))
+    api_token(args.api_token_file)
     if args.publish_every < 1:
         raise ConfigError(f"--publish-every must be >= 1, got {args.publish_every}")
 

@@ -38,6 +38,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol, h11  # the h11 that uvi
 
 from services.learner import history as run_history
 from services.learner.metrics import status_metrics
+from shared.config import ConfigError
 from shared.run_config import read_json_object
 from shared.runlog import read_rows
 
@@ -122,11 +123,17 @@ def bearer_guard(token: str | None) -> Callable[[str | None], None]:
 
 
 def api_token(path: Path | None = None) -> str | None:
-    """The control endpoints' token: env NASA_API_TOKEN, else the first line of `path`; None: open."""
+    """The control endpoints' token: env NASA_API_TOKEN, else the first line of `path`; None: open.
+    ConfigError for a file that cannot be read or holds no token."""
     token = os.environ.get("NASA_API_TOKEN", "")
     if not token and path is not None:
-        lines = Path(path).read_text().splitlines()
+        try:
+            lines = Path(path).read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"--api-token-file {path} is unreadable: {err}") from err
         token = lines[0] if lines else ""
+        if not token.strip():  # a file was given for a token: open controls would be a surprise
+            raise ConfigError(f"--api-token-file {path} holds no token (its first line is empty)")
     return token.strip() or None
 
 
