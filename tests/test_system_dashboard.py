@@ -262,3 +262,35 @@ def test_a_learner_that_stops_answering_is_shown_as_not_answering(tmp_path):
             browser.close()
             server.stop()
     assert "no answer in" in state, state
+
+
+def test_an_upgraded_dashboard_is_loaded_not_a_cached_one(tmp_path, monkeypatch):
+    import os
+
+    from playwright.sync_api import sync_playwright
+
+    from services.learner import status_api
+    from tests.test_observability import STATUS
+
+    page_files = tmp_path / "dashboard"
+    shutil.copytree(status_api.DASHBOARD, page_files)
+    month_ago = time.time() - 30 * 86400  # an installed package's files: a browser deems them fresh
+    for f in page_files.iterdir():
+        os.utime(f, (month_ago, month_ago))
+    monkeypatch.setattr(status_api, "DASHBOARD", page_files)
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    with serving_folder(tmp_path) as url, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+        try:
+            page = browser.new_page()
+            page.goto(url + "/")
+            page.wait_for_function("() => window.nasaDashboard.state.polls > 0")
+            script = page_files / "dashboard.js"  # the learner is upgraded: a new page script
+            script.write_text(script.read_text() + "\nwindow.nasaDashboard.upgraded = true;\n")
+            page.goto(url + "/")
+            page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.state")
+            upgraded = page.evaluate("() => window.nasaDashboard.upgraded === true")
+        finally:
+            browser.close()
+    assert upgraded

@@ -46,6 +46,9 @@ DASHBOARD = Path(__file__).resolve().parent / "dashboard"
 MEDIA_DIR = "media"
 MEDIA_MANIFEST = "media.json"
 PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
+# The page's files are asked for again on each load (a 304 while unchanged): without this a browser
+# keeps a copy it deems fresh from the file's age, and runs an older page against an upgraded learner.
+REVALIDATE = {"Cache-Control": "no-cache"}
 MAX_CONNECTIONS = 128
 """Connections the status API holds at once; one more is closed as soon as it is accepted."""
 REQUEST_HEAD_S = 10.0
@@ -64,11 +67,11 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
 
     @app.get("/")
     def get_dashboard() -> FileResponse:
-        return FileResponse(DASHBOARD / "index.html", media_type="text/html")
+        return FileResponse(DASHBOARD / "index.html", media_type="text/html", headers=REVALIDATE)
 
     @app.get("/static/{name}")
     def get_static(name: str) -> FileResponse:
-        return FileResponse(_inside(DASHBOARD, name))
+        return FileResponse(_inside(DASHBOARD, name), headers=REVALIDATE)
 
     @app.get("/status")
     def get_status() -> Response:
