@@ -492,3 +492,15 @@ def test_idle_connections_cannot_take_the_status_apis_process(monkeypatch):
         for s in held:
             s.close()
         server.stop()
+
+
+def test_step_counts_the_wire_allows_make_a_valid_histogram():
+    from shared import wire
+
+    biggest = [2**62 - 1] * (len(wire.STEP_SECONDS_BUCKETS) + 1)  # each below the wire's bound
+    heartbeat = wire.ActorStatus(3, 1, 40, 1, 7, 9.5, [], None, biggest, 1.0)
+    board = StatusBoard()
+    board.actor_status(wire.decode(wire.encode(heartbeat), wire.ActorStatus))
+    h = board.snapshot()["actors"][0]["env_step_seconds"]
+    cumulative = list(h["le"].values())
+    assert cumulative == sorted(cumulative) and cumulative[0] > 0 and h["count"] == sum(biggest)

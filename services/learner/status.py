@@ -8,6 +8,7 @@ every field they touch is guarded by one lock.
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import time
@@ -35,7 +36,9 @@ def step_histogram(counts: list[int], total_s: float) -> dict | None:
     if not counts:
         return None
     bounds = [*(str(b) for b in wire.STEP_SECONDS_BUCKETS), "+Inf"]
-    cumulative = np.cumsum(counts).tolist()
+    # Python's integers: the wire allows counts whose sum passes int64's range, where np.cumsum
+    # would wrap to negative, decreasing buckets.
+    cumulative = list(itertools.accumulate(counts))
     le = dict(zip(bounds, cumulative, strict=True))
     return {"count": int(cumulative[-1]), "sum": round(total_s, 6), "le": le}
 
