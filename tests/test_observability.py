@@ -504,3 +504,26 @@ def test_step_counts_the_wire_allows_make_a_valid_histogram():
     h = board.snapshot()["actors"][0]["env_step_seconds"]
     cumulative = list(h["le"].values())
     assert cumulative == sorted(cumulative) and cumulative[0] > 0 and h["count"] == sum(biggest)
+
+
+def test_heartbeats_of_ever_new_actor_ids_do_not_grow_the_board_without_bound(monkeypatch):
+    from services.learner import status
+    from shared import wire
+
+    monkeypatch.setattr(status, "MAX_ACTORS", 4, raising=False)
+    board = StatusBoard()
+
+    def heartbeat(actor_id: int) -> None:
+        board.actor_status(wire.ActorStatus(actor_id, 1, 40, 1, 7, 9.5, []))
+
+    for actor_id in range(2):
+        board.actor_alive(actor_id, 1, True)
+    for actor_id in range(2, 50):  # heartbeats alone: no liveliness token
+        heartbeat(actor_id)
+    ids = [a["id"] for a in board.snapshot()["actors"]]
+    assert ids == [0, 1, 48, 49]  # the live actors stay; the newest of the others take the rest
+    for actor_id in range(2, 4):
+        board.actor_alive(actor_id, 1, True)
+    heartbeat(60)
+    board.actor_alive(61, 1, True)
+    assert [a["id"] for a in board.snapshot()["actors"]] == [0, 1, 2, 3]  # all alive: no room

@@ -22,6 +22,10 @@ RATE_SAMPLE_S = 0.5
 RATE_WINDOW_S = 10.0
 STALE_SAMPLE_S = 2 * RATE_SAMPLE_S
 """A newest sample older than this means the loop stopped sampling: the rates end at now."""
+MAX_ACTORS = 1024
+"""Actor ids the board holds. A new id beyond takes the place of those gone longest (not alive), or
+is left out while every id held is alive: heartbeats of ever new ids (a bug, a forged message)
+must not grow /status, and the lock and encoding that every read of it costs, without bound."""
 
 
 def _new_actor(actor_id: int, incarnation: int) -> dict:
@@ -82,6 +86,8 @@ class StatusBoard:
         """A heartbeat; a newer incarnation of an actor id replaces the older one."""
         with self._lock:
             a = self.actors.get(s.actor_id)
+            if a is None and not self._make_room():
+                return
             if a is None or s.incarnation > a["incarnation"]:
                 # Alive only once its liveliness token is seen: a heartbeat alone is no process.
                 a = self._new_incarnation(a, s.actor_id, s.incarnation, token=False)
@@ -93,14 +99,29 @@ class StatusBoard:
     def actor_alive(self, actor_id: int, incarnation: int, alive: bool) -> None:
         """An actor's liveliness token appeared (alive) or went away."""
         with self._lock:
+            a = self.actors.get(actor_id)
+            if a is None and (not alive or not self._make_room()):
+                return
             if alive:
                 self._token_seen(actor_id, incarnation)
-            a = self.actors.get(actor_id)
             if alive and (a is None or incarnation > a["incarnation"]):
                 self._new_incarnation(a, actor_id, incarnation, token=True)
             elif a is not None and incarnation == a["incarnation"]:
                 a["alive"] = alive
                 a["last_seen"] = time.monotonic()
+
+    def _make_room(self) -> bool:
+        """Under the lock: whether a new actor id may be held (MAX_ACTORS). A full board forgets the
+        ids gone longest (not alive) down to half of it at once, so a flood costs one scan per
+        MAX_ACTORS / 2 new ids, not one each."""
+        if len(self.actors) < MAX_ACTORS:
+            return True
+        gone = sorted((a for a in self.actors.values() if not a["alive"]), key=lambda a: a["last_seen"])
+        for a in gone[:len(self.actors) - MAX_ACTORS // 2]:
+            del self.actors[a["id"]]
+            self.restarts.pop(a["id"], None)
+            self._tokens.pop(a["id"], None)
+        return len(self.actors) < MAX_ACTORS
 
     def _token_seen(self, actor_id: int, incarnation: int) -> None:
         """A liveliness token of an incarnation: after the actor id's first, each new one is a restart."""
