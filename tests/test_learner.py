@@ -172,3 +172,49 @@ def test_a_token_file_that_gives_no_token_is_refused_before_the_learner_connects
         path.write_bytes(content)
     with pytest.raises(ConfigError, match=f"--api-token-file {path}"):
         check_args(LearnerArgs(api_token_file=path))
+
+
+def test_files_the_disk_refuses_at_the_end_are_logged_and_the_learner_still_ends(tmp_path, capsys):
+    from types import SimpleNamespace
+
+    from services.learner.health import LearnerArgs
+    from services.learner.history import History
+    from services.learner.learner import Learner
+    from shared.service import Log, StopFlag
+
+    # A learner at its end, without Zenoh: what _finish uses.
+    learner = Learner.__new__(Learner)
+    learner.core = core_on(tmp_path)
+    learner.args = LearnerArgs(data=tmp_path)
+    learner.keys = wire.Keys("r")
+    learner.client = SimpleNamespace(invalid=0)
+    learner.history, learner.log, learner.stop, learner.wall_s = History(), Log("learner"), StopFlag(), 1.0
+    for name in ("status.json.tmp", "history.json.tmp"):  # where each is written: the disk refuses it
+        (tmp_path / "learner" / name).mkdir(parents=True)
+    learner._finish(finished=False)
+    err = capsys.readouterr().err
+    assert learner.stop.reason == "done" and "stopping" in err
+    assert "the last status not written" in err and "the dashboard's series not written" in err
+    assert (tmp_path / CHECKPOINT).exists()
+
+
+def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    from services.learner.history import HISTORY_FILE, History
+
+    History().save(tmp_path)
+    before = (tmp_path / HISTORY_FILE).read_text()
+    real_write = Path.write_text
+
+    def full_disk(self: Path, text: str, *args: object, **kwargs: object) -> int:
+        real_write(self, text[:10])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        History().save(tmp_path)
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "learner").iterdir()] == ["history.json"]
+    assert (tmp_path / HISTORY_FILE).read_text() == before

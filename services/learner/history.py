@@ -102,8 +102,13 @@ class History:
         path = Path(data) / HISTORY_FILE
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps({"every_s": self.every_s, "points": self.points()}))
-        os.replace(tmp, path)
+        try:
+            tmp.write_text(json.dumps({"every_s": self.every_s, "points": self.points()}))
+            os.replace(tmp, path)
+        except BaseException:
+            if tmp.is_file():
+                tmp.unlink()  # a full disk: free what the half-written copy took
+            raise
 
 
 class HistoryError(ValueError):

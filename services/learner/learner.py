@@ -321,9 +321,9 @@ class Learner:
             elif (target := self.between.due(core.env_steps)) is not None:
                 self._evaluate(target)
         core.save_checkpoint(self.wall_s)
-        self.write_final_status()
+        self._leave("the last status", self.write_final_status)
         self.history.add(self.status())
-        self.history.save(self.args.data)
+        self._leave("the dashboard's series", lambda: self.history.save(self.args.data))
         core.scalars.status(self.status())
         core.scalars.close()
         if finished:
@@ -332,6 +332,15 @@ class Learner:
         else:
             self.log(f"stopping ({self.stop.reason}); checkpoint at {core.agent.num_updates} updates")
         self.stop.set("done")
+
+    def _leave(self, what: str, write: Callable[[], None]) -> None:
+        """Write a file the run leaves for `nasa status`; one the disk refuses (full) is logged, and
+        the run still ends: raising here would skip the Stop, and the restarted learner would meet
+        the same disk at the same end, over and over."""
+        try:
+            write()
+        except OSError as err:
+            self.log(f"{what} not written: {type(err).__name__}: {err}")
 
     def _evaluate(self, target: int) -> None:
         """Step `target`'s evaluation, here and now (--eval-between-updates)."""
@@ -393,8 +402,13 @@ class Learner:
         path = Path(self.args.data) / FINAL_STATUS
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(self.status(), indent=2) + "\n")
-        os.replace(tmp, path)
+        try:
+            tmp.write_text(json.dumps(self.status(), indent=2) + "\n")
+            os.replace(tmp, path)
+        except BaseException:
+            if tmp.is_file():
+                tmp.unlink()  # a full disk: free what the half-written copy took
+            raise
 
 
 def main(argv: list[str] | None = None) -> None:
