@@ -469,10 +469,16 @@ def up(argv: list[str]) -> None:
     if cmd.router_port and cmd.router_port == cmd.port:
         raise ConfigError(f"--port and --router-port are both {cmd.port}: the status API and the router "
                           "each need a port of their own")
-    check_port_free("127.0.0.1", cmd.port, "the status")  # before the folder: a refusal leaves none
+    what = f"nasa up (status port {cmd.port})"
+    say = lambda msg: print(f"nasa up: {msg}", flush=True)  # noqa: E731
+    # A folder in use: its lock first, which waits for the services of an earlier launch still
+    # stopping (its learner holds the status port until it exits); a new folder only after the
+    # ports, so a refusal leaves none.
+    lock = lock_run(data, what, say=say) if data.exists() else None
+    check_port_free("127.0.0.1", cmd.port, "the status")
     if cmd.router_port:
         check_port_free("127.0.0.1", cmd.router_port, "the router")
-    lock = lock_run(data, f"nasa up (status port {cmd.port})")  # held until this process ends
+    lock = lock or lock_run(data, what, say=say)  # held until this process ends
     prepare(cmd, data)
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
         else f"device {device}"

@@ -15,6 +15,11 @@ The kernel drops a lock when its process dies (kill -9 included): a stale lock f
 restart. A held lock, a read-only folder or a busy port is a `RunFolderError` (a ConfigError: one
 line, exit 2, never restarted).
 
+A launcher killed with SIGKILL leaves its services stopping (each got SIGTERM) and holding their
+role's lock for a while (a learner's last checkpoint, an evaluation under way). So a launcher that
+takes the run's lock first waits, up to SERVICES_EXIT_S, for every role's lock to be free: the same
+command again then starts every service, where the one still stopping would refuse its restart.
+
 A file lock covers one host. Across hosts the replay, the learner, the evaluator and a robot bridge
 are each one process per run (per id for a bridge): before serving, each looks for its role's
 liveliness token (`claim_role`) and, if another process holds it, refuses with `RoleTaken` (a
@@ -29,7 +34,9 @@ import fcntl
 import os
 import re
 import socket
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -51,6 +58,9 @@ class RunFolderError(ConfigError):
 class RoleTaken(RunFolderError):
     """Another process already serves this role of the run (its liveliness token is up)."""
 
+
+SERVICES_EXIT_S = 60.0
+"""How long a launcher waits for the services of an earlier launch on its folder to exit."""
 
 TOKEN_LEASE_S = 12.0
 """Longer than Zenoh's default lease (10 s): by then the token of a process that died without
@@ -152,15 +162,53 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def lock_run(data: Path, what: str, flag: str = "--data") -> RunLock:
+def lock_run(data: Path, what: str, flag: str = "--data", wait_s: float = SERVICES_EXIT_S,
+             say: Callable[[str], None] | None = None) -> RunLock:
     """A launcher's exclusive lock on the run folder `data` (created if missing); `flag` is the
-    launcher's option that names the folder, for the error."""
+    launcher's option that names the folder, for the error. Then waits up to `wait_s` for the
+    services of an earlier launch that still hold their role's lock, saying so with `say`."""
     data = Path(data)
     _writable(data, what)
     lock = RunLock()
     if not lock._take(data / LOCK, True, what):
         raise RunFolderError(f"{data} belongs to another run ({owner(data)}); stop it or use another {flag}")
+    try:
+        _wait_for_services(data, wait_s, say or (lambda msg: print(msg, file=sys.stderr, flush=True)))
+    except BaseException:
+        lock.close()
+        raise
     return lock
+
+
+def _wait_for_services(data: Path, wait_s: float, say: Callable[[str], None]) -> None:
+    """Wait until no role's lock in `data` is held. With the run's lock held alone, whoever holds one
+    is a service whose launcher died: it got SIGTERM (PR_SET_PDEATHSIG) and is on its way out."""
+    deadline = time.monotonic() + wait_s
+    for path in sorted(data.glob(f"{LOCK}.*")):
+        role = path.name[len(LOCK) + 1 :]
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:  # gone, or unreadable: its service will say so when it starts
+            continue
+        try:
+            said = False
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break  # free: released when fd closes
+                except BlockingIOError:
+                    pass
+                if time.monotonic() >= deadline:
+                    raise RunFolderError(
+                        f"{data}: the {role} of an earlier launch on this folder ({owner(data, role)}) "
+                        f"has not exited within {wait_s:g} s; stop that process, then start again")
+                if not said:
+                    say(f"the {role} of an earlier launch on {data} is still stopping "
+                        f"({owner(data, role)}): waiting up to {wait_s:g} s for it to exit")
+                    said = True
+                time.sleep(0.2)
+        finally:
+            os.close(fd)
 
 
 def lock_service(data: Path, role: str) -> RunLock:

@@ -100,6 +100,47 @@ def test_services_share_their_launchers_lock_and_never_a_role(tmp_path, monkeypa
             faults.lock_run(tmp_path / "later", "nasa up")
 
 
+ROLE_HOLD = "import sys, time; from shared.faults import RunLock; from pathlib import Path; " \
+            "RunLock()._take(Path(sys.argv[1]) / '.lock.evaluator', True, 'the evaluator of a run'); " \
+            "print('locked', flush=True); time.sleep(120)"
+
+
+def test_a_launcher_waits_for_an_earlier_launchs_service_still_stopping(tmp_path, monkeypatch):
+    """`nasa up` killed with SIGKILL, then started again at once: its evaluator, say, is still
+    finishing an evaluation and holds its role's lock. The new launch waits for it to exit, rather
+    than start an evaluator that refuses (exit 2) and run on without one."""
+    orphan = subprocess.Popen([sys.executable, "-c", ROLE_HOLD, str(tmp_path)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert orphan.stdout.readline().strip() == "locked"
+        said: list[str] = []
+
+        def exits_now(msg: str) -> None:  # the orphan ends while the launcher waits for it
+            said.append(msg)
+            orphan.kill()
+            orphan.wait()
+
+        with faults.lock_run(tmp_path, "nasa up", say=exits_now):
+            monkeypatch.setenv("NASA_PARENT_PID", str(os.getpid()))
+            faults.lock_service(tmp_path, "evaluator").close()  # the new launch's evaluator starts
+        assert len(said) == 1 and "the evaluator of an earlier launch" in said[0], said
+        assert f"pid {orphan.pid} " in said[0]
+    finally:
+        orphan.kill()
+        orphan.wait()
+    # One that never exits (it ignores SIGTERM) is named, and the run's lock is not kept.
+    with subprocess.Popen([sys.executable, "-c", ROLE_HOLD, str(tmp_path)], stdout=subprocess.PIPE,
+                          text=True) as stuck:
+        try:
+            assert stuck.stdout.readline().strip() == "locked"
+            named = f"evaluator of an earlier launch .*pid {stuck.pid} .*has not exited within 0.3 s"
+            with pytest.raises(faults.RunFolderError, match=named):
+                faults.lock_run(tmp_path, "nasa up", wait_s=0.3, say=lambda msg: None)
+        finally:
+            stuck.kill()
+    faults.lock_run(tmp_path, "after it", wait_s=0.0).close()
+
+
 def test_a_read_only_folder_is_one_clear_error(tmp_path):
     with tmpfs(tmp_path / "ro", "ro,size=1m") as ro:
         with pytest.raises(faults.RunFolderError, match="cannot be written"):
