@@ -95,6 +95,17 @@ def child_env(base: dict[str, str], over: dict[str, str | None]) -> dict[str, st
     return env
 
 
+def exit_text(code: int) -> str:
+    """How a child's process ended, from its return code (negative: the signal that killed it)."""
+    if code >= 0:
+        return f"exited with {code}"
+    try:
+        return f"was killed by {signal.Signals(-code).name}"
+    except ValueError:
+        return f"was killed by signal {-code}"
+
+
+LOG_TAIL_BYTES = 4096
 STABLE_S = 120.0
 """A child that ran this long before it died starts its count of restarts in a row again."""
 MAX_RESTART_DELAY_S = 30.0
@@ -172,13 +183,18 @@ class Supervisor:
             delay = min(self.restart_delay_s * 2 ** child.restarts, MAX_RESTART_DELAY_S)
             if child.restarts >= self.max_restarts:
                 child.exited = code
-                on_event(f"{child.name} exited with {code}; not restarted after {child.restarts} restarts "
-                         "in a row")
+                on_event(f"{self._died(child, code)}; not restarted after {child.restarts} restarts in a row")
             elif now - since >= delay:
                 del self._dead_since[child.name]
                 child.restarts += 1
-                on_event(f"{child.name} exited with {code}: restarting it ({child.restarts})")
+                on_event(f"{self._died(child, code)}: restarting it ({child.restarts})")
                 self._spawn(child)
+
+    def _died(self, child: Child, code: int) -> str:
+        """How a child died and, from its log, why (its last line: a traceback's error); without a
+        log the terminal shows it already."""
+        why = "" if self.log_dir is None else f" ({self.last_error(child)})"
+        return f"{child.name} {exit_text(code)}{why}"
 
     def log_file(self, child: Child) -> Path | None:
         """Where the child's output goes; None: this terminal."""
@@ -189,7 +205,12 @@ class Supervisor:
         log = self.log_file(child)
         if log is None:
             return "see its error above"
-        lines = log.read_text(errors="replace").strip().splitlines()
+        try:
+            with open(log, "rb") as f:  # its end only: after days the log is large
+                f.seek(max(0, f.seek(0, os.SEEK_END) - LOG_TAIL_BYTES))
+                lines = f.read().decode(errors="replace").strip().splitlines()
+        except OSError as err:
+            return f"{log}: cannot be read ({err.strerror or err})"
         return f"{log}: {lines[-1] if lines else 'no output'}"
 
     def ended(self, roles: tuple[str, ...]) -> Child | None:
@@ -515,11 +536,12 @@ def up(argv: list[str]) -> None:
                 ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
                 if ended is not None:
                     if ended.role == "actor":  # all_ended: none of them with 0
-                        stop["reason"] = f"no actor is left: the last, {ended.name} exited ({ended.exited})"
+                        last = f"{ended.name}, {exit_text(ended.exited)}"
+                        stop["reason"] = f"no actor is left: the last, {last}"
                     elif ended.exited == 0:
                         stop["reason"] = f"the run is done ({ended.name} finished)"
                     else:
-                        stop["reason"] = f"{ended.name} exited ({ended.exited})"
+                        stop["reason"] = f"{ended.name} {exit_text(ended.exited)}"
                     break
                 time.sleep(0.2)
         finally:

@@ -60,9 +60,11 @@ def test_a_child_that_dies_is_restarted_up_to_max_restarts(tmp_path):
     poll_until(sup, lambda: child.exited is not None, events)
     assert child.restarts == 2 and child.exited == 1
     assert len(child.pids) == 3 and len(set(child.pids)) == 3
+    # Each line says why, from the child's log (with --logs its error is nowhere else in sight).
+    why = f"({tmp_path / 'logs' / 'actor-0.log'}: child says: bad flag --x)"
     assert [e for e in events if "restarting" in e] == [
-        "actor-0 exited with 1: restarting it (1)", "actor-0 exited with 1: restarting it (2)"]
-    assert events[-1] == "actor-0 exited with 1; not restarted after 2 restarts in a row"
+        f"actor-0 exited with 1 {why}: restarting it (1)", f"actor-0 exited with 1 {why}: restarting it (2)"]
+    assert events[-1] == f"actor-0 exited with 1 {why}; not restarted after 2 restarts in a row"
     assert sup.ended(("actor",)) is child and sup.ended(("learner",)) is None
 
 
@@ -92,6 +94,19 @@ def test_the_run_has_no_actor_left_once_every_actor_ended_for_good(tmp_path):
     finished = [done.add("actor-0", "actor", ["2"]), done.add("actor-1", "actor", ["0"])]  # its steps done
     poll_until(done, lambda: all(c.exited is not None for c in finished), events)
     assert done.all_ended("actor") is None
+
+
+def test_a_child_killed_by_a_signal_is_said_so_with_its_logs_last_line(tmp_path):
+    sup = supervisor(tmp_path, WAIT_FOR_SIGTERM, max_restarts=0)
+    child = sup.add("actor-0", "actor", [str(tmp_path)])
+    wait_ready(tmp_path, ["actor"])
+    (tmp_path / "logs" / "actor-0.log").write_text("x" * 100_000 + "\nacting on step 7\n")
+    child.proc.kill()
+    events: list[str] = []
+    poll_until(sup, lambda: child.exited is not None, events)
+    log = tmp_path / "logs" / "actor-0.log"
+    assert events == [f"actor-0 was killed by SIGKILL ({log}: acting on step 7); "
+                      "not restarted after 0 restarts in a row"]
 
 
 def test_a_child_that_exits_0_is_not_restarted(tmp_path):
