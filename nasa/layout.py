@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 from shared.replay.adder import SEND_BATCH
@@ -105,12 +106,61 @@ class Layout:
                 "actor": ["--send-batch", str(send), "--max-in-flight", str(max(1, self.actor_lead // send))]}
 
 
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+SELF_CGROUP = Path("/proc/self/cgroup")
+
+
 def usable_cores() -> int:
-    """Cores this process may run on (a container's or taskset's limit, not the host's count)."""
+    """Cores this process may use: those it may run on (a taskset's or cpuset's limit, not the
+    host's count), and no more than its cgroup's CPU quota (a container's --cpus), which the
+    affinity does not show: threads past the quota are only throttled."""
     try:
-        return len(os.sched_getaffinity(0))
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
-        return os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+    quota = cpu_quota()
+    return cores if quota is None else max(1, min(cores, int(quota)))
+
+
+def cpu_quota() -> float | None:
+    """The CPUs this process's cgroup allows (quota / period; the tightest of its cgroup and the ones
+    above it, cgroup v2 or v1); None where none is set or none can be read."""
+    try:
+        lines = SELF_CGROUP.read_text().splitlines()
+    except OSError:
+        return None
+    limits = []
+    for line in lines:
+        if line.count(":") < 2:
+            continue
+        _, controllers, path = line.split(":", 2)
+        if controllers == "":  # v2: the unified hierarchy, at the root or beside v1 ones
+            bases, read = [CGROUP_ROOT, CGROUP_ROOT / "unified"], _v2_quota
+        elif "cpu" in controllers.split(","):
+            bases, read = [CGROUP_ROOT / controllers], _v1_quota
+        else:
+            continue
+        own = Path(path.lstrip("/"))
+        for base in bases:  # in a container the root may already be its own cgroup
+            limits += [q for d in (own, *own.parents) if (q := read(base / d)) is not None]
+    return min(limits, default=None)
+
+
+def _v2_quota(folder: Path) -> float | None:
+    try:
+        quota, period = (folder / "cpu.max").read_text().split()
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        return None
+
+
+def _v1_quota(folder: Path) -> float | None:
+    try:
+        quota = int((folder / "cpu.cfs_quota_us").read_text())
+        period = int((folder / "cpu.cfs_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if quota <= 0 or period <= 0 else quota / period
 
 
 def choose(cores: int, gpu: bool, actors: int = 0, learner_threads: int = 0, evaluator: bool = True,

@@ -130,3 +130,33 @@ def test_evaluator_flags_that_contradict_each_other_are_refused(flags, named):
     # --no-evaluator means no evaluations at all: neither a process nor the learner plays them.
     with pytest.raises(ConfigError, match=named):
         parse_up(flags)
+
+
+@pytest.mark.parametrize("version", ["v2", "v1"])
+def test_the_cores_are_those_a_cgroups_cpu_quota_allows_where_it_is_below_the_affinity(
+        tmp_path, monkeypatch, version):
+    """A container limited to 1.5 CPUs on an 8-core host (docker --cpus): its affinity shows all 8,
+    and 8 torch threads would only be throttled."""
+    from nasa import layout
+
+    monkeypatch.setattr(layout.os, "sched_getaffinity", lambda pid: set(range(8)))
+    monkeypatch.setattr(layout, "CGROUP_ROOT", tmp_path)
+    monkeypatch.setattr(layout, "SELF_CGROUP", tmp_path / "self")
+    if version == "v2":
+        (tmp_path / "self").write_text("0::/run.slice/nasa\n")
+        (tmp_path / "run.slice" / "nasa").mkdir(parents=True)
+        (tmp_path / "cpu.max").write_text("max 100000\n")
+        (tmp_path / "run.slice" / "cpu.max").write_text("150000 100000\n")  # the parent's limit holds
+        (tmp_path / "run.slice" / "nasa" / "cpu.max").write_text("max 100000\n")
+    else:
+        (tmp_path / "self").write_text("5:memory:/docker/x\n4:cpu,cpuacct:/docker/x\n")
+        own = tmp_path / "cpu,cpuacct" / "docker" / "x"
+        own.mkdir(parents=True)
+        (own / "cpu.cfs_quota_us").write_text("150000\n")
+        (own / "cpu.cfs_period_us").write_text("100000\n")
+        (tmp_path / "cpu,cpuacct" / "cpu.cfs_quota_us").write_text("-1\n")  # none at the root
+        (tmp_path / "cpu,cpuacct" / "cpu.cfs_period_us").write_text("100000\n")
+    assert layout.usable_cores() == 1
+    assert layout.choose(layout.usable_cores(), gpu=False).learner_threads == 1
+    (tmp_path / "self").write_text("0::/\n")  # no quota: the affinity
+    assert layout.usable_cores() == 8
