@@ -43,7 +43,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, BinaryIO, Literal
 
 import tyro
 
@@ -138,11 +138,22 @@ class Supervisor:
         self._spawn(child)
         return child
 
-    def _spawn(self, child: Child) -> None:
-        out = None
+    def _open_log(self, child: Child, on_event: Callable[[str], None]) -> BinaryIO | None:
+        """The child's log, opened to append; None (this terminal) where it cannot be written: a
+        log that fails is no reason to stop the run."""
         log = self.log_file(child)
-        if log is not None:
-            out = open(log, "ab")  # noqa: SIM115 (owned by the child)
+        if log is None:
+            return None
+        try:
+            log.parent.mkdir(parents=True, exist_ok=True)  # removed while the run went on
+            return open(log, "ab")  # noqa: SIM115 (owned by the child)
+        except OSError as err:
+            on_event(f"{child.name}'s log {log} cannot be written ({err.strerror or err}): its output "
+                     "comes here")
+            return None
+
+    def _spawn(self, child: Child, on_event: Callable[[str], None] = print) -> None:
+        out = self._open_log(child, on_event)
         try:
             # `nice` execs the service in the same process, so every thread it starts inherits the priority.
             prefix = ["nice", "-n", str(child.nice)] if child.nice else []
@@ -188,7 +199,7 @@ class Supervisor:
                 del self._dead_since[child.name]
                 child.restarts += 1
                 on_event(f"{self._died(child, code)}: restarting it ({child.restarts})")
-                self._spawn(child)
+                self._spawn(child, on_event)
 
     def _died(self, child: Child, code: int) -> str:
         """How a child died and, from its log, why (its last line: a traceback's error); without a

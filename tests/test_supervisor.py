@@ -109,6 +109,27 @@ def test_a_child_killed_by_a_signal_is_said_so_with_its_logs_last_line(tmp_path)
                       "not restarted after 0 restarts in a row"]
 
 
+def test_a_child_is_restarted_when_its_log_folder_is_gone_or_cannot_be_written(tmp_path):
+    """Its logs removed to free space, then a service dies: the restart makes its log again. A log
+    that cannot be written sends the output to the terminal; neither stops the run."""
+    import shutil
+
+    sup = supervisor(tmp_path, EXIT_WITH, max_restarts=1)
+    child = sup.add("actor-0", "actor", ["1"])
+    child.proc.wait()
+    shutil.rmtree(tmp_path / "logs")
+    events: list[str] = []
+    poll_until(sup, lambda: child.restarts == 1, events)
+    child.proc.wait()
+    assert (tmp_path / "logs" / "actor-0.log").read_text() == "child says: bad flag --x\n"
+    shutil.rmtree(tmp_path / "logs")
+    (tmp_path / "logs").write_text("")  # a file where the folder was: no log can be made
+    other = sup.add("actor-1", "actor", ["1"])
+    poll_until(sup, lambda: other.restarts == 1, events)
+    assert f"actor-1's log {tmp_path / 'logs' / 'actor-1.log'} cannot be written" in events[-1], events
+    assert len(other.pids) == 2
+
+
 def test_a_child_that_exits_0_is_not_restarted(tmp_path):
     sup = supervisor(tmp_path, EXIT_WITH)
     child = sup.add("learner", "learner", ["0"])
