@@ -24,8 +24,9 @@ bus, or the real gripper.
 
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
-then exits non-zero: 2 if it refused its input), on Ctrl-C or SIGTERM (exit 130 or 143, the
-shell's 128 + the signal: a run stopped from outside is not a finished one).
+then exits non-zero: 2 if it refused its input), on Ctrl-C, SIGTERM or SIGHUP (its terminal
+closed; exit 130, 143 or 129, the shell's 128 + the signal: a run stopped from outside is not a
+finished one).
 Children are stopped in order (actors, evaluator, learner, replay), killed if
 they do not exit in time, and get SIGTERM if the launcher itself dies
 (PR_SET_PDEATHSIG, set by each service at start), so no process is left.
@@ -502,7 +503,6 @@ def up(argv: list[str]) -> None:
         raise ConfigError(f"--port and --router-port are both {cmd.port}: the status API and the router "
                           "each need a port of their own")
     what = f"nasa up (status port {cmd.port})"
-    say = lambda msg: print(f"nasa up: {msg}", flush=True)  # noqa: E731
     # A folder in use: its lock first, which waits for the services of an earlier launch still
     # stopping (its learner holds the status port until it exits); a new folder only after the
     # ports, so a refusal leaves none.
@@ -515,8 +515,8 @@ def up(argv: list[str]) -> None:
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
         else f"device {device}"
     lay = layout_of(cmd, device.type == "cuda")
-    print(f"nasa up: preset {preset} ({how}); {c.algo} on {c.env.task}, {lay.actors} actor(s)", flush=True)
-    print(f"nasa up: {lay.describe()}", flush=True)
+    say(f"preset {preset} ({how}); {c.algo} on {c.env.task}, {lay.actors} actor(s)")
+    say(lay.describe())
     run_id = cmd.run_id or re.sub(r"[^A-Za-z0-9_.\-]", "-", data.resolve().name)
     router_port = cmd.router_port or free_port()
     endpoint = f"tcp/127.0.0.1:{router_port}"
@@ -529,8 +529,10 @@ def up(argv: list[str]) -> None:
     def on_signal(signum: int, _frame: object) -> None:
         stop["reason"], stop["signum"] = signal.Signals(signum).name, signum
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # SIGHUP: the terminal went away (an ssh session dropped); stop in order as for SIGTERM, where
+    # its default would end this process at once and leave the services to stop all together.
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, on_signal)
     ended: Child | None = None
     with open_router(endpoint, auth=auth):
         sup = Supervisor(env, data / "logs" if cmd.logs else None)
@@ -539,10 +541,9 @@ def up(argv: list[str]) -> None:
                 role = name.split("-")[0]
                 sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0,
                         env=omp_env(cmd, lay, role))
-            print(f"nasa up: run {run_id} in {data}; router {endpoint}; "
-                  f"status http://127.0.0.1:{cmd.port}/status", flush=True)
+            say(f"run {run_id} in {data}; router {endpoint}; status http://127.0.0.1:{cmd.port}/status")
             while not stop["reason"]:
-                sup.poll(lambda msg: print(f"nasa up: {msg}", flush=True))
+                sup.poll(say)
                 # The run cannot go on without its learner or its replay, nor without any actor.
                 ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
                 if ended is not None:
@@ -556,14 +557,24 @@ def up(argv: list[str]) -> None:
                     break
                 time.sleep(0.2)
         finally:
-            print(f"nasa up: stopping ({stop['reason'] or 'error'})", flush=True)
-            sup.stop_all(on_event=lambda msg: print(f"nasa up: {msg}", flush=True))
-    print("nasa up: stopped", flush=True)
+            say(f"stopping ({stop['reason'] or 'error'})")
+            sup.stop_all(on_event=say)
+    say("stopped")
     lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
-    if stop["signum"]:  # Ctrl-C: 130, as `nasa train`; a run stopped from outside is not a finished one
+    if stop["signum"]:  # 130, 143, 129 (as `nasa train`): a run stopped from outside is not a finished one
         sys.exit(128 + stop["signum"])
+
+
+def say(msg: str) -> None:
+    """One line of `nasa up`'s on stdout; none where stdout is gone (a closed terminal, a closed
+    pipe): the run and its stop go on without it."""
+    try:
+        print(f"nasa up: {msg}", flush=True)
+    except OSError:
+        # Nowhere from now on: the line left in the buffer would fail again at exit (exit 120).
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115
 
 
 def omp_env(cmd: UpCommand, lay: layout.Layout, role: str) -> dict[str, str | None]:
@@ -597,7 +608,7 @@ def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Pat
             raise ConfigError(f"--zenoh-auth {folder}: cannot write the run's access rules: {err}") from None
     zenoh_auth.check_acl(folder, run_id)
     env["NASA_ZENOH_AUTH"] = str(folder.resolve())
-    print(f"nasa up: Zenoh logins and access control from {folder} (--zenoh-auth off: none)", flush=True)
+    say(f"Zenoh logins and access control from {folder} (--zenoh-auth off: none)")
     return folder
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import signal
 import stat
 import subprocess
@@ -153,6 +154,59 @@ def test_nasa_up_ends_with_a_clear_error_on_a_checkpoint_it_cannot_continue(tmp_
     assert "restarting" not in out
     assert "nasa up: stopped" in out
     assert (data / "learner" / "checkpoint.pt").read_bytes() == before
+
+
+def _controlling_terminal() -> None:
+    import fcntl
+    import termios
+
+    fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+
+@pytest.mark.timeout(240)
+def test_nasa_up_stops_every_service_in_order_when_its_terminal_closes(tmp_path):
+    # An ssh session that drops: the kernel sends SIGHUP, and writes to the terminal fail from
+    # then on. `nasa up` stops as for SIGTERM (its services in order, none left) and exits 129.
+    data = tmp_path / "run"
+    master, terminal = os.openpty()
+    cmd = [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--actors", "1",
+           "--steps", "100000", "--device", "cpu", "--data", str(data), "--port", str(free_port()),
+           "--router-port", "0", "--learner-threads", "1", "--logs", "--", *TINY]
+    up = subprocess.Popen(cmd, cwd=REPO, stdin=terminal, stdout=terminal, stderr=terminal,
+                          start_new_session=True, preexec_fn=_controlling_terminal,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    os.close(terminal)
+    try:
+        seen = b""
+        deadline = time.monotonic() + 150
+        started = {"replay": "serving run", "learner": "status on http", "actor-0": "acting on",
+                   "evaluator": "evaluating every"}  # each has its stop handler by then
+
+        def log(service: str) -> str:
+            path = data / "logs" / f"{service}.log"
+            return path.read_text() if path.exists() else ""
+
+        while not all(line in log(service) for service, line in started.items()):
+            assert time.monotonic() < deadline and up.poll() is None, seen.decode()
+            readable, _, _ = select.select([master], [], [], 0.5)
+            if readable:
+                try:
+                    seen += os.read(master, 4096)
+                except OSError:  # no process has the terminal open: nasa up ended
+                    raise AssertionError(f"nasa up ended ({up.wait()}): {seen.decode()}") from None
+        os.close(master)  # the terminal hangs up
+        master = -1
+        assert up.wait(timeout=150) == 128 + signal.SIGHUP
+        assert children_of(up.pid) == []
+        assert b"/status" in seen
+        for service in started:
+            assert "stopping" in log(service).split(started[service])[-1], service
+    finally:
+        if master >= 0:
+            os.close(master)
+        if up.poll() is None:
+            up.kill()
+            up.wait()
 
 
 def test_nasa_up_rejects_an_unknown_task_before_starting_anything(tmp_path):
