@@ -184,9 +184,13 @@ def _stopped(trainer: Trainer, out: Path, why: str, code: int, when: str = "") -
 
 
 def up(argv: list[str]) -> None:
-    from nasa.up import up as run_up  # the launcher imports zenoh; keep `nasa train --help` light
+    try:
+        from nasa.up import up as run_up  # the launcher imports zenoh; keep `nasa train --help` light
 
-    run_up(argv)
+        run_up(argv)
+    except KeyboardInterrupt:  # Ctrl-C before nasa up's own handlers, so before any service started
+        print("\nnasa up: interrupted before any service started", file=sys.stderr, flush=True)
+        sys.exit(_signal_code(KeyboardInterrupt()))
 
 
 def status(argv: list[str]) -> None:

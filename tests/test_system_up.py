@@ -209,6 +209,32 @@ def test_nasa_up_stops_every_service_in_order_when_its_terminal_closes(tmp_path)
             up.wait()
 
 
+@pytest.mark.timeout(180)
+def test_nasa_up_waits_for_an_earlier_launchs_service_and_ctrl_c_there_is_one_line(tmp_path):
+    # The evaluator of a `nasa up` killed with SIGKILL still holds its role's lock while it stops:
+    # the same command again says it waits for it; Ctrl-C then ends it with one line and 130.
+    from tests.test_hardening_faults import ROLE_HOLD
+
+    data = tmp_path / "run"
+    data.mkdir()
+    orphan = subprocess.Popen([sys.executable, "-c", ROLE_HOLD, str(data)], stdout=subprocess.PIPE,
+                              text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert orphan.stdout.readline().strip() == "locked"
+        with nasa_up(data) as (up, _port):
+            first = up.stdout.readline()
+            assert first.startswith("nasa up: the evaluator of an earlier launch on"), first
+            assert f"(pid {orphan.pid} " in first and "waiting up to 60 s for it to exit" in first, first
+            up.send_signal(signal.SIGINT)
+            rest, _ = up.communicate(timeout=60)
+        assert up.returncode == 130, rest
+        assert rest.strip() == "nasa up: interrupted before any service started", rest
+        assert orphan.poll() is None
+    finally:
+        orphan.kill()
+        orphan.wait()
+
+
 def test_nasa_up_rejects_an_unknown_task_before_starting_anything(tmp_path):
     data = tmp_path / "run"
     result = subprocess.run(
