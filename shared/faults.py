@@ -126,7 +126,11 @@ class RunLock:
             return False
         self._fds.append(fd)
         if exclusive:
-            _write_owner(fd, what)
+            try:
+                _write_owner(fd, what)
+            except OSError as err:  # a full disk: the lock would name no one; the run could write nothing
+                self.close()
+                raise RunFolderError(f"{path.parent} cannot be written ({err.strerror}): {what}") from err
         return True
 
 

@@ -150,6 +150,18 @@ def test_a_read_only_folder_is_one_clear_error(tmp_path):
         assert "cannot be written" in done.stderr
 
 
+def test_a_full_disk_is_one_clear_error_for_a_launcher(tmp_path):
+    # The folder's probe (an empty file) passes on a full disk; the lock's owner line cannot be written.
+    with tmpfs(tmp_path / "full", "size=64k") as full:
+        with contextlib.suppress(OSError):
+            (full / "fill").write_bytes(b"x" * 128 * 1024)
+        with pytest.raises(faults.RunFolderError, match="run cannot be written .No space left on device"):
+            faults.lock_run(full / "run", "nasa up")
+        done = _nasa("train", "--preset", "cpu-small", "--steps", "10", "--out", str(full / "run"))
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+        assert "No space left on device" in done.stderr
+
+
 def test_a_busy_port_is_one_line_and_exit_2(tmp_path):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
