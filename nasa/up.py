@@ -106,7 +106,17 @@ def exit_text(code: int) -> str:
         return f"was killed by signal {-code}"
 
 
+def disk_full(folder: Path) -> str:
+    """"; no space is left on its disk" where `folder`'s file system has (next to) none left, else ""."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return ""
+    return "; no space is left on its disk" if st.f_bavail * st.f_frsize < FULL_BELOW_BYTES else ""
+
+
 LOG_TAIL_BYTES = 4096
+FULL_BELOW_BYTES = 1 << 20
 STABLE_S = 120.0
 """A child that ran this long before it died starts its count of restarts in a row again."""
 MAX_RESTART_DELAY_S = 30.0
@@ -223,7 +233,8 @@ class Supervisor:
                 lines = f.read().decode(errors="replace").strip().splitlines()
         except OSError as err:
             return f"{log}: cannot be read ({err.strerror or err})"
-        return f"{log}: {lines[-1] if lines else 'no output'}"
+        # A service on a full disk dies unable to write why: say what it could not.
+        return f"{log}: {lines[-1] if lines else 'no output'}{disk_full(log.parent)}"
 
     def ended(self, roles: tuple[str, ...]) -> Child | None:
         """The first child of one of `roles` that ended for good (exited 0, refused, or out of restarts)."""

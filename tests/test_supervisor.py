@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -128,6 +129,22 @@ def test_a_child_is_restarted_when_its_log_folder_is_gone_or_cannot_be_written(t
     poll_until(sup, lambda: other.restarts == 1, events)
     assert f"actor-1's log {tmp_path / 'logs' / 'actor-1.log'} cannot be written" in events[-1], events
     assert len(other.pids) == 2
+
+
+def test_a_child_that_died_on_a_full_disk_is_said_so(tmp_path):
+    """Its error could not be written to its log (the disk is full): nasa up says what it can."""
+    from tests.test_hardening_faults import tmpfs
+
+    with tmpfs(tmp_path / "full", "size=64k") as full:
+        sup = Supervisor({}, full / "logs", restart_delay_s=0.0, max_restarts=0,
+                         command=lambda role: [sys.executable, "-c", "import sys; sys.exit(1)", role])
+        with contextlib.suppress(OSError):
+            (full / "fill").write_bytes(b"x" * 128 * 1024)
+        child = sup.add("learner", "learner", [])  # as a service that cannot write its error
+        events: list[str] = []
+        poll_until(sup, lambda: child.exited is not None, events)
+        assert events == [f"learner exited with 1 ({full / 'logs' / 'learner.log'}: no output; no space is "
+                          "left on its disk); not restarted after 0 restarts in a row"]
 
 
 def test_a_child_that_exits_0_is_not_restarted(tmp_path):
