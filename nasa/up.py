@@ -337,6 +337,7 @@ class UpCommand:
 # Far above what any layout chooses, far below what brings a machine down (a process of a few
 # hundred MB each).
 MAX_ACTORS_PER_CORE = 8
+MAX_THREADS_PER_CORE = 8
 
 
 def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
@@ -362,6 +363,11 @@ def parse_up(argv: list[str]) -> tuple[UpCommand, str]:
             "torch, and hundreds of them exhaust the machine's memory; more actors go on other hosts "
             "(docs/deployment.md)"
         )
+    if cmd.learner_threads > MAX_THREADS_PER_CORE * cores:
+        # Past what the cores can run, threads only wait; far past it, OpenMP cannot make them and the
+        # learner aborts at its first update, again at each restart.
+        raise ConfigError(f"--learner-threads {cmd.learner_threads} on {cores} core(s): at most "
+                          f"{MAX_THREADS_PER_CORE * cores} on this host ({MAX_THREADS_PER_CORE} a core)")
     if cmd.run_id is not None:
         try:
             wire.check_run_id(cmd.run_id)  # a key prefix: before the run folder is made

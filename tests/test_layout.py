@@ -160,3 +160,15 @@ def test_the_cores_are_those_a_cgroups_cpu_quota_allows_where_it_is_below_the_af
     assert layout.choose(layout.usable_cores(), gpu=False).learner_threads == 1
     (tmp_path / "self").write_text("0::/\n")  # no quota: the affinity
     assert layout.usable_cores() == 8
+
+
+def test_more_learner_threads_than_the_host_can_make_are_refused(monkeypatch):
+    """Far past the cores, OpenMP cannot make the threads and the learner aborts at each restart: a
+    flag's error (exit 2) before anything starts, not a learner that crash-loops."""
+    from nasa import layout
+
+    monkeypatch.setattr(layout, "usable_cores", lambda: 2)
+    with pytest.raises(ConfigError, match=r"--learner-threads 20000 on 2 core\(s\): at most 16 on this host"):
+        parse_up(["--learner-threads", "20000"])
+    cmd, _ = parse_up(["--learner-threads", "16"])  # more threads than cores: the user's choice
+    assert layout_of(cmd, gpu=False, cores=2).learner_threads == 16
