@@ -411,6 +411,10 @@ def check_bridge(cmd: UpCommand) -> None:
         raise ConfigError("--bridge hardware needs --bridge-config FILE (the gripper's TOML config)")
     if cmd.bridge == "hardware" and cmd.actors not in (0, 1):
         raise ConfigError(f"--bridge hardware drives one gripper: --actors 1, not {cmd.actors}")
+    if cmd.bridge == "hardware" and (cmd.evaluate_in == "process" or cmd.evaluator_nice is not None):
+        flag = "--evaluate-in process" if cmd.evaluate_in == "process" else "--evaluator-nice"
+        raise ConfigError(f"--bridge hardware with {flag}: the one gripper is the actor's, so the run has no "
+                          f"evaluator; leave {flag} out")
 
 
 def take_camera_size(cmd: UpCommand, explicit: bool) -> None:

@@ -172,3 +172,15 @@ def test_more_learner_threads_than_the_host_can_make_are_refused(monkeypatch):
         parse_up(["--learner-threads", "20000"])
     cmd, _ = parse_up(["--learner-threads", "16"])  # more threads than cores: the user's choice
     assert layout_of(cmd, gpu=False, cores=2).learner_threads == 16
+
+
+@pytest.mark.parametrize("flags", [["--evaluate-in", "process"], ["--evaluator-nice", "5"]])
+def test_flags_for_an_evaluator_are_refused_with_the_real_gripper_which_has_none(flags):
+    """--bridge hardware has no evaluator (its one gripper is the actor's): a flag that asks for one,
+    or sets its priority, would be dropped without a word."""
+    hardware = ["--task", "gripper-valve", "--bridge", "hardware", "--bridge-config",
+                str(Path(__file__).resolve().parents[1] / "services" / "robot_bridge" / "example.toml")]
+    flag = " ".join(flags[:1] if flags[0] == "--evaluator-nice" else flags)
+    with pytest.raises(ConfigError, match=f"--bridge hardware with {flag}.*no evaluator; leave {flag} out"):
+        parse_up([*hardware, *flags])
+    assert not layout_of(parse_up(hardware)[0], gpu=False, cores=2).evaluator
