@@ -210,7 +210,11 @@ class Supervisor:
                 del self._dead_since[child.name]
                 child.restarts += 1
                 on_event(f"{self._died(child, code)}: restarting it ({child.restarts})")
-                self._spawn(child, on_event)
+                try:
+                    self._spawn(child, on_event)
+                except OSError as err:  # no process to be had now (a pids limit, memory): a failed restart
+                    self._dead_since[child.name] = child.started = now  # a start that ran for no time
+                    on_event(f"{child.name} could not be started ({err.strerror or err}); trying again")
 
     def _died(self, child: Child, code: int) -> str:
         """How a child died and, from its log, why (its last line: a traceback's error); without a

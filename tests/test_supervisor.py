@@ -147,6 +147,35 @@ def test_a_child_that_died_on_a_full_disk_is_said_so(tmp_path):
                           "left on its disk); not restarted after 0 restarts in a row"]
 
 
+def test_a_restart_that_cannot_start_a_process_is_tried_again(tmp_path):
+    """No process to be had at a restart (a pids limit, memory): said, and tried again, not raised
+    out of nasa up, which would end the run."""
+    fork_fails = {"now": False}
+
+    def command(role: str) -> list[str]:
+        if fork_fails["now"]:
+            raise BlockingIOError(11, "Resource temporarily unavailable")
+        return [sys.executable, "-c", EXIT_WITH, role]
+
+    sup = Supervisor({}, tmp_path / "logs", restart_delay_s=0.0, max_restarts=3, command=command)
+    child = sup.add("actor-0", "actor", ["1"])
+    fork_fails["now"] = True
+    events: list[str] = []
+    poll_until(sup, lambda: child.restarts == 1, events)
+    assert events[-1] == "actor-0 could not be started (Resource temporarily unavailable); trying again"
+    fork_fails["now"] = False
+    poll_until(sup, lambda: len(child.pids) == 2, events)
+    assert child.restarts == 2 and child.exited is None
+    # A child that ran well for long, then no process for it at all: the failed starts count in a
+    # row, so it ends for good rather than being tried forever.
+    child.proc.wait()
+    child.started -= 10 * sup.stable_s
+    fork_fails["now"] = True
+    poll_until(sup, lambda: child.exited is not None, events)
+    assert child.restarts == 3 and len(child.pids) == 2
+    assert events[-1].startswith("actor-0 exited with 1") and events[-1].endswith("after 3 restarts in a row")
+
+
 def test_a_child_that_exits_0_is_not_restarted(tmp_path):
     sup = supervisor(tmp_path, EXIT_WITH)
     child = sup.add("learner", "learner", ["0"])
