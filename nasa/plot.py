@@ -109,8 +109,9 @@ def run_identity(folder: Path) -> tuple[str, str, int] | None:
 def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
     """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed, with
     the wall-clock time of each step (train.csv) when `walls`. A run whose files cannot be read (a
-    damaged file, a row cut short) is named and skipped, so one bad folder does not hide the
-    others' curves; train.csv is read only for `walls`, so its damage hides no step curve."""
+    damaged file, a row cut short, a step or return that is inf or nan) is named and skipped, so one
+    bad folder does not hide the others' curves; train.csv is read only for `walls`, so its damage
+    hides no step curve."""
     runs: list[SeedCurve] = []
     seen: dict[tuple[str, str, int, str], Path] = {}
     for path in sorted(Path(results_dir).rglob("eval.csv")):
@@ -123,8 +124,14 @@ def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
             rows = read_rows(path)
             if not rows:
                 continue  # a run that has not evaluated yet
-            steps = np.array([int(float(r["step"])) for r in rows])
+            steps = np.array([float(r["step"]) for r in rows])
             means = np.array([float(r["mean"]) for r in rows])
+            if not (np.isfinite(steps).all() and np.isfinite(means).all()):
+                # One seed's inf or nan would make its task's whole row and curve inf or nan.
+                raise ValueError("a step or mean that is not a finite number")
+            if (np.abs(steps) >= 2**62).any():  # beyond any run, and near int64's end
+                raise ValueError("a step out of range")
+            steps = steps.astype(np.int64)
             at = eval_walls(path.parent, steps.tolist()) if walls else {}
         except ConfigError as err:
             print(f"nasa plot: skipping {path}: {err}", file=sys.stderr)

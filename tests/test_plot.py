@@ -191,6 +191,10 @@ BAD_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": "x"}'
     [
         (lambda f: (f / "eval.csv").write_bytes(b"step,mean\n0,\xff\xfe\n"), "UnicodeDecodeError"),
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n10,abc\n"), "ValueError"),
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\ninf,2.0\n"), "not a finite number"),
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n10,inf\n"), "not a finite number"),
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,nan\n10,1.0\n"), "not a finite number"),
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n1e20,1.0\n"), "a step out of range"),
         (lambda f: (f / "config.json").write_text("{not json"), "config.json is unreadable: Expecting"),
         (lambda f: (f / "config.json").write_text("[1, 2]"), "config.json is unreadable: it does not hold"),
         (lambda f: (f / "config.json").write_text(BAD_SEED), "ValueError"),
