@@ -67,7 +67,7 @@ def run_state(out: Path, steps: int | None) -> Action:
         if total is None and config_path.exists():
             total = int(read_json_object(config_path)["steps"])
         last = last_eval_step(out)
-    except (OSError, ValueError, KeyError, TypeError, IndexError):
+    except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError):  # Overflow: inf
         return "resume"  # a damaged file: `nasa train --resume` names it, and that run fails alone
     if total is not None and last is not None and last >= total:
         return "skip"

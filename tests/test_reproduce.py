@@ -195,6 +195,15 @@ def test_a_damaged_run_folder_is_planned_for_resume_not_a_traceback(results: Pat
         == "resume"
 
 
+@pytest.mark.parametrize("row", ["inf,1,0,1", "nan,1,0,1"])
+def test_a_step_that_is_not_a_number_is_planned_for_resume_not_a_traceback(results: Path, row: str) -> None:
+    broken = run_folder(results, "cartpole-balance", "nasa_td3", 0)
+    with open(broken / "eval.csv", "a") as f:
+        f.write(row + "\n")
+    assert actions(plan_runs(results, TASKS, ALGOS, SEEDS, steps=None))["cartpole-balance", "nasa_td3", 0] \
+        == "resume"
+
+
 def test_results_that_name_a_file_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "results").write_text("")
     with pytest.raises(SystemExit) as exc:
