@@ -121,7 +121,7 @@ def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
                 print(f"nasa plot: skipping {path}: no config.json and not under <task>/<algo>/seed<S>",
                       file=sys.stderr)
                 continue
-            rows = read_rows(path)
+            rows = read_rows(path, whole=True)  # a row cut short may hold a cut-short return
             if not rows:
                 continue  # a run that has not evaluated yet
             steps = np.array([float(r["step"]) for r in rows])

@@ -48,11 +48,12 @@ def run_folder(results_dir: Path, task: str, algo: str, seed: int) -> Path:
 
 
 def last_eval_step(out: Path) -> int | None:
-    """The step of the last row of `out`/eval.csv, or None when there is none."""
+    """The step of the last whole row of `out`/eval.csv, or None when there is none. A last row
+    cut short is not a finished evaluation: the run is resumed, which drops it."""
     path = out / "eval.csv"
     if not path.exists():
         return None
-    rows = read_rows(path)
+    rows = read_rows(path, whole=True)
     return int(float(rows[-1]["step"])) if rows else None
 
 

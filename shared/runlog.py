@@ -7,6 +7,7 @@ through this module, so a plot never cares which runner made a run.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from pathlib import Path
@@ -104,7 +105,7 @@ def eval_walls(run: str | Path, steps: list[int]) -> dict[int, float]:
     the first training episode at or after it (train.csv's wall_s); step 0 at 0. A step no episode
     reached yet has none."""
     train = Path(run) / "train.csv"
-    episodes = read_rows(train) if train.exists() else []
+    episodes = read_rows(train, whole=True) if train.exists() else []
     ends = [(int(e["step"]), float(e["wall_s"])) for e in episodes if e.get("wall_s")]
     out: dict[int, float] = {}
     for step in steps:
@@ -114,9 +115,15 @@ def eval_walls(run: str | Path, steps: list[int]) -> dict[int, float]:
     return out
 
 
-def read_rows(path: str | Path) -> list[dict[str, str]]:
+def read_rows(path: str | Path, whole: bool = False) -> list[dict[str, str]]:
+    """The rows of a CSV file. `whole`: without a last row that has no line end, one its writer did
+    not finish (it died mid-write, or the file was cut short): its values may be cut too, and a
+    resume drops it (CsvLog)."""
     with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+        text = f.read()
+    if whole and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    return list(csv.DictReader(io.StringIO(text, newline="")))
 
 
 def _format(value: object) -> str:

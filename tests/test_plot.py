@@ -213,6 +213,15 @@ def test_a_damaged_run_is_named_and_skipped_and_the_others_still_plot(
     assert f"nasa plot: skipping {damaged / 'eval.csv'}: " in err and reason in err
 
 
+def test_a_last_row_cut_short_is_left_out(tmp_path: Path) -> None:
+    folder = tmp_path / "runs" / "cartpole-balance" / "nasa_td3" / "seed0"
+    write_eval(folder, [0, 10], [5.0, 500.0])
+    with open(folder / "eval.csv", "a") as f:
+        f.write("20,61")  # the row of 20 cut short: its return may be 612.5
+    (run,) = find_runs(tmp_path / "runs")
+    assert run.steps.tolist() == [0, 10] and run.means.tolist() == [5.0, 500.0]
+
+
 def test_an_out_folder_that_cannot_be_written_is_a_clear_error(
     results: tuple[Path, dict], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

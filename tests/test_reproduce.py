@@ -204,6 +204,14 @@ def test_a_step_that_is_not_a_number_is_planned_for_resume_not_a_traceback(resul
         == "resume"
 
 
+def test_a_last_eval_row_cut_short_is_not_a_finished_run(results: Path) -> None:
+    out = run_folder(results, "cartpole-balance", "nasa_td3", 1)  # evaluated up to 500 of 1000
+    with open(out / "eval.csv", "a") as f:
+        f.write("1000,4")  # the final row, cut short: its writer died, or a copy stopped
+    assert actions(plan_runs(results, TASKS, ALGOS, SEEDS, steps=None))["cartpole-balance", "nasa_td3", 1] \
+        == "resume"
+
+
 def test_results_that_name_a_file_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "results").write_text("")
     with pytest.raises(SystemExit) as exc:
