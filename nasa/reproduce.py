@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -130,7 +131,8 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
     """Run the commands, at most `parallel` at a time; each run's output goes to <out>/train.log.
 
     Returns the runs whose process failed. A failed run does not stop the others:
-    the next `nasa reproduce` resumes it.
+    the next `nasa reproduce` resumes it. Whatever ends this loop early (Ctrl-C, SIGTERM) stops
+    the runs under way and waits for them, so none is left running on its own.
     """
     pending = list(jobs)
     running: list[tuple[Run, subprocess.Popen, object]] = []
@@ -158,8 +160,11 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
                     print(f"FAILED {run.out}: exit code {code}, see {run.out / 'train.log'}", flush=True)
             if running:
                 time.sleep(poll_s)
-    except KeyboardInterrupt:
-        # Stop our own children and wait for them; the next invocation resumes them.
+    except BaseException:
+        # Stop our own children and wait for them; the next invocation resumes them. A second
+        # Ctrl-C would cut the wait short and leave them running.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         for _, proc, _log in running:
             proc.terminate()
         for _, proc, log in running:
@@ -167,6 +172,20 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
             log.close()
         raise
     return failed
+
+
+def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[Run]:
+    """`execute`; on Ctrl-C (SIGINT) or SIGTERM, once the runs under way have stopped, say how to
+    go on in one line and exit 128 + the signal (130, 143), the shell's convention."""
+    from nasa.cli import Terminated, _raise_terminated, _signal_code
+
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        return execute(jobs, parallel)
+    except (KeyboardInterrupt, Terminated) as err:
+        print("\nnasa reproduce: stopped, and so were the runs under way; run the same command "
+              "again to resume them", file=sys.stderr, flush=True)
+        sys.exit(_signal_code(err))
 
 
 @dataclass
@@ -282,7 +301,7 @@ def reproduce(argv: list[str]) -> None:
         return
     if extra and counts["resume"]:
         print("note: flags after -- apply to new runs only; resumed runs keep their config.json", flush=True)
-    failed = execute(jobs, parallel)
+    failed = run_until_stopped(jobs, parallel)
     if failed:
         print(f"nasa reproduce: {len(failed)} run(s) failed; run the same command again to resume them",
               file=sys.stderr)

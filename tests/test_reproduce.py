@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -280,3 +283,55 @@ def test_a_camera_after_dashes_is_checked_against_every_task(
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "env.camera_id 99 is not a camera of cartpole-balance" in err
     assert not (tmp_path / "results").exists()
+
+
+FAKE_REPRODUCE = """
+import sys
+from nasa import reproduce as rep
+from nasa.cli import main
+
+def sleeper(run, *args):  # a run that records its pid and goes on until stopped
+    code = ("import os, pathlib, sys, time; pathlib.Path(sys.argv[1]).write_text(str(os.getpid())); "
+            "time.sleep(600)")
+    return [sys.executable, "-c", code, str(run.out / "pid")]
+
+rep.train_command = sleeper
+main(["reproduce", "--tasks", "cartpole-balance", "--algos", "td3_ae", "--seeds", "2", "--results",
+      sys.argv[1], "--device", "cpu", "--parallel", "2"])
+"""
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_stopped_reproduce_stops_its_runs_and_says_so_in_one_line(
+    tmp_path: Path, signum: int, code: int
+) -> None:
+    results = tmp_path / "results"
+    proc = subprocess.Popen([sys.executable, "-c", FAKE_REPRODUCE, str(results)],
+                            cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    pid_files = [run_folder(results, "cartpole-balance", "td3_ae", s) / "pid" for s in (0, 1)]
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while not all(f.exists() and f.read_text() for f in pid_files):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        pids = [int(f.read_text()) for f in pid_files]
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == code
+        assert "Traceback" not in err and "nasa reproduce: stopped" in err
+        assert not any(alive(pid) for pid in pids)  # none left running on its own
+    finally:
+        proc.kill()
+        for pid in pids:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
