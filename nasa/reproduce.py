@@ -19,7 +19,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import IO, Literal
 
 import tyro
 
@@ -141,9 +141,13 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
         while pending or running:
             while pending and len(running) < parallel:
                 run, cmd = pending.pop(0)
-                run.out.mkdir(parents=True, exist_ok=True)
-                log = open(run.out / "train.log", "a")  # closed when the run ends
-                proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+                try:
+                    proc, log = launch(run, cmd)
+                except OSError as err:  # its folder cannot be written: this run fails, not the others
+                    failed.append(run)
+                    where = f" ({err.filename})" if err.filename else ""
+                    print(f"FAILED {run.out}: cannot start it: {err.strerror or err}{where}", flush=True)
+                    continue
                 running.append((run, proc, log))
                 print(f"{run.action:6s} {run.out} (log {run.out / 'train.log'})", flush=True)
             for item in list(running):
@@ -186,6 +190,18 @@ def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[
         print("\nnasa reproduce: stopped, and so were the runs under way; run the same command "
               "again to resume them", file=sys.stderr, flush=True)
         sys.exit(_signal_code(err))
+
+
+def launch(run: Run, cmd: list[str]) -> tuple[subprocess.Popen, IO[str]]:
+    """Start `cmd` with its output going to <out>/train.log; returns the process and the log,
+    to be closed when the run ends."""
+    run.out.mkdir(parents=True, exist_ok=True)
+    log = open(run.out / "train.log", "a")
+    try:
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log
+    except BaseException:
+        log.close()
+        raise
 
 
 @dataclass

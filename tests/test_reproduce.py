@@ -155,6 +155,16 @@ def test_execute_runs_jobs_and_reports_failures(tmp_path: Path) -> None:
     assert "boom" in (bad.out / "train.log").read_text()
 
 
+def test_a_run_that_cannot_be_started_fails_alone(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ok = [Run("t", "a", s, tmp_path / f"ok{s}", "start") for s in range(2)]
+    bad = Run("t", "a", 9, tmp_path / "bad", "start")
+    (bad.out / "train.log").mkdir(parents=True)  # its log cannot be opened, as in a folder it may not write
+    jobs = [(r, [sys.executable, "-c", "print('hello')"]) for r in (ok[0], bad, ok[1])]
+    assert execute(jobs, parallel=2, poll_s=0.02) == [bad]
+    assert all((r.out / "train.log").read_text() == "hello\n" for r in ok)
+    assert f"FAILED {bad.out}: cannot start it: Is a directory" in capsys.readouterr().out
+
+
 def test_second_invocation_skips_what_the_first_finished(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
