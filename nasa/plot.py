@@ -23,7 +23,9 @@ Finds every eval.csv under a results folder, names each run by its config.json
 from __future__ import annotations
 
 import math
+import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NoReturn
@@ -292,14 +294,32 @@ def plot(argv: list[str]) -> None:
     )
     try:
         out.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out / "curves.png", dpi=150)
-        fig.savefig(out / "curves.svg")
-        (out / "results.md").write_text(f"# Results: {cmd.results}\n\n{table}\n{note}")
+        write_whole(out, {
+            "curves.png": lambda path: fig.savefig(path, format="png", dpi=150),
+            "curves.svg": lambda path: fig.savefig(path, format="svg"),
+            "results.md": lambda path: path.write_text(f"# Results: {cmd.results}\n\n{table}\n{note}"),
+        })
     except OSError as err:
         _fail(f"cannot write to {out}: {err}")
     print(table, end="")
     written = ", ".join(str(out / name) for name in ("curves.png", "curves.svg", "results.md"))
     print(f"nasa plot: {len(runs)} runs; wrote {written}")
+
+
+def write_whole(out: Path, writers: dict[str, Callable[[Path], None]]) -> None:
+    """Each file name in `out`, written by its writer to a temporary file first; the files replace
+    the old ones only once all are written, so a full disk leaves the last plot's files whole."""
+    written: list[tuple[Path, Path]] = []
+    try:
+        for name, write in writers.items():
+            tmp = out / f".{name}.{os.getpid()}.tmp"
+            written.append((tmp, out / name))
+            write(tmp)
+        for tmp, path in written:
+            os.replace(tmp, path)
+    finally:
+        for tmp, _ in written:
+            tmp.unlink(missing_ok=True)  # what a failed write left: free the space it took
 
 
 def _fail(message: str) -> NoReturn:

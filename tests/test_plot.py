@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import statistics
 from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.figure import Figure
 
 from nasa.plot import PAPER_FINAL, SeedCurve, align, find_runs, plot, plot_curves, summarize
 from shared.envs import PAPER_TASKS
@@ -231,6 +233,33 @@ def test_an_out_folder_that_cannot_be_written_is_a_clear_error(
         plot([str(root), "--out", str(tmp_path / "a-file" / "plots")])
     assert exc.value.code == 2
     assert f"nasa plot: error: cannot write to {tmp_path / 'a-file' / 'plots'}" in capsys.readouterr().err
+
+
+def test_a_full_disk_leaves_the_last_plots_files_as_they_were(
+    results: tuple[Path, dict], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str]
+) -> None:
+    root, _ = results
+    out = tmp_path / "plots"
+    plot([str(root), "--out", str(out)])
+    names = ("curves.png", "curves.svg", "results.md")
+    before = {name: (out / name).read_bytes() for name in names}
+    save = Figure.savefig
+
+    def full_disk(self: Figure, path: Path, **kwargs: object) -> None:
+        if kwargs.get("format") == "png" or str(path).endswith(".png"):
+            return save(self, path, **kwargs)
+        with open(path, "wb") as f:  # the disk fills in the middle of the SVG
+            f.write(b"<svg")
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(Figure, "savefig", full_disk)
+    write_eval(root / "walker-walk" / "nasa_td3" / "seed0", [0, 10], [1.0, 2.0])  # a new run to plot
+    with pytest.raises(SystemExit) as exc:
+        plot([str(root), "--out", str(out)])
+    assert exc.value.code == 2 and "No space left on device" in capsys.readouterr().err
+    assert {name: (out / name).read_bytes() for name in names} == before
+    assert sorted(p.name for p in out.iterdir()) == sorted(names)  # nothing half-written left
 
 
 def test_seeds_that_share_one_step_still_show(tmp_path: Path) -> None:
