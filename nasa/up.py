@@ -690,10 +690,21 @@ def status(argv: list[str]) -> None:
 
 
 def status_url(url: str) -> str:
-    """The learner's /status at `url`; a bare address (http://host:port) means its /status."""
+    """The learner's /status at `url`; a bare address (http://host:port) means its /status. A
+    `url` that is no http(s) address is a ConfigError."""
     from urllib.parse import urlsplit, urlunsplit
 
-    parts = urlsplit(url)
+    import httpx
+
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 -- urlsplit checks the port only when asked for it
+        httpx.URL(url)  # and httpx refuses some that urlsplit lets through
+    except (ValueError, httpx.InvalidURL) as err:
+        raise ConfigError(f"--url {url!r} is not an address: {err}") from None
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ConfigError(f"--url {url!r} is not an address of the learner's status API: give "
+                          "http://HOST:PORT or http://HOST:PORT/status")
     return urlunsplit(parts._replace(path="/status")) if parts.path in ("", "/") else url
 
 

@@ -309,3 +309,13 @@ def test_the_camera_check_takes_every_camera_of_the_model():
     check_camera(EnvConfig(task="cartpole-balance", camera_id=count - 1))
     with pytest.raises(ConfigError, match=f"has {count} \\(ids 0 to {count - 1}\\)"):
         check_camera(EnvConfig(task="cartpole-balance", camera_id=count))
+
+
+@pytest.mark.parametrize("url", ["http://[::1", "http://127.0.0.1:abc/", "http://127.0.0.1:99999",
+                                 "localhost:8000", "ftp://127.0.0.1:8000/"])
+def test_nasa_status_refuses_what_is_not_an_address_in_one_line(tmp_path, capsys, url):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["status", "--url", url, "--data", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"nasa status: error: --url {url!r} is not an address" in err
+    assert "Traceback" not in err
