@@ -19,7 +19,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Literal
+from typing import IO, TYPE_CHECKING, Literal
 
 import tyro
 
@@ -28,6 +28,9 @@ from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import read_rows
 from shared.service import given_flags
+
+if TYPE_CHECKING:
+    import torch
 
 Action = Literal["start", "resume", "skip"]
 CUDA_PARALLEL = 4
@@ -288,6 +291,20 @@ def reproduce(argv: list[str]) -> None:
 
     if cmd.results.exists() and not cmd.results.is_dir():
         raise ConfigError(f"--results {cmd.results} is a file, not a folder")
+    if cmd.dry_run:
+        plan_and_run(cmd, tasks, algos, extra, device, parallel)
+        return
+    from shared.faults import lock_run
+
+    # One `nasa reproduce` at a time in a results folder: a second would start the runs the first
+    # has under way, see their folders refuse them, and report them failed.
+    with lock_run(cmd.results, "nasa reproduce", "--results"):
+        plan_and_run(cmd, tasks, algos, extra, device, parallel)
+
+
+def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extra: list[str],
+                 device: torch.device, parallel: int) -> None:
+    """Plan the runs from what `cmd.results` holds, then print the plan (a dry run) or run it."""
     runs = plan_runs(cmd.results, tasks, algos, list(range(cmd.seeds)), cmd.steps)
     # A folder holding a run of other settings would be resumed, or counted finished, as this one.
     mismatched = [(r, why) for r in runs if r.action != "start"

@@ -17,6 +17,7 @@ from nasa import reproduce as rep
 from nasa.cli import TrainCommand, main
 from nasa.reproduce import Run, execute, plan_runs, run_folder, train_command
 from shared.config import default_config, to_dict
+from shared.faults import lock_run
 from shared.runlog import CsvLog, eval_fields
 
 TASKS = ["cartpole-balance", "walker-walk"]
@@ -195,6 +196,19 @@ def test_second_invocation_skips_what_the_first_finished(
     main(args)
     assert launched == []
     assert "0 to start, 0 to resume, 2 finished" in capsys.readouterr().out
+
+
+def test_a_second_reproduce_on_the_same_results_is_refused_before_it_starts_anything(
+    results: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(rep, "execute", lambda *a, **k: pytest.fail("runs were started"))
+    with lock_run(results, "nasa reproduce", "--results"):  # as the first `nasa reproduce` holds it
+        main([*base_args(results), "--dry-run"])  # a dry run changes nothing: it may look
+        assert "4 to start, 2 to resume, 2 finished" in capsys.readouterr().out
+        with pytest.raises(SystemExit) as exc:
+            main(base_args(results))
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"{results} belongs to another run" in err and "nasa reproduce" in err
 
 
 def test_a_damaged_run_folder_is_planned_for_resume_not_a_traceback(results: Path) -> None:
