@@ -18,7 +18,7 @@ from nasa.reproduce import reproduce
 from shared import run_config
 from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
 from shared.device import resolve_device
-from shared.service import EXIT_BAD_INPUT, bad_input_errors, given_flags, parse_with_preset
+from shared.service import EXIT_BAD_INPUT, bad_input_errors, die_with_parent, given_flags, parse_with_preset
 
 if TYPE_CHECKING:
     from nasa.train import Trainer
@@ -95,6 +95,7 @@ def parse_train(argv: list[str]) -> tuple[TrainCommand, str, int | None]:
 
 
 def train(argv: list[str]) -> None:
+    die_with_parent()  # under `nasa reproduce`: stop when it dies, not go on holding the run folder
     cmd, preset, steps = parse_train(argv)
     device = resolve_device(cmd.config.device)
     from nasa.train import Trainer  # after parsing: --help needs no torch or GL

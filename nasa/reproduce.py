@@ -12,6 +12,7 @@ running the command again after an interruption continues where it stopped:
 from __future__ import annotations
 
 import dataclasses
+import os
 import shlex
 import signal
 import subprocess
@@ -197,11 +198,14 @@ def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[
 
 def launch(run: Run, cmd: list[str]) -> tuple[subprocess.Popen, IO[str]]:
     """Start `cmd` with its output going to <out>/train.log; returns the process and the log,
-    to be closed when the run ends."""
+    to be closed when the run ends. The run gets SIGTERM should this process die, even by SIGKILL
+    (NASA_PARENT_PID: shared.service.die_with_parent): left running, it would hold its folder, and
+    the `nasa reproduce` started again to resume it would find it taken."""
     run.out.mkdir(parents=True, exist_ok=True)
     log = open(run.out / "train.log", "a")
+    env = {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
     try:
-        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log
     except BaseException:
         log.close()
         raise

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -319,3 +320,12 @@ def test_nasa_status_refuses_what_is_not_an_address_in_one_line(tmp_path, capsys
     err = capsys.readouterr().err
     assert exc.value.code == 2 and f"nasa status: error: --url {url!r} is not an address" in err
     assert "Traceback" not in err
+
+
+def test_nasa_train_under_a_launcher_that_is_gone_does_not_start(tmp_path):
+    """`nasa reproduce` names itself in NASA_PARENT_PID: a run whose launcher is not its parent (it
+    died before the run asked for SIGTERM on its death) ends at once instead of running on its own."""
+    env = {**os.environ, "NASA_PARENT_PID": "1"}  # not this run's parent
+    done = subprocess.run([sys.executable, "-m", "nasa.cli", "train", "--task", "cartpole-nope", "--out",
+                           str(tmp_path / "run")], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 1 and "unknown task" not in done.stderr  # it stopped before reading its flags

@@ -314,9 +314,10 @@ import sys
 from nasa import reproduce as rep
 from nasa.cli import main
 
-def sleeper(run, *args):  # a run that records its pid and goes on until stopped
-    code = ("import os, pathlib, sys, time; pathlib.Path(sys.argv[1]).write_text(str(os.getpid())); "
-            "time.sleep(600)")
+def sleeper(run, *args):  # a run that records its pid and goes on until stopped; as nasa train does,
+    # it asks for SIGTERM when its launcher dies
+    code = ("import os, pathlib, sys, time; from shared.service import die_with_parent; die_with_parent(); "
+            "pathlib.Path(sys.argv[1]).write_text(str(os.getpid())); time.sleep(600)")
     return [sys.executable, "-c", code, str(run.out / "pid")]
 
 rep.train_command = sleeper
@@ -326,17 +327,16 @@ main(["reproduce", "--tasks", "cartpole-balance", "--algos", "td3_ae", "--seeds"
 
 
 def alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie, ended but not yet reaped by whoever adopted it, does not)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
         return False
-    return True
 
 
-@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_a_stopped_reproduce_stops_its_runs_and_says_so_in_one_line(
-    tmp_path: Path, signum: int, code: int
-) -> None:
+@pytest.fixture
+def fake_reproduce(tmp_path: Path):  # noqa: ANN201 -- a generator of (process, its runs' pids)
+    """`nasa reproduce` of two runs that go on until stopped, in its own process, once both run."""
     results = tmp_path / "results"
     proc = subprocess.Popen([sys.executable, "-c", FAKE_REPRODUCE, str(results)],
                             cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -349,13 +349,32 @@ def test_a_stopped_reproduce_stops_its_runs_and_says_so_in_one_line(
             assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
             time.sleep(0.05)
         pids = [int(f.read_text()) for f in pid_files]
-        proc.send_signal(signum)
-        _, err = proc.communicate(timeout=120)
-        assert proc.returncode == code
-        assert "Traceback" not in err and "nasa reproduce: stopped" in err
-        assert not any(alive(pid) for pid in pids)  # none left running on its own
+        yield proc, pids
     finally:
         proc.kill()
+        proc.communicate()
         for pid in pids:
             if alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_stopped_reproduce_stops_its_runs_and_says_so_in_one_line(
+    fake_reproduce: tuple[subprocess.Popen, list[int]], signum: int, code: int
+) -> None:
+    proc, pids = fake_reproduce
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == code
+    assert "Traceback" not in err and "nasa reproduce: stopped" in err
+    assert not any(alive(pid) for pid in pids)  # none left running on its own
+
+
+def test_a_killed_reproduce_leaves_no_run_running(fake_reproduce: tuple[subprocess.Popen, list[int]]) -> None:
+    proc, pids = fake_reproduce
+    proc.kill()  # SIGKILL: it can stop nothing itself
+    proc.communicate(timeout=120)
+    deadline = time.monotonic() + 120  # each run gets SIGTERM from the kernel; wait for it to end
+    while any(alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(alive(pid) for pid in pids)  # else they would hold their folders from the next one
