@@ -339,8 +339,19 @@ def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extr
     if extra and counts["resume"]:
         print("note: flags after -- apply to new runs only; resumed runs keep their config.json", flush=True)
     failed = run_until_stopped(jobs, parallel)
+    # A run whose process ended well is finished only if its eval.csv says so: a final evaluation
+    # that failed, or a final row since lost, would otherwise be "all runs finished" here and
+    # resumed again by every later plan.
+    unfinished = [r for r in todo if r not in failed and run_state(r.out, cmd.steps) != "skip"]
+    for run in unfinished:
+        print(f"UNFINISHED {run.out}: its `nasa train` ended, but its eval.csv holds no evaluation at "
+              f"its last step; see {run.out / 'train.log'}", file=sys.stderr)
     if failed:
         print(f"nasa reproduce: {len(failed)} run(s) failed; run the same command again to resume them",
               file=sys.stderr)
+    if unfinished:
+        print(f"nasa reproduce: {len(unfinished)} run(s) ended without an evaluation at their last step, "
+              "so they are not finished", file=sys.stderr)
+    if failed or unfinished:
         sys.exit(1)
     print(f"nasa reproduce: all runs finished; plot them with `nasa plot {cmd.results}`")

@@ -211,6 +211,29 @@ def test_a_second_reproduce_on_the_same_results_is_refused_before_it_starts_anyt
     assert exc.value.code == 2 and f"{results} belongs to another run" in err and "nasa reproduce" in err
 
 
+def test_a_run_that_ends_without_its_last_evaluation_is_not_reported_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    results = tmp_path / "results"
+
+    def ends_early(run: Run, *args: object) -> list[str]:  # exit 0, its final evaluation missing
+        made = default_config(run.algo, "paper", run.task)
+        made.seed, made.steps, made.env.task = run.seed, 300, run.task
+        script = ("import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
+                  "(out / 'config.json').write_text(sys.argv[2]); "
+                  "(out / 'eval.csv').write_text('step,mean,std\\n0,1,0\\n200,2,0\\n')")
+        return [sys.executable, "-c", script, str(run.out), json.dumps(to_dict(made))]
+
+    monkeypatch.setattr(rep, "train_command", ends_early)
+    monkeypatch.setattr(rep.time, "sleep", lambda s: None)
+    with pytest.raises(SystemExit) as exc:
+        main(["reproduce", "--tasks", "cartpole-balance", "--algos", "td3_ae", "--seeds", "1",
+              "--results", str(results), "--device", "cpu"])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 1 and "all runs finished" not in out
+    assert f"UNFINISHED {results / 'cartpole-balance' / 'td3_ae' / 'seed0'}" in err
+
+
 def test_a_damaged_run_folder_is_planned_for_resume_not_a_traceback(results: Path) -> None:
     broken = run_folder(results, "cartpole-balance", "nasa_td3", 0)  # finished, until its files broke
     (broken / "config.json").write_text("{not json")
