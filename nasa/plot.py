@@ -138,7 +138,7 @@ def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
         except ConfigError as err:
             print(f"nasa plot: skipping {path}: {err}", file=sys.stderr)
             continue
-        except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError) as err:
+        except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError, OverflowError) as err:
             print(f"nasa plot: skipping {path}: unreadable ({type(err).__name__}: {err})", file=sys.stderr)
             continue
         runner = "up" if (path.parent / "learner").is_dir() else "train"

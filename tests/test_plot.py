@@ -186,6 +186,7 @@ def test_a_distributed_run_is_its_own_curve_and_minutes_come_from_train_csv(tmp_
 
 BAD_TASK = '{"env": {"task": 5}, "algo": "td3", "seed": 1}'
 BAD_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": "x"}'
+INF_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": 1e400}'
 
 
 @pytest.mark.parametrize(
@@ -200,6 +201,7 @@ BAD_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": "x"}'
         (lambda f: (f / "config.json").write_text("{not json"), "config.json is unreadable: Expecting"),
         (lambda f: (f / "config.json").write_text("[1, 2]"), "config.json is unreadable: it does not hold"),
         (lambda f: (f / "config.json").write_text(BAD_SEED), "ValueError"),
+        (lambda f: (f / "config.json").write_text(INF_SEED), "OverflowError"),
         (lambda f: (f / "config.json").write_text(BAD_TASK), "env.task and algo must be names, got 5"),
     ],
 )
