@@ -28,7 +28,7 @@ from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import read_rows
-from shared.service import given_flags
+from shared.service import EXIT_BAD_INPUT, given_flags
 
 if TYPE_CHECKING:
     import torch
@@ -163,6 +163,11 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
                 log.close()
                 if code == 0:
                     print(f"done   {run.out}", flush=True)
+                elif code == EXIT_BAD_INPUT:
+                    failed.append(run)
+                    print(f"FAILED {run.out}: exit code {code}, it refused its input "
+                          f"({last_line(run.out / 'train.log')}); running it again fails the same way "
+                          "until that is fixed", flush=True)
                 else:
                     failed.append(run)
                     print(f"FAILED {run.out}: exit code {code}, see {run.out / 'train.log'}", flush=True)
@@ -180,6 +185,19 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
             log.close()
         raise
     return failed
+
+
+def last_line(path: Path, tail_bytes: int = 4096) -> str:
+    """The last line of a run's train.log (its error, when `nasa train` refused its input)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - tail_bytes))
+            tail = f.read().decode("utf-8", "replace")
+    except OSError as err:
+        return f"{path} cannot be read: {err.strerror or err}"
+    # tqdm ends its progress lines with \r, not \n
+    lines = [line.strip() for line in tail.replace("\r", "\n").split("\n") if line.strip()]
+    return lines[-1] if lines else f"{path} is empty"
 
 
 def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[Run]:
@@ -347,8 +365,8 @@ def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extr
         print(f"UNFINISHED {run.out}: its `nasa train` ended, but its eval.csv holds no evaluation at "
               f"its last step; see {run.out / 'train.log'}", file=sys.stderr)
     if failed:
-        print(f"nasa reproduce: {len(failed)} run(s) failed; run the same command again to resume them",
-              file=sys.stderr)
+        print(f"nasa reproduce: {len(failed)} run(s) failed; run the same command again to resume them "
+              "(one that refused its input, exit code 2, once what it names is fixed)", file=sys.stderr)
     if unfinished:
         print(f"nasa reproduce: {len(unfinished)} run(s) ended without an evaluation at their last step, "
               "so they are not finished", file=sys.stderr)

@@ -156,6 +156,18 @@ def test_execute_runs_jobs_and_reports_failures(tmp_path: Path) -> None:
     assert "boom" in (bad.out / "train.log").read_text()
 
 
+def test_a_run_that_refuses_its_input_is_named_with_its_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = Run("t", "a", 0, tmp_path / "r", "resume")
+    refuses = ("import sys; print(' 50%|#####', end='\\r'); "  # a progress bar's line, then the error
+               "print('nasa train: error: r/config.json is unreadable'); sys.exit(2)")
+    assert execute([(run, [sys.executable, "-c", refuses])], parallel=1, poll_s=0.02) == [run]
+    out = capsys.readouterr().out
+    assert f"FAILED {run.out}: exit code 2, it refused its input (nasa train: error: r/config.json is " \
+        "unreadable); running it again fails the same way" in out
+
+
 def test_a_run_that_cannot_be_started_fails_alone(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     ok = [Run("t", "a", s, tmp_path / f"ok{s}", "start") for s in range(2)]
     bad = Run("t", "a", 9, tmp_path / "bad", "start")
