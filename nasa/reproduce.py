@@ -82,6 +82,24 @@ def run_state(out: Path, steps: int | None) -> Action:
     return "resume"
 
 
+def lost_checkpoint(out: Path) -> str | None:
+    """Why the run in `out` had a checkpoint that is gone, or None. A run is checkpointed at the end
+    of its first episode past checkpoint_every steps; a train.csv row after that episode's means the
+    checkpoint was written. Without it, `nasa train --resume` starts the run over, as one killed
+    before its first checkpoint, and clears the rows it holds."""
+    if (out / "checkpoint.pt").exists() or not (out / "train.csv").exists():
+        return None
+    try:
+        every = int(read_json_object(out / "config.json")["checkpoint_every"])
+        steps = [int(float(r["step"])) for r in read_rows(out / "train.csv", whole=True)]
+    except (OSError, ValueError, KeyError, TypeError, OverflowError):
+        return None  # a damaged file: `nasa train --resume` names it
+    saved = next((step for step in steps[:-1] if step >= every), None)
+    if saved is None:
+        return None
+    return f"no checkpoint.pt, though its train.csv goes on past the one saved at step {saved}"
+
+
 def plan_runs(
     results_dir: Path, tasks: list[str], algos: list[str], seeds: list[int], steps: int | None
 ) -> list[Run]:
@@ -338,6 +356,14 @@ def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extr
             f"--results {cmd.results} holds runs made with other settings than --preset {cmd.preset} "
             f"and the flags after -- give: {shown}{more}. Use the settings they were made with, or "
             "another --results folder")
+    lost = [(r, why) for r in runs if r.action == "resume" and (why := lost_checkpoint(r.out))]
+    if lost:
+        shown = "; ".join(f"{r.out}: {why}" for r, why in lost[:3])
+        more = f" (and {len(lost) - 3} more)" if len(lost) > 3 else ""
+        raise ConfigError(
+            f"--results {cmd.results} holds runs whose checkpoint.pt is gone: {shown}{more}. Resumed, "
+            "each would start over and erase its eval.csv and train.csv; put its checkpoint.pt back, "
+            "or move the folder aside to run it again")
     counts = {a: sum(r.action == a for r in runs) for a in ("start", "resume", "skip")}
     print(
         f"nasa reproduce: {len(runs)} runs ({len(tasks)} tasks x {len(algos)} algos x {cmd.seeds} seeds) "

@@ -18,7 +18,7 @@ from nasa.cli import TrainCommand, main
 from nasa.reproduce import Run, execute, plan_runs, run_folder, train_command
 from shared.config import default_config, to_dict
 from shared.faults import lock_run
-from shared.runlog import CsvLog, eval_fields
+from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 
 TASKS = ["cartpole-balance", "walker-walk"]
 ALGOS = ["nasa_td3", "sac_ae"]
@@ -244,6 +244,24 @@ def test_a_run_that_ends_without_its_last_evaluation_is_not_reported_finished(
     out, err = capsys.readouterr()
     assert exc.value.code == 1 and "all runs finished" not in out
     assert f"UNFINISHED {results / 'cartpole-balance' / 'td3_ae' / 'seed0'}" in err
+
+
+def test_a_run_whose_checkpoint_is_gone_is_not_started_over(
+    results: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(rep, "execute", lambda *a, **k: pytest.fail("runs were started"))
+    out = run_folder(results, "cartpole-balance", "nasa_td3", 1)  # evaluated up to 500 of 1000
+    log = CsvLog(out / "train.csv", TRAIN_FIELDS)
+    # checkpoint_every is 10000 (paper): checkpointed at the end of the episode of step 10000
+    for episode, step in enumerate((9000, 10000, 11000), 1):
+        log.append({"step": step, "episode": episode, "return": 1.0, "length": 1000})
+    (out / "checkpoint.pt").unlink()  # deleted for space, or left out of a copy
+    before = (out / "eval.csv").read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        main(base_args(results))
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"{out}: no checkpoint.pt" in err and "erase its eval.csv" in err
+    assert (out / "eval.csv").read_bytes() == before
 
 
 def test_a_damaged_run_folder_is_planned_for_resume_not_a_traceback(results: Path) -> None:
