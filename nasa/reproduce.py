@@ -194,13 +194,16 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
     except BaseException:
         # Stop our own children and wait for them; the next invocation resumes them. A second
         # Ctrl-C would cut the wait short and leave them running.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        for _, proc, _log in running:
-            proc.terminate()
-        for _, proc, log in running:
-            proc.wait()
-            log.close()
+        handlers = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            for _, proc, _log in running:
+                proc.terminate()
+            for _, proc, log in running:
+                proc.wait()
+                log.close()
+        finally:
+            for signum, handler in handlers.items():
+                signal.signal(signum, handler)
         raise
     return failed
 
@@ -221,12 +224,13 @@ def last_line(path: Path, tail_bytes: int = 4096) -> str:
 def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[Run]:
     """`execute`; on Ctrl-C (SIGINT) or SIGTERM, once the runs under way have stopped, say how to
     go on in one line and exit 128 + the signal (130, 143), the shell's convention."""
-    from nasa.cli import Terminated, _raise_terminated, _signal_code
+    from nasa.cli import Terminated, _ignore_stop_signals, _raise_terminated, _signal_code
 
     signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return execute(jobs, parallel)
     except (KeyboardInterrupt, Terminated) as err:
+        _ignore_stop_signals()
         print("\nnasa reproduce: stopped, and so were the runs under way; run the same command "
               "again to resume them", file=sys.stderr, flush=True)
         sys.exit(_signal_code(err))
