@@ -750,7 +750,7 @@ def serve_stopped(data: Path, host: str, port: int) -> None:
     """A stopped run's dashboard, status, history and media from its folder, until Ctrl-C."""
     import uvicorn
 
-    from services.learner.status_api import StoppedRunError, folder_app
+    from services.learner.status_api import GuardedH11Protocol, StoppedRunError, folder_app
     from shared.faults import check_port_free
 
     try:
@@ -760,4 +760,5 @@ def serve_stopped(data: Path, host: str, port: int) -> None:
         sys.exit(EXIT_BAD_INPUT)
     check_port_free(host, port, "the dashboard's")
     print(f"nasa status: the dashboard of {data} on http://{host}:{port}/ (Ctrl-C ends it)", flush=True)
-    uvicorn.run(app, host=host, port=port, log_level="warning", access_log=False)
+    # The learner's limits on connections and slow request heads, so idle clients cannot take it.
+    uvicorn.run(app, host=host, port=port, log_level="warning", access_log=False, http=GuardedH11Protocol)

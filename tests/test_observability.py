@@ -494,6 +494,20 @@ def test_idle_connections_cannot_take_the_status_apis_process(monkeypatch):
         server.stop()
 
 
+def test_a_stopped_runs_dashboard_has_the_same_connection_limits(tmp_path, monkeypatch):
+    import uvicorn
+
+    from nasa.up import free_port, serve_stopped
+    from services.learner import status_api
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    served: dict = {}
+    monkeypatch.setattr(uvicorn, "run", lambda app, **kwargs: served.update(kwargs))
+    serve_stopped(tmp_path, "127.0.0.1", free_port())
+    assert served["http"] is status_api.GuardedH11Protocol
+
+
 def test_step_counts_the_wire_allows_make_a_valid_histogram():
     from shared import wire
 
