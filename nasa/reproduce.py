@@ -27,7 +27,7 @@ import tyro
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
-from shared.runlog import read_rows
+from shared.runlog import checkpointed_step, read_rows
 from shared.service import EXIT_BAD_INPUT, given_flags
 
 if TYPE_CHECKING:
@@ -91,11 +91,9 @@ def lost_checkpoint(out: Path) -> str | None:
         return None
     try:
         every = int(read_json_object(out / "config.json")["checkpoint_every"])
-        steps = [int(float(r["step"])) for r in read_rows(out / "train.csv", whole=True)]
     except (OSError, ValueError, KeyError, TypeError, OverflowError):
         return None  # a damaged file: `nasa train --resume` names it
-    saved = next((step for step in steps[:-1] if step >= every), None)
-    if saved is None:
+    if (saved := checkpointed_step(out, every)) is None:
         return None
     return f"no checkpoint.pt, though its train.csv goes on past the one saved at step {saved}"
 

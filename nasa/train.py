@@ -26,6 +26,7 @@ from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.adder import StoreAdder
 from shared.replay.client import LocalReplay
 from shared.replay.store import SNAPSHOT_EVERY, open_store
+from shared.runlog import checkpointed_step
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.scoring import IntrinsicScorer, collect_scoring
 
@@ -94,6 +95,13 @@ class Trainer:
         state = None
         if (out / CHECKPOINT_FILE).exists():
             state = checkpoint.load(out / CHECKPOINT_FILE, resolve_device(config.device))
+        elif (saved := checkpointed_step(out, config.checkpoint_every)) is not None:
+            # Taken for a run killed before its first checkpoint, it would start over and clear
+            # the rows it holds.
+            raise checkpoint.CheckpointError(
+                f"{out} has no {CHECKPOINT_FILE}, though its train.csv goes on past the one saved at "
+                f"step {saved}: resumed, the run would start over and erase its eval.csv and "
+                f"train.csv. Put its {CHECKPOINT_FILE} back, or start the run again in another folder")
         if steps is not None:
             held = int(state["env_steps"]) if state is not None else 0
             if steps <= held:

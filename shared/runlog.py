@@ -126,6 +126,18 @@ def read_rows(path: str | Path, whole: bool = False) -> list[dict[str, str]]:
     return list(csv.DictReader(io.StringIO(text, newline="")))
 
 
+def checkpointed_step(run: str | Path, checkpoint_every: int) -> int | None:
+    """The step of the first checkpoint the run folder's train.csv shows was written, or None (no
+    row past it, or a file that cannot be read). A runner checkpoints at the end of its first episode
+    at or past checkpoint_every steps, so a row after that episode's means the checkpoint was
+    written: if checkpoint.pt is gone, a resume would start the run over and clear its rows."""
+    try:
+        steps = [int(float(row["step"])) for row in read_rows(Path(run) / "train.csv", whole=True)]
+    except (OSError, ValueError, KeyError, TypeError, OverflowError):
+        return None
+    return next((step for step in steps[:-1] if step >= checkpoint_every), None)
+
+
 def _format(value: object) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return ""

@@ -244,6 +244,21 @@ def test_resume_refuses_a_checkpoint_it_cannot_continue_and_leaves_the_run_as_it
     assert after == before
 
 
+@pytest.mark.system  # a `nasa train` process
+def test_resume_refuses_a_run_whose_checkpoint_is_gone_and_leaves_its_rows(tmp_path):
+    """Taken for a run killed before its first checkpoint, it would start over and erase its rows."""
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=80), run).run()  # rows and checkpoints at 40 and 80
+    (run / CHECKPOINT_FILE).unlink()  # deleted for space, or left out of a copy
+    before = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    result = run_cli("--resume", str(run), "--steps", "120")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert (f"has no {CHECKPOINT_FILE}, though its train.csv goes on past the one saved at step 40"
+            in result.stderr)
+    after = {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    assert {n: d for n, d in after.items() if n.name != ".lock"} == before
+
+
 @pytest.mark.parametrize("damage", [b"\xff\xfe\x00 not text", b"a,b,c\n0,1,2\n"])
 @pytest.mark.system  # a `nasa train` process
 def test_resume_refuses_a_damaged_eval_csv_and_leaves_the_run_as_it_was(tmp_path, damage):
