@@ -105,6 +105,28 @@ def serving_folder(data: Path) -> Iterator[str]:
         server.stop()
 
 
+def with_stopped_status(data: Path) -> Path:
+    """A stopped run's folder holding only its last status (the observability tests' STATUS)."""
+    from tests.test_observability import STATUS
+
+    (data / "learner").mkdir()
+    (data / "learner" / "status.json").write_text(json.dumps(STATUS))
+    return data
+
+
+@contextmanager
+def chromium_page() -> Iterator:
+    """A page of a headless Chromium (playwright's Page), closed after."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+        try:
+            yield browser.new_page()
+        finally:
+            browser.close()
+
+
 def wait_listening(url: str, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -182,66 +204,37 @@ def test_dashboard_shows_the_run_in_chromium(tmp_path):
 
 
 def test_the_dashboard_writes_figures_as_a_person_reads_them(tmp_path):
-    from playwright.sync_api import sync_playwright
-
-    from tests.test_observability import STATUS
-
-    (tmp_path / "learner").mkdir()
-    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
-    with serving_folder(tmp_path) as url, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
-        try:
-            page = browser.new_page()
-            page.goto(url + "/")
-            page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.fmt")
-            shown = page.evaluate("() => [999.7, 1234.5, 12.345, 0.001234, 5, null]"
-                                  ".map(v => window.nasaDashboard.fmt(v))")
-        finally:
-            browser.close()
+    with serving_folder(with_stopped_status(tmp_path)) as url, chromium_page() as page:
+        page.goto(url + "/")
+        page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.fmt")
+        shown = page.evaluate("() => [999.7, 1234.5, 12.345, 0.001234, 5, null]"
+                              ".map(v => window.nasaDashboard.fmt(v))")
     assert shown == ["1,000", "1,235", "12.3", "0.00123", "5", "–"]
 
 
 def test_a_non_finite_novelty_in_the_media_leaves_the_page_drawing(tmp_path):
-    from playwright.sync_api import sync_playwright
-
-    from tests.test_observability import STATUS
-
-    (tmp_path / "learner").mkdir()
-    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    with_stopped_status(tmp_path)
     (tmp_path / "media").mkdir()
     # What the evaluator writes for an autoencoder that diverged: json.dumps' NaN, served as null.
     view = {"step": 100, "policy_version": 5, "autoencoder_version": 5, "novelty": [math.nan, 0.5],
             "image": "autoencoder.png"}
     (tmp_path / "media" / "media.json").write_text(json.dumps({"autoencoder": view, "videos": []}))
-    with serving_folder(tmp_path) as url, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
-        try:
-            page = browser.new_page()
-            page.goto(url + "/")
-            page.wait_for_function("() => document.getElementById('state').textContent !== 'connecting…'")
-            shown = page.evaluate("() => [window.nasaDashboard.state.polls, document.getElementById('state')"
-                                  ".textContent, document.getElementById('ae-novelty').textContent]")
-        finally:
-            browser.close()
+    with serving_folder(tmp_path) as url, chromium_page() as page:
+        page.goto(url + "/")
+        page.wait_for_function("() => document.getElementById('state').textContent !== 'connecting…'")
+        shown = page.evaluate("() => [window.nasaDashboard.state.polls, document.getElementById('state')"
+                              ".textContent, document.getElementById('ae-novelty').textContent]")
     assert shown[0] > 0 and not shown[1].startswith("no answer"), shown
     assert shown[2] == "novelty: –  0.500"
 
 
 def test_a_learner_that_stops_answering_is_shown_as_not_answering(tmp_path):
-    from playwright.sync_api import sync_playwright
-
-    from tests.test_observability import STATUS
-
-    (tmp_path / "learner").mkdir()
-    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
     port = free_port()
-    server = StatusServer(folder_app(tmp_path), "127.0.0.1", port)
+    server = StatusServer(folder_app(with_stopped_status(tmp_path)), "127.0.0.1", port)
     server.start()
     url = f"http://127.0.0.1:{port}"
-    with sync_playwright() as p, socket.socket() as hung:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
+    with chromium_page() as page, socket.socket() as hung:
         try:
-            page = browser.new_page()
             wait_listening(url)
             page.goto(url + "/")
             page.wait_for_function("() => window.nasaDashboard.state.polls > 0")
@@ -259,7 +252,6 @@ def test_a_learner_that_stops_answering_is_shown_as_not_answering(tmp_path):
             server.start()
             page.wait_for_function(f"() => window.nasaDashboard.state.polls > {polls}", timeout=60_000)
         finally:
-            browser.close()
             server.stop()
     assert "no answer in" in state, state
 
@@ -267,10 +259,7 @@ def test_a_learner_that_stops_answering_is_shown_as_not_answering(tmp_path):
 def test_an_upgraded_dashboard_is_loaded_not_a_cached_one(tmp_path, monkeypatch):
     import os
 
-    from playwright.sync_api import sync_playwright
-
     from services.learner import status_api
-    from tests.test_observability import STATUS
 
     page_files = tmp_path / "dashboard"
     shutil.copytree(status_api.DASHBOARD, page_files)
@@ -278,19 +267,12 @@ def test_an_upgraded_dashboard_is_loaded_not_a_cached_one(tmp_path, monkeypatch)
     for f in page_files.iterdir():
         os.utime(f, (month_ago, month_ago))
     monkeypatch.setattr(status_api, "DASHBOARD", page_files)
-    (tmp_path / "learner").mkdir()
-    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
-    with serving_folder(tmp_path) as url, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"], headless=True)
-        try:
-            page = browser.new_page()
-            page.goto(url + "/")
-            page.wait_for_function("() => window.nasaDashboard.state.polls > 0")
-            script = page_files / "dashboard.js"  # the learner is upgraded: a new page script
-            script.write_text(script.read_text() + "\nwindow.nasaDashboard.upgraded = true;\n")
-            page.goto(url + "/")
-            page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.state")
-            upgraded = page.evaluate("() => window.nasaDashboard.upgraded === true")
-        finally:
-            browser.close()
+    with serving_folder(with_stopped_status(tmp_path)) as url, chromium_page() as page:
+        page.goto(url + "/")
+        page.wait_for_function("() => window.nasaDashboard.state.polls > 0")
+        script = page_files / "dashboard.js"  # the learner is upgraded: a new page script
+        script.write_text(script.read_text() + "\nwindow.nasaDashboard.upgraded = true;\n")
+        page.goto(url + "/")
+        page.wait_for_function("() => window.nasaDashboard && window.nasaDashboard.state")
+        upgraded = page.evaluate("() => window.nasaDashboard.upgraded === true")
     assert upgraded
