@@ -20,12 +20,16 @@ from __future__ import annotations
 
 import math
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 TENSORBOARD_DIR = "tensorboard"
 ROW_SKIP = {"step", "episode", "return", "length", "updates", "wall_s", "steps_per_s"}
+RETRY_S = 60.0
+"""After a write the disk refused, points are dropped this long before a new event file is tried."""
 
 
 def _number(v: object) -> float | None:
@@ -77,6 +81,7 @@ class Scalars:
         self.logdir, self.flush_secs = Path(logdir), flush_secs
         self.purge_step: int | None = None  # a resumed run: events from this step on are dropped
         self._writer = None
+        self._refused_at: float | None = None  # when the disk last refused a write
 
     @property
     def writer(self):  # noqa: ANN201 (torch.utils.tensorboard.SummaryWriter, imported lazily)
@@ -88,10 +93,27 @@ class Scalars:
                                          purge_step=self.purge_step)
         return self._writer
 
+    def _write(self, write: Callable[[object], None]) -> None:
+        """`write(writer)`. The OSError of a refused write (a full disk) is raised once, for the
+        runner to stop or go on: the writer's thread ended with it and would raise it at every later
+        call, so the writer is dropped, points are dropped for RETRY_S, and then a new file is tried."""
+        if self._refused_at is not None and time.monotonic() - self._refused_at < RETRY_S:
+            return
+        self._refused_at = None
+        try:
+            write(self.writer)
+        except OSError:
+            self._writer, self._refused_at = None, time.monotonic()
+            raise
+
     def add(self, values: dict[str, object], step: int) -> None:
-        for tag, value in values.items():
-            if (v := _number(value)) is not None:
-                self.writer.add_scalar(tag, v, int(step))
+        points = [(tag, v) for tag, value in values.items() if (v := _number(value)) is not None]
+
+        def add_all(writer) -> None:  # noqa: ANN001
+            for tag, v in points:
+                writer.add_scalar(tag, v, int(step))
+
+        self._write(add_all)
 
     def eval(self, step: int, mean: float, std: float) -> None:
         self.add({"eval/return_mean": mean, "eval/return_std": std}, step)
@@ -108,11 +130,11 @@ class Scalars:
 
     def image(self, tag: str, image: np.ndarray, step: int) -> None:
         """An (H, W, 3) uint8 image."""
-        self.writer.add_image(tag, image, int(step), dataformats="HWC")
+        self._write(lambda writer: writer.add_image(tag, image, int(step), dataformats="HWC"))
 
     def flush(self) -> None:
         if self._writer is not None:
-            self._writer.flush()
+            self._write(lambda writer: writer.flush())
 
     def close(self) -> None:
         writer, self._writer = self._writer, None

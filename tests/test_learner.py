@@ -218,3 +218,29 @@ def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, mo
     monkeypatch.undo()
     assert [p.name for p in (tmp_path / "learner").iterdir()] == ["history.json"]
     assert (tmp_path / HISTORY_FILE).read_text() == before
+
+
+def test_a_row_the_disk_refuses_is_dropped_and_the_learner_goes_on(tmp_path, capsys):
+    import queue
+    import time
+
+    from services.learner.learner import Learner
+    from shared.service import Log
+
+    learner = Learner.__new__(Learner)  # what _drain uses, without Zenoh
+    learner.core = core_on(tmp_path)
+    learner.log, learner.wall_s, learner._scalars_at = Log("learner"), 1.0, time.monotonic()
+    learner._evals, learner._episodes = queue.Queue(), queue.Queue()
+    record_episode = learner.core.record_episode
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    learner.core.record_episode = full_disk
+    learner._episodes.put((10.0, 5))
+    learner._episodes.put((11.0, 5))
+    learner._drain()  # no exception: the row is dropped, the loop goes on
+    assert "cannot write the run folder" in capsys.readouterr().err
+    learner.core.record_episode = record_episode  # room again
+    learner._drain()
+    assert [r["return"] for r in read_rows(tmp_path / "train.csv")] == ["11"]

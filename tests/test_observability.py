@@ -541,3 +541,27 @@ def test_heartbeats_of_ever_new_actor_ids_do_not_grow_the_board_without_bound(mo
     heartbeat(60)
     board.actor_alive(61, 1, True)
     assert [a["id"] for a in board.snapshot()["actors"]] == [0, 1, 2, 3]  # all alive: no room
+
+
+def test_a_tensorboard_write_the_disk_refuses_is_raised_once_and_a_new_file_is_tried_later(
+    tmp_path, monkeypatch
+):
+    from shared import scalars as scalars_module
+
+    tb = scalars_module.Scalars(tmp_path / "tb")
+    tb.add({"x": 1.0}, 1)
+
+    def refused(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(tb.writer, "add_scalar", refused)  # as its thread's error comes back
+    with pytest.raises(OSError, match="No space"):
+        tb.add({"x": 2.0}, 2)
+    tb.add({"x": 3.0}, 3)  # dropped: the broken writer would raise the same error at every call
+    monkeypatch.setattr(scalars_module, "RETRY_S", 0.0)  # the disk has room again
+    tb.add({"x": 4.0}, 4)
+    tb.close()
+    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc.Reload()
+    assert [e.step for e in acc.Scalars("x")] == [1, 4]
+

@@ -376,15 +376,23 @@ class Learner:
             time.sleep(0.1)
 
     def _drain(self) -> None:
-        """Hand what the callbacks queued to the core, on the loop's thread (the CSV files are its)."""
+        """Hand what the callbacks queued to the core, on the loop's thread (the CSV files are its).
+
+        A row or TensorBoard point the disk refuses (full) is dropped and logged, and training goes
+        on, as with a checkpoint: exiting lost the updates since the last checkpoint, and the
+        restarted learner met the same disk again, in a loop until there was space."""
         self.core.board.sample_rates(self.core.agent.num_updates)
-        if time.monotonic() - self._scalars_at >= 10.0:  # TensorBoard's fleet figures
-            self._scalars_at = time.monotonic()
-            self.core.scalars.status(self.status())
-        while not self._evals.empty():
-            self._record_eval(self._evals.get_nowait())
-        while not self._episodes.empty():
-            self.core.record_episode(*self._episodes.get_nowait(), wall_s=self.wall_s)
+        try:
+            if time.monotonic() - self._scalars_at >= 10.0:  # TensorBoard's fleet figures
+                self._scalars_at = time.monotonic()
+                self.core.scalars.status(self.status())
+            while not self._evals.empty():
+                self._record_eval(self._evals.get_nowait())
+            while not self._episodes.empty():
+                self.core.record_episode(*self._episodes.get_nowait(), wall_s=self.wall_s)
+        except OSError as err:
+            self.log.every("write", 60.0, f"cannot write the run folder, what it refused is dropped: "
+                                          f"{type(err).__name__}: {err}")
 
     # -- status ------------------------------------------------------------------------
 
