@@ -54,10 +54,10 @@ class EnvFault(ValueError):
     policy's action is not finite. The episode is lost; a reset starts a sound one."""
 
 ACTION_BOUND = 1.0
+"""Every task's actions lie in [-ACTION_BOUND, ACTION_BOUND]; the wire and the replay refuse others."""
 RESET_TRIES = 3
 """Initial states a suite task draws before its reset is an EnvFault: a drawn state the simulation
 cannot hold (MuJoCo's PhysicsError at reset) is drawn again."""
-"""Every task's actions lie in [-ACTION_BOUND, ACTION_BOUND]; the wire and the replay refuse others."""
 
 
 @dataclass(frozen=True)

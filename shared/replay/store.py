@@ -49,9 +49,9 @@ _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
-# Transitions added between two compactions of a store's log (snapshot_if_due): the replay
-# service's default and nasa train's.
 SNAPSHOT_EVERY = 50_000
+"""Transitions added between two compactions of a store's log (snapshot_if_due): the replay
+service's default and nasa train's."""
 
 
 @dataclass
