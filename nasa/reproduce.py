@@ -26,6 +26,7 @@ import tyro
 
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
 from shared.envs import PAPER_TASKS, check_camera, check_task
+from shared.files import last_line
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import checkpointed_step, read_rows
 from shared.service import EXIT_BAD_INPUT, given_flags
@@ -182,7 +183,7 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
                 elif code == EXIT_BAD_INPUT:
                     failed.append(run)
                     print(f"FAILED {run.out}: exit code {code}, it refused its input "
-                          f"({last_line(run.out / 'train.log')}); running it again fails the same way "
+                          f"({log_error(run.out / 'train.log')}); running it again fails the same way "
                           "until that is fixed", flush=True)
                 else:
                     failed.append(run)
@@ -206,17 +207,13 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
     return failed
 
 
-def last_line(path: Path, tail_bytes: int = 4096) -> str:
+def log_error(path: Path) -> str:
     """The last line of a run's train.log (its error, when `nasa train` refused its input)."""
     try:
-        with open(path, "rb") as f:
-            f.seek(max(0, f.seek(0, os.SEEK_END) - tail_bytes))
-            tail = f.read().decode("utf-8", "replace")
+        line = last_line(path)
     except OSError as err:
         return f"{path} cannot be read: {err.strerror or err}"
-    # tqdm ends its progress lines with \r, not \n
-    lines = [line.strip() for line in tail.replace("\r", "\n").split("\n") if line.strip()]
-    return lines[-1] if lines else f"{path} is empty"
+    return line or f"{path} is empty"
 
 
 def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[Run]:

@@ -51,6 +51,7 @@ import tyro
 from nasa import layout
 from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
+from shared.files import last_line
 from shared.run_config import RunConfig
 from shared.service import EXIT_BAD_INPUT, given_flags, parse_with_preset
 from shared.zenoh_auth import USERS_FILE
@@ -115,7 +116,6 @@ def disk_full(folder: Path) -> str:
     return "; no space is left on its disk" if st.f_bavail * st.f_frsize < FULL_BELOW_BYTES else ""
 
 
-LOG_TAIL_BYTES = 4096
 FULL_BELOW_BYTES = 1 << 20
 STABLE_S = 120.0
 """A child that ran this long before it died starts its count of restarts in a row again."""
@@ -232,13 +232,11 @@ class Supervisor:
         if log is None:
             return "see its error above"
         try:
-            with open(log, "rb") as f:  # its end only: after days the log is large
-                f.seek(max(0, f.seek(0, os.SEEK_END) - LOG_TAIL_BYTES))
-                lines = f.read().decode(errors="replace").strip().splitlines()
+            line = last_line(log)  # its end only: after days the log is large
         except OSError as err:
             return f"{log}: cannot be read ({err.strerror or err})"
         # A service on a full disk dies unable to write why: say what it could not.
-        return f"{log}: {lines[-1] if lines else 'no output'}{disk_full(log.parent)}"
+        return f"{log}: {line or 'no output'}{disk_full(log.parent)}"
 
     def ended(self, roles: tuple[str, ...]) -> Child | None:
         """The first child of one of `roles` that ended for good (exited 0, refused, or out of restarts)."""

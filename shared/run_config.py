@@ -31,6 +31,7 @@ from pathlib import Path
 
 from shared import envs
 from shared.config import ConfigError, TrainConfig, from_dict, to_dict, validate
+from shared.files import replace_text
 
 CONFIG_FILE = "config.json"
 LOCAL_FIELDS: tuple[str, ...] = ("device",)
@@ -150,13 +151,8 @@ def write_folder(data: Path, run: RunConfig) -> None:
     """Write <data>/config.json atomically (a reader never sees half a file)."""
     data = Path(data)
     data.mkdir(parents=True, exist_ok=True)
-    tmp = data / f".{CONFIG_FILE}.{os.getpid()}.tmp"
-    try:
-        tmp.write_text(json.dumps(run.to_dict(), indent=2) + "\n")
-        os.replace(tmp, data / CONFIG_FILE)
-    except BaseException:
-        tmp.unlink(missing_ok=True)  # a full disk: free what the half-written copy took
-        raise
+    replace_text(data / CONFIG_FILE, json.dumps(run.to_dict(), indent=2) + "\n",
+                 tmp=data / f".{CONFIG_FILE}.{os.getpid()}.tmp")
 
 
 def open_folder(config: TrainConfig, data: Path, may_change: tuple[str, ...] = ()) -> RunConfig:

@@ -23,6 +23,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from shared.files import replace_text
 from shared.wire import ANY, PUT, QUERY, ROLES, TOKEN, Route, routes
 
 if TYPE_CHECKING:
@@ -108,9 +109,7 @@ def init(folder: Path, run_id: str = ANY, force: bool = False) -> Path:
 def write_acl(folder: Path, run_id: str = ANY) -> None:
     """(Re)write `folder`/acl.json for run `run_id` from today's wiring; the credentials stay."""
     path = folder / ACL_FILE
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(acl(routes(run_id)), indent=1) + "\n")
-    os.replace(tmp, path)
+    replace_text(path, json.dumps(acl(routes(run_id)), indent=1) + "\n", tmp=path.with_suffix(".tmp"))
 
 
 def check_acl(folder: Path, run_id: str) -> None:

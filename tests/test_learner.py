@@ -199,20 +199,16 @@ def test_files_the_disk_refuses_at_the_end_are_logged_and_the_learner_still_ends
 
 
 def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):
-    import errno
-    from pathlib import Path
+    import builtins
 
     from services.learner.history import HISTORY_FILE, History
+    from shared import files
+    from tests.test_train import FullFile
 
     History().save(tmp_path)
     before = (tmp_path / HISTORY_FILE).read_text()
-    real_write = Path.write_text
-
-    def full_disk(self: Path, text: str, *args: object, **kwargs: object) -> int:
-        real_write(self, text[:10])
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(Path, "write_text", full_disk)
+    # The temporary copy is made, then the disk refuses its text.
+    monkeypatch.setattr(files, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
     with pytest.raises(OSError, match="No space left"):
         History().save(tmp_path)
     monkeypatch.undo()

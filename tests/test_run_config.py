@@ -187,19 +187,15 @@ def test_a_replay_of_another_wire_version_is_a_bad_input_error(zenoh_pair):
 
 
 def test_a_config_json_the_disk_cannot_hold_leaves_no_half_copy_and_the_old_one(tmp_path, monkeypatch):
-    import errno
-    import os
-    from pathlib import Path
+    import builtins
+
+    from shared import files
+    from tests.test_train import FullFile
 
     run_config.write_folder(tmp_path, RunConfig(small(), SPEC))
     before = (tmp_path / run_config.CONFIG_FILE).read_bytes()
-    real_write_text = Path.write_text
-
-    def full(path, text, *a, **k):
-        real_write_text(path, text[:10], *a, **k)  # the part that fitted
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-
-    monkeypatch.setattr(Path, "write_text", full)
+    # The temporary copy is made, then the disk refuses its text.
+    monkeypatch.setattr(files, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
     with pytest.raises(OSError, match="No space left"):
         run_config.write_folder(tmp_path, RunConfig(small(steps=999), SPEC))
     assert sorted(p.name for p in tmp_path.iterdir()) == [run_config.CONFIG_FILE]

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.agents.base import check_fits, module_state
+from shared.files import replace_text
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.video import (
     CAMERA_SIZE,
@@ -130,16 +131,7 @@ class EvalMedia:
         return path
 
     def _save(self) -> None:
-        tmp = self.dir / "media.json.tmp"
-        try:
-            with open(tmp, "w") as f:
-                f.write(json.dumps(self.manifest, indent=1))
-                f.flush()
-                os.fsync(f.fileno())
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        os.replace(tmp, self.dir / "media.json")
+        replace_text(self.dir / "media.json", json.dumps(self.manifest, indent=1), durable=True)
 
     def close(self) -> None:
         self.scalars.close()

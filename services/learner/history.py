@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
+
+from shared.files import replace_text
 
 HISTORY_FILE = "learner/history.json"
 
@@ -101,14 +102,7 @@ class History:
         """Write the series to <data>/learner/history.json (atomically)."""
         path = Path(data) / HISTORY_FILE
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".json.tmp")
-        try:
-            tmp.write_text(json.dumps({"every_s": self.every_s, "points": self.points()}))
-            os.replace(tmp, path)
-        except BaseException:
-            if tmp.is_file():
-                tmp.unlink()  # a full disk: free what the half-written copy took
-            raise
+        replace_text(path, json.dumps({"every_s": self.every_s, "points": self.points()}))
 
 
 class HistoryError(ValueError):

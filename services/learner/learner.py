@@ -26,7 +26,6 @@
 from __future__ import annotations
 
 import json
-import os
 import queue
 import threading
 import time
@@ -46,6 +45,7 @@ from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.device import resolve_device
 from shared.evaluation import newest_eval_step
+from shared.files import replace_text
 from shared.prefetch import DevicePrefetcher, PrefetchError
 from shared.replay.client import Prefetcher, ZenohReplayClient
 from shared.service import Log, StopFlag
@@ -409,14 +409,7 @@ class Learner:
         """The last /status, in the run folder (atomically: a reader never sees half of it)."""
         path = Path(self.args.data) / FINAL_STATUS
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".json.tmp")
-        try:
-            tmp.write_text(json.dumps(self.status(), indent=2) + "\n")
-            os.replace(tmp, path)
-        except BaseException:
-            if tmp.is_file():
-                tmp.unlink()  # a full disk: free what the half-written copy took
-            raise
+        replace_text(path, json.dumps(self.status(), indent=2) + "\n")
 
 
 def main(argv: list[str] | None = None) -> None:

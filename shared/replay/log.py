@@ -30,7 +30,7 @@ import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from shared.files import fsync_dir
+from shared.files import fsync_dir, replace_text
 
 FORMAT_NAME = "nasa-td3-replay"
 FORMAT_VERSION = 2  # 2: the manifest names the frame compressor (lz4 or zstd); 1 was zstd only
@@ -48,12 +48,7 @@ class StoreFormatError(RuntimeError):
 
 def write_manifest(data_dir: Path, config: dict) -> None:
     body = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": config}
-    tmp = data_dir / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(body, indent=1, sort_keys=True))
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, data_dir / MANIFEST)
-    fsync_dir(data_dir)
+    replace_text(data_dir / MANIFEST, json.dumps(body, indent=1, sort_keys=True), durable=True)
 
 
 def check_manifest(data_dir: Path, config: dict) -> bool:
