@@ -4,27 +4,31 @@ Each task/algo/seed is one `nasa train` subprocess writing RESULTS/<task>/<algo>
 Planning is a pure function of what the results folder holds (`plan_runs`), so
 running the command again after an interruption continues where it stopped:
 
-- skip:   eval.csv's last step reaches the run's step total (finished);
+- skip:   eval.csv's last step reaches the run's step total, and train.csv holds the episode
+          that ended there (finished; `run_state`);
 - resume: the folder holds a started run (config.json or checkpoint.pt) that is not finished;
 - start:  nothing there yet.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import os
 import shlex
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Literal
 
 import tyro
 
-from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo
+from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo, check_types
 from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.files import last_line
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
@@ -33,6 +37,8 @@ from shared.service import EXIT_BAD_INPUT, given_flags
 
 if TYPE_CHECKING:
     import torch
+
+    from nasa.cli import TrainCommand
 
 Action = Literal["start", "resume", "skip"]
 CUDA_PARALLEL = 4
@@ -63,20 +69,37 @@ def last_eval_step(out: Path) -> int | None:
     return int(float(rows[-1]["step"])) if rows else None
 
 
+def last_episode(out: Path) -> tuple[int, int] | None:
+    """The step and length of the last whole row of `out`/train.csv (the last episode recorded),
+    or None when there is none."""
+    path = out / "train.csv"
+    rows = read_rows(path, whole=True) if path.exists() else []
+    return (int(float(rows[-1]["step"])), int(float(rows[-1]["length"]))) if rows else None
+
+
 def run_state(out: Path, steps: int | None) -> Action:
-    """What to do with one run folder. `steps` is the wanted total (None: the run's own)."""
+    """What to do with one run folder. `steps` is the wanted total (None: the run's own).
+
+    Finished means: its eval.csv holds an evaluation at the wanted total, at most the run's own
+    (`nasa train` evaluates nowhere past it, and --steps rewrites it), and its train.csv holds the
+    episode that ended there. The runner writes the final evaluation, then that episode's row, then
+    the checkpoint; a run killed in between has its results short of their last row."""
     config_path = out / "config.json"
     started = config_path.exists() or (out / "checkpoint.pt").exists()
     if not started:
         return "start"
     try:
-        total = steps
-        if total is None and config_path.exists():
-            total = int(read_json_object(config_path)["steps"])
+        own = int(read_json_object(config_path)["steps"])
+        total = steps if steps is not None else own
         last = last_eval_step(out)
+        episode = last_episode(out)
     except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError):  # Overflow: inf
-        return "resume"  # a damaged file: `nasa train --resume` names it, and that run fails alone
-    if total is not None and last is not None and last >= total:
+        # A damaged or missing config.json, or rows it cannot read: `nasa train --resume` names
+        # what is wrong, and that run fails alone.
+        return "resume"
+    # An episode that ended by the final evaluation's step with no row: killed before writing it.
+    # A step past its own total is a damaged row.
+    if last is not None and total <= last <= own and (episode is None or sum(episode) > last):
         return "skip"
     # A config.json without a checkpoint is a run killed before its first checkpoint;
     # `nasa train --resume` starts it over in place (a fresh start would refuse the folder).
@@ -112,16 +135,27 @@ def plan_runs(
     return runs
 
 
+class DamagedConfig(ConfigError):
+    """A run folder's config.json that cannot be read as a run's settings."""
+
+
 def settings_mismatch(run: Run, preset: str, device: str, extra: list[str]) -> str | None:
     """Why the run already in `run.out` is not the one this command would start there (another
     preset, flags, task, algorithm or seed), or None. The step budget and the device may differ:
-    a resumed run keeps its own device, and --steps extends it."""
+    a resumed run keeps its own device, and --steps extends it. DamagedConfig, naming the file and
+    what is wrong with it, if its config.json holds no settings (unreadable, or a value of the
+    wrong type): compared, each such value would read as a setting of its own."""
     from nasa.cli import parse_train
 
+    path = run.out / "config.json"
+    if not path.exists():
+        return None  # a checkpoint alone: `nasa train --resume` names what is missing
     try:
-        saved = read_config(run.out / "config.json")
-    except (ConfigError, TypeError, ValueError):
-        return None  # unreadable: `nasa train --resume` names it, and that run fails alone
+        saved = read_config(path)
+        check_types(saved)
+    except ConfigError as err:
+        where = "" if str(path) in str(err) else f"{path}: "
+        raise DamagedConfig(f"{where}{err}") from err
     wanted, _, _ = parse_train(start_args(run, preset, device, None, extra))
     fields = differing_fields(wanted.config, saved, ignore=("steps", "device", *RESUME_MAY_CHANGE))
     return ", ".join(fields) if fields else None
@@ -284,17 +318,34 @@ def check_extra(extra: list[str], tasks: list[str], probe: Run, preset: str, dev
     """Refuse flags after `--` that would override a run's own, then parse one run's full
     `nasa train` command line as `nasa train` does, and check a --camera-id against each task:
     a bad value is one error here, not one failed run per task, algorithm and seed."""
-    from nasa.cli import parse_train
-
     clashes = [flag for flag in RUN_FLAGS if flag in given_flags(extra)]
     if clashes:
         raise ConfigError(
             f"{', '.join(clashes)} after -- would override what nasa reproduce sets for each run; "
             "use nasa reproduce's --tasks, --algos, --seeds, --results, --preset, --device and --steps")
-    wanted, _, _ = parse_train(start_args(probe, preset, device, steps, extra))
+    wanted = parse_quietly(start_args(probe, preset, device, steps, extra))
     if "--camera-id" in given_flags(extra):
         for task in tasks:
             check_camera(dataclasses.replace(wanted.config.env, task=task))
+
+
+def parse_quietly(argv: list[str]) -> TrainCommand:
+    """`nasa train`'s parse of `argv`; what its parser refuses (an unknown flag, a value of the
+    wrong type) is a ConfigError of one line, not the parser's box of help."""
+    from nasa.cli import parse_train
+
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            return parse_train(argv)[0]
+    except SystemExit as err:
+        if not err.code:
+            raise
+        # The box's first line is its title, the next with words the reason; its borders are
+        # drawn in ASCII or not, as the output allows.
+        lines = [line.strip(" │╭╮╰╯─|+-") for line in said.getvalue().splitlines()]
+        why = next((line for line in lines[1:] if any(c.isalpha() for c in line)), "refused")
+        raise ConfigError(f"after --: {why} (`nasa train --help` lists nasa train's flags)") from None
 
 
 def parse_list(text: str) -> list[str]:
@@ -333,12 +384,40 @@ def reproduce(argv: list[str]) -> None:
     if cmd.dry_run:
         plan_and_run(cmd, tasks, algos, extra, device, parallel)
         return
-    from shared.faults import lock_run
-
-    # One `nasa reproduce` at a time in a results folder: a second would start the runs the first
-    # has under way, see their folders refuse them, and report them failed.
-    with lock_run(cmd.results, "nasa reproduce", "--results"):
+    with lock_runs(cmd.results, [(t, a, seed) for t in tasks for a in algos for seed in range(cmd.seeds)]):
         plan_and_run(cmd, tasks, algos, extra, device, parallel)
+
+
+LOCKS_DIR = ".reproduce"
+"""Under the results folder: one lock folder per run, RESULTS/.reproduce/<task>/<algo>/seed<S>."""
+
+
+@contextlib.contextmanager
+def lock_runs(results: Path, runs: list[tuple[str, str, int]]) -> Iterator[None]:
+    """Hold a lock for each run of this `nasa reproduce` while it plans and runs them. A second one
+    given any of these runs would start the runs the first has under way, see their folders refuse
+    them, and report them failed: it is refused; one with other runs of the same results folder
+    (other tasks, algorithms or seeds) goes on beside it. The locks live beside the run folders,
+    not in them: `nasa train` takes its own folder's lock, and waits for any other one there."""
+    from shared.faults import RunFolderError, lock_run, owner
+
+    held = []
+    try:
+        for task, algo, seed in runs:
+            where = run_folder(Path(results) / LOCKS_DIR, task, algo, seed)
+            try:
+                held.append(lock_run(where, "nasa reproduce", "--results"))
+            except RunFolderError as err:
+                if "belongs to another run" not in str(err):
+                    raise  # the folder cannot be written: its own error says so
+                raise RunFolderError(
+                    f"{run_folder(results, task, algo, seed)} is a run of another nasa reproduce "
+                    f"({owner(where)}); stop that one, or give this one other --tasks, --algos or "
+                    "--seeds") from err
+        yield
+    finally:
+        for lock in held:
+            lock.close()
 
 
 def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extra: list[str],
@@ -346,8 +425,20 @@ def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extr
     """Plan the runs from what `cmd.results` holds, then print the plan (a dry run) or run it."""
     runs = plan_runs(cmd.results, tasks, algos, list(range(cmd.seeds)), cmd.steps)
     # A folder holding a run of other settings would be resumed, or counted finished, as this one.
-    mismatched = [(r, why) for r in runs if r.action != "start"
-                  and (why := settings_mismatch(r, cmd.preset, cmd.device, extra))]
+    mismatched, damaged = [], []
+    for r in runs:
+        if r.action == "start":
+            continue
+        try:
+            if why := settings_mismatch(r, cmd.preset, cmd.device, extra):
+                mismatched.append((r, why))
+        except DamagedConfig as err:
+            damaged.append(str(err))
+    if damaged:
+        more = f" (and {len(damaged) - 3} more)" if len(damaged) > 3 else ""
+        raise ConfigError(
+            f"--results {cmd.results} holds runs whose config.json is damaged: {'; '.join(damaged[:3])}"
+            f"{more}. Fix the file, or move the run's folder aside to run it again")
     if mismatched:
         shown = "; ".join(f"{r.out}: {why}" for r, why in mismatched[:3])
         more = f" (and {len(mismatched) - 3} more)" if len(mismatched) > 3 else ""
@@ -388,7 +479,8 @@ def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extr
     unfinished = [r for r in todo if r not in failed and run_state(r.out, cmd.steps) != "skip"]
     for run in unfinished:
         print(f"UNFINISHED {run.out}: its `nasa train` ended, but its eval.csv holds no evaluation at "
-              f"its last step; see {run.out / 'train.log'}", file=sys.stderr)
+              f"its last step, or its train.csv not the episode that ended there; see "
+              f"{run.out / 'train.log'}", file=sys.stderr)
     if failed:
         print(f"nasa reproduce: {len(failed)} run(s) failed; run the same command again to resume them "
               "(one that refused its input, exit code 2, once what it names is fixed)", file=sys.stderr)

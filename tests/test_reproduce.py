@@ -17,7 +17,6 @@ from nasa import reproduce as rep
 from nasa.cli import TrainCommand, main
 from nasa.reproduce import Run, execute, plan_runs, run_folder, train_command
 from shared.config import default_config, to_dict
-from shared.faults import lock_run
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 
 TASKS = ["cartpole-balance", "walker-walk"]
@@ -214,13 +213,44 @@ def test_a_second_reproduce_on_the_same_results_is_refused_before_it_starts_anyt
     results: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setattr(rep, "execute", lambda *a, **k: pytest.fail("runs were started"))
-    with lock_run(results, "nasa reproduce", "--results"):  # as the first `nasa reproduce` holds it
+    with rep.lock_runs(results, [("walker-walk", "sac_ae", 1)]):  # as a first `nasa reproduce` holds it
         main([*base_args(results), "--dry-run"])  # a dry run changes nothing: it may look
         assert "4 to start, 2 to resume, 2 finished" in capsys.readouterr().out
         with pytest.raises(SystemExit) as exc:
             main(base_args(results))
     err = capsys.readouterr().err
-    assert exc.value.code == 2 and f"{results} belongs to another run" in err and "nasa reproduce" in err
+    run = run_folder(results, "walker-walk", "sac_ae", 1)
+    assert exc.value.code == 2 and f"{run} is a run of another nasa reproduce" in err
+    assert "nasa reproduce" in err.split(str(run), 1)[1] and err.count("\n") == 1
+
+
+def test_two_reproduces_with_other_runs_share_a_results_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A lock per run, not one on the results folder: another task's runs go on beside them."""
+    results = tmp_path / "results"
+    monkeypatch.setattr(rep, "train_command", finishes)
+    monkeypatch.setattr(rep.time, "sleep", lambda s: None)
+    args = ["reproduce", "--algos", "td3_ae", "--seeds", "1", "--results", str(results), "--device", "cpu"]
+    with rep.lock_runs(results, [("cartpole-balance", "td3_ae", 0)]):
+        main([*args, "--tasks", "walker-walk"])
+        assert "all runs finished" in capsys.readouterr().out
+        with pytest.raises(SystemExit) as exc:
+            main([*args, "--tasks", "walker-walk,cartpole-balance"])
+        assert exc.value.code == 2 and "is a run of another nasa reproduce" in capsys.readouterr().err
+    assert not run_folder(results, "cartpole-balance", "td3_ae", 0).exists()
+    main([*args, "--tasks", "walker-walk,cartpole-balance"])  # released: it goes on
+    assert "all runs finished" in capsys.readouterr().out
+
+
+def finishes(run: Run, *args: object) -> list[str]:
+    """A fake `nasa train` that leaves a finished run of 300 steps in the run's folder."""
+    made = default_config(run.algo, "paper", run.task)
+    made.seed, made.steps, made.env.task = run.seed, 300, run.task
+    script = ("import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
+              "(out / 'config.json').write_text(sys.argv[2]); "
+              "(out / 'eval.csv').write_text('step,mean,std\\n0,1,0\\n300,2,0\\n')")
+    return [sys.executable, "-c", script, str(run.out), json.dumps(to_dict(made))]
 
 
 def test_a_run_that_ends_without_its_last_evaluation_is_not_reported_finished(
@@ -282,6 +312,58 @@ def test_a_step_that_is_not_a_number_is_planned_for_resume_not_a_traceback(resul
         f.write(row + "\n")
     assert actions(plan_runs(results, TASKS, ALGOS, SEEDS, steps=None))["cartpole-balance", "nasa_td3", 0] \
         == "resume"
+
+
+@pytest.mark.parametrize("step", ["1e20", "100000000000000000000", "1001"])
+@pytest.mark.parametrize("seed", [0, 1])  # finished, and evaluated up to 500 of 1000
+def test_an_eval_step_past_the_runs_total_is_not_a_finished_run(results: Path, step: str, seed: int) -> None:
+    out = run_folder(results, "cartpole-balance", "nasa_td3", seed)
+    with open(out / "eval.csv", "a") as f:
+        f.write(f"{step},1,0,1\n")  # the run evaluates nowhere past its total: a damaged row
+    assert rep.run_state(out, steps=None) == "resume"
+    assert rep.run_state(out, steps=1000) == "resume"
+
+
+@pytest.mark.parametrize(("episodes", "state"), [
+    ((750, 875), "resume"),  # killed after the final evaluation, before its episode's row
+    ((875, 1000), "skip"),
+    ((900,), "skip"),  # the total ends no episode: the last one went past it
+])
+def test_a_run_without_the_row_of_its_last_episode_is_not_finished(
+    results: Path, episodes: tuple[int, ...], state: str
+) -> None:
+    out = run_folder(results, "cartpole-balance", "nasa_td3", 0)  # evaluated at its total, 1000
+    log = CsvLog(out / "train.csv", TRAIN_FIELDS)
+    for episode, step in enumerate(episodes, 1):
+        log.append({"step": step, "episode": episode, "return": 1.0, "length": 125})
+    assert rep.run_state(out, steps=None) == state
+
+
+def test_a_config_json_holding_a_value_of_the_wrong_type_is_named_not_called_other_settings(
+    results: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(rep, "execute", lambda *a, **k: pytest.fail("runs were started"))
+    out = run_folder(results, "cartpole-balance", "nasa_td3", 1)
+    body = json.loads((out / "config.json").read_text())
+    (out / "config.json").write_text(json.dumps({**body, "seed": "x"}))
+    before = (out / "config.json").read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        main(base_args(results))
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "other settings" not in err
+    assert f"{out / 'config.json'}: seed must be a whole number, got 'x'" in err
+    assert (out / "config.json").read_bytes() == before
+
+
+def test_an_unknown_flag_after_dashes_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for extra, says in ((["--bogus", "1"], "Unrecognized options: --bogus"),
+                        (["--batch-size", "x"], "Error parsing --batch-size")):
+        with pytest.raises(SystemExit) as exc:
+            main([*base_args(tmp_path / "results"), "--dry-run", "--", *extra])
+        out, err = capsys.readouterr()
+        assert exc.value.code == 2 and says in err and "nasa train --help" in err
+        assert err.count("\n") == 1 and not out and "╭" not in err
+    assert not (tmp_path / "results").exists()
 
 
 def test_a_last_eval_row_cut_short_is_not_a_finished_run(results: Path) -> None:
