@@ -311,3 +311,139 @@ def test_a_damaged_draws_file_is_said_and_the_draws_start_from_the_seed(tmp_path
     from shared import checkpoint
 
     assert checkpoint.load(tmp_path / "evaluator" / "draws.pt")["draws"]
+
+
+def _counting_acts(ev: EvaluatorService, signal_at: int | None = None) -> list[int]:
+    """Count the policy's actions; at the `signal_at`-th, SIGTERM this process, as `docker stop` does."""
+    import os
+    import signal
+
+    acts: list[int] = []
+    act = ev.agent.act
+
+    def counting(*args: object, **kwargs: object) -> np.ndarray:
+        acts.append(1)
+        if len(acts) == signal_at:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return act(*args, **kwargs)
+
+    ev.agent.act = counting
+    return acts
+
+
+def test_sigterm_during_an_evaluation_ends_it_within_an_env_step_and_keeps_nothing_of_it(tmp_path):
+    import signal
+
+    run = tiny_run("td3_ae", steps=500)
+    stop = StopFlag()
+    ev = EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, video_every=1), None, stop, run)
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        _weights(ev, version=0)
+        acts = _counting_acts(ev)
+        assert ev.evaluate(ev.due()).step == 0
+        per_evaluation = len(acts)  # two episodes of the same length
+        ev.pictures(0)
+        draws = (tmp_path / "evaluator" / "draws.pt").read_bytes()
+        videos = sorted((tmp_path / "media").glob("*.mp4"))
+        stop.install_signal_handlers()
+        for signal_at in (3, per_evaluation // 2 + 3):  # in the first episode, and in the second
+            _weights(ev, version=2, env_steps=60)
+            acts = _counting_acts(ev, signal_at)
+            assert ev.evaluate(ev.due()) is None
+            assert len(acts) == signal_at and stop.signum == signal.SIGTERM  # not one step more
+            ev.pictures(50)
+            assert ev.done == 0 and ev.evaluations == 1  # played again by a restarted evaluator
+            assert (tmp_path / "evaluator" / "draws.pt").read_bytes() == draws
+            assert sorted((tmp_path / "media").glob("*.mp4")) == videos
+            stop.event.clear()
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+        ev.media.close()
+
+
+def test_without_a_video_due_the_first_episode_keeps_only_the_frames_the_view_spreads_over_it(tmp_path):
+    run = tiny_run("td3_ae", steps=500)
+    args = EvaluatorArgs(config=run.config, data=tmp_path, view_frames=4)
+    ev = EvaluatorService(args, None, StopFlag(), run)
+    try:
+        _weights(ev, version=0)
+        draws = ev.env.rng_state()
+        _, everything, cameras = ev._first_episode(keep=True, video=True)
+        ev.env.set_rng_state(draws)  # the same episode again
+        _, view, no_cameras = ev._first_episode(keep=True, video=False)
+        assert len(everything) == len(cameras) > 9 and no_cameras == []
+        assert 4 <= len(view) <= 2 * 4 + 1
+        assert np.array_equal(view[0], everything[0]) and np.array_equal(view[-1], everything[-1])
+    finally:
+        ev.media.close()
+
+
+@pytest.mark.parametrize("length", [1, 2, 8, 9, 10, 17, 125, 1000])
+def test_spread_frames_hold_a_bounded_spread_from_first_to_last(length):
+    from services.evaluator.evaluator import SpreadFrames
+
+    frames = SpreadFrames(4)
+    for i in range(length):
+        frames.append(np.array(i))
+    held = [int(f) for f in frames]
+    assert len(held) == len(frames) <= 9 and held == sorted(set(held))
+    assert held[0] == 0 and held[-1] == length - 1
+    if length >= 9:  # no gap wider than twice an even spread's
+        assert max(b - a for a, b in zip(held, held[1:], strict=False)) <= 2 * (length - 1) / 4
+
+
+def test_the_video_cadence_goes_on_across_a_restart(tmp_path):
+    run = tiny_run("td3_ae", steps=500)
+
+    def evaluator() -> EvaluatorService:
+        return EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, video_every=2), None,
+                                StopFlag(), run)
+
+    def videos() -> list[str]:
+        return sorted(p.name for p in (tmp_path / "media").glob("*.mp4"))
+
+    ev = evaluator()
+    for version, step in enumerate((0, 50, 100)):
+        _weights(ev, version=version, env_steps=step)
+        ev.pictures(ev.evaluate(ev.due()).step)
+    ev.media.close()
+    assert videos() == ["eval_step_000000000.mp4", "eval_step_000000100.mp4"]
+    again = evaluator()  # restarted: the next video is due at step 200, not at once
+    again.done = 100
+    for version, step in enumerate((150, 200), 3):
+        _weights(again, version=version, env_steps=step)
+        again.pictures(again.evaluate(again.due()).step)
+    again.media.close()
+    assert videos() == ["eval_step_000000000.mp4", "eval_step_000000100.mp4", "eval_step_000000200.mp4"]
+
+
+def test_the_media_manifest_is_strict_json(tmp_path):
+    import json
+
+    from services.evaluator.media import EvalMedia
+
+    def refuse(word: str) -> None:
+        raise ValueError(f"{word} in media.json")
+
+    obs = np.random.default_rng(0).integers(0, 256, (3, 9, 32, 32), dtype=np.uint8)
+    media = EvalMedia(tmp_path)
+    media.video(None, obs, [None] * len(obs), step=100, episode_return=float("nan"))
+    media.close()
+    manifest = json.loads((tmp_path / "media" / "media.json").read_text(), parse_constant=refuse)
+    assert manifest["videos"][0]["return"] is None and manifest["videos"][0]["step"] == 100
+
+
+def test_a_manifest_entry_that_is_no_video_does_not_trip_the_next_video(tmp_path):
+    from services.evaluator.media import EvalMedia
+
+    (tmp_path / "media").mkdir()
+    video = '{"step": 50, "file": "eval_step_000000050.mp4"}'
+    (tmp_path / "media" / "media.json").write_text(f'{{"videos": [5, {video}]}}')
+    obs = np.random.default_rng(0).integers(0, 256, (3, 9, 32, 32), dtype=np.uint8)
+    media = EvalMedia(tmp_path)
+    assert media.newest_video_step() == 50
+    media.video(None, obs, [None] * len(obs), step=100, episode_return=1.0)
+    media.close()
+    assert [v["step"] for v in media.manifest["videos"]] == [50, 100]

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,7 +43,7 @@ from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
-from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
+from shared.evaluation import draws_restarter, eval_due, first_done
 from shared.service import Log, MessageGuard, StopFlag
 from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
@@ -51,6 +51,40 @@ from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
 DRAWS_FILE = "draws.pt"
+
+
+class _Stopped(Exception):
+    """The service was told to stop in the middle of an evaluation."""
+
+
+class SpreadFrames:
+    """At most 2n + 1 frames of an episode of unknown length, spread over it: every stride-th one
+    (the stride doubling, and every other kept frame dropped, whenever 2n are held) and the newest.
+    The autoencoder's view shows n of them; holding every frame of a long episode at a large image
+    size would take far more memory than the view needs."""
+
+    def __init__(self, n: int) -> None:
+        self.n, self.stride, self.seen = max(1, n), 1, 0
+        self.kept: list[np.ndarray] = []
+        self.newest: np.ndarray | None = None
+
+    def append(self, frame: np.ndarray) -> None:
+        if self.seen % self.stride == 0:
+            self.kept.append(frame)
+            if len(self.kept) > 2 * self.n:
+                self.kept, self.stride = self.kept[::2], self.stride * 2
+            self.newest = None
+        else:
+            self.newest = frame
+        self.seen += 1
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        yield from self.kept
+        if self.newest is not None:
+            yield self.newest
+
+    def __len__(self) -> int:
+        return len(self.kept) + (self.newest is not None)
 
 
 @dataclass
@@ -63,7 +97,8 @@ class EvaluatorArgs(ServiceArgs):
                               if os.environ.get("NASA_DATA") else None)
     """Run folder for the autoencoder's view and videos (env NASA_DATA; none: no pictures)."""
     video_every: int = 5
-    """An MP4 of the first evaluation episode every N evaluations (0: none)."""
+    """An MP4 of the first evaluation episode every N evaluations (0: none), counted in steps
+    (N x eval_every) from the newest video in the run folder."""
     view_frames: int = 8
     """Frames in the autoencoder's view."""
     bridge: str = ""
@@ -97,6 +132,7 @@ class EvaluatorService(MessageGuard):
         self.done = first_done(c)  # the newest step evaluated
         self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
         self._epoch: int | None = None  # the learner's incarnation whose weights it holds
+        self._unused = np.random.default_rng(0)  # explore=False draws nothing
         # Where the evaluation draws stood after the last evaluation, so a restarted evaluator plays
         # the episodes an uninterrupted one would (no run folder: they start from the seed again).
         self.draws_file = Path(args.data) / "evaluator" / DRAWS_FILE if args.data else None
@@ -135,18 +171,22 @@ class EvaluatorService(MessageGuard):
     def evaluate(self, target: int) -> wire.EvalResult | None:
         """The evaluation's episodes; the first one's frames (and camera, for a video) are kept
         for the pictures (`pictures`, made after the result is out). None: the bridge abandoned it
-        (played again when it is back), or an episode failed (skipped: the same weights would fail
-        the same way)."""
+        (played again when it is back), an episode failed (skipped: the same weights would fail
+        the same way), or the service was told to stop (within an env step: nothing of the
+        evaluation is kept, and a restarted evaluator plays it again from the same draws)."""
         self._kept = None
         if not self._env_ready():
             return None
         version = self.weights.version or 0
-        video = self.media is not None and self.args.video_every > 0 \
-            and self.evaluations % self.args.video_every == 0
+        video = self.video_due(target)
         try:
             self.restart_draws()
             first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
-            returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1)]
+            loop = EnvLoop(self.env)  # the other episodes, as shared.evaluation.evaluate plays them
+            returns = [first, *(loop.run_episode(self._act) for _ in range(self.config.eval_episodes - 1))]
+        except _Stopped:
+            self.log(f"step {target}: evaluation stopped unfinished ({self.stop.reason}); no result")
+            return None
         except envs.EnvUnavailable as err:  # a bridge gone or refusing: no partial result
             self.log(f"step {target}: evaluation abandoned, played again when the bridge is back: {err}")
             if self.bridge is not None:
@@ -161,6 +201,21 @@ class EvaluatorService(MessageGuard):
         self._save_draws()
         self._kept = (obs, cameras, first, video, version)
         return wire.EvalResult(target, version, [float(r) for r in returns])
+
+    def video_due(self, target: int) -> bool:
+        """Whether the evaluation of step `target` gets a video: the first one, then one every
+        video_every evaluations' worth of steps after the newest video listed in media.json, so a
+        restarted evaluator goes on with the cadence rather than start it again."""
+        if self.media is None or self.args.video_every <= 0:
+            return False
+        newest = self.media.newest_video_step()
+        return newest is None or target - newest >= self.args.video_every * self.config.eval_every
+
+    def _act(self, obs: np.ndarray) -> np.ndarray:
+        """The deterministic policy's action; _Stopped once the service is told to stop."""
+        if self.stop:
+            raise _Stopped
+        return self.agent.act(obs, explore=False, rng=self._unused)
 
     def pictures(self, target: int) -> None:
         """The autoencoder's view and the video of the evaluation just published. They are extras:
@@ -196,19 +251,19 @@ class EvaluatorService(MessageGuard):
             self.log.every("draws", 60.0, f"evaluation draws not saved: {err}")
 
     def _first_episode(self, keep: bool, video: bool) -> tuple[float, list[np.ndarray], list]:
-        """One deterministic episode (as shared.evaluation's), keeping its observations if asked."""
-        obs: list[np.ndarray] = []
+        """One deterministic episode (as shared.evaluation's), keeping its observations if asked:
+        each of them for a video, else the few the autoencoder's view spreads over the episode."""
+        obs = [] if video else SpreadFrames(self.args.view_frames)
         cameras: list = []
-        unused = np.random.default_rng(0)
 
         def act(o: np.ndarray) -> np.ndarray:
             if keep:
                 obs.append(o)
             if video:
                 cameras.append(camera_frame(self.env))
-            return self.agent.act(o, explore=False, rng=unused)
+            return self._act(o)
 
-        return EnvLoop(self.env).run_episode(act), obs, cameras
+        return EnvLoop(self.env).run_episode(act), list(obs), cameras
 
     def run(self) -> None:
         s, k, c = self.session, self.keys, self.config

@@ -14,6 +14,7 @@ an evaluation's episodes: the learner's update loop renders nothing.
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -35,6 +36,17 @@ from shared.video import (
 
 MEDIA_DIR = "media"
 AE_IMAGE = "autoencoder.png"
+
+
+def finite_only(value: object) -> object:
+    """`value` with each NaN or infinite float, which JSON has no word for, as None (null)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_only(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_only(v) for v in value]
+    return value
 
 
 class AutoencoderTap:
@@ -84,7 +96,9 @@ class EvalMedia:
             print(f"evaluator: {path} is damaged ({err}); moved to {aside.name}, starting a new one",
                   file=sys.stderr, flush=True)
             return empty
-        return {**empty, **manifest}
+        # Entries that are not a video's (a hand edit) are dropped rather than trip every later video.
+        videos = [v for v in manifest.get("videos", []) if isinstance(v, dict)]
+        return {**empty, **manifest, "videos": videos}
 
     def autoencoder_view(self, autoencoder, obs: np.ndarray, step: int,  # noqa: ANN001
                          policy_version: int) -> np.ndarray:
@@ -130,8 +144,15 @@ class EvalMedia:
         self._save()
         return path
 
+    def newest_video_step(self) -> int | None:
+        """The step of the newest video media.json lists, or None."""
+        steps = [v.get("step") for v in self.manifest["videos"]]
+        return max((s for s in steps if isinstance(s, int) and not isinstance(s, bool)), default=None)
+
     def _save(self) -> None:
-        replace_text(self.dir / "media.json", json.dumps(self.manifest, indent=1), durable=True)
+        # Strict JSON: the learner serves the file as it is, and a browser refuses NaN.
+        text = json.dumps(finite_only(self.manifest), indent=1, allow_nan=False)
+        replace_text(self.dir / "media.json", text, durable=True)
 
     def close(self) -> None:
         self.scalars.close()
