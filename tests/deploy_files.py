@@ -3,6 +3,7 @@ variables substituted, and the Kubernetes manifests with their `$(VAR)` args exp
 
 from __future__ import annotations
 
+import math
 import re
 import tomllib
 from pathlib import Path
@@ -78,11 +79,31 @@ def k8s_containers(docs: list[dict]) -> dict[str, dict]:
             continue
         (container,) = d["spec"]["template"]["spec"]["containers"]
         expanded = {**container}
+        known = {**values, **container_env(container)}
         for key in ("command", "args"):
-            expanded[key] = [re.sub(r"\$\((\w+)\)", lambda m: values[m.group(1)], a)
+            expanded[key] = [re.sub(r"\$\((\w+)\)", lambda m, known=known: known[m.group(1)], a)
                              for a in container.get(key, [])]
         out[d["metadata"]["name"]] = expanded
     return out
+
+
+def container_env(container: dict) -> dict[str, str]:
+    """A container's own variables as Kubernetes sets them: values, and a resource's figure
+    (`resourceFieldRef`, divisor 1: whole cores, rounded up). Secrets are not read here."""
+    out = {}
+    for var in container.get("env", []):
+        if "value" in var:
+            out[var["name"]] = var["value"]
+        elif ref := var.get("valueFrom", {}).get("resourceFieldRef"):
+            kind, _, name = ref["resource"].partition(".")
+            out[var["name"]] = str(math.ceil(cpu_cores(container["resources"][kind][name])))
+    return out
+
+
+def cpu_cores(quantity: str) -> float:
+    """A CPU quantity in cores: "2" -> 2, "250m" -> 0.25."""
+    quantity = str(quantity)
+    return int(quantity[:-1]) / 1000 if quantity.endswith("m") else float(quantity)
 
 
 def flag_values(argv: list[str]) -> dict[str, str]:

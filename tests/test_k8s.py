@@ -4,6 +4,7 @@ the same commands and config flags, so none of them can drift from the others.""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import kubernetes_validate
@@ -11,7 +12,9 @@ import pytest
 from deploy_files import (
     CONFIG_FLAGS,
     K8S,
+    REPO,
     ROLES,
+    cpu_cores,
     flag_values,
     k8s_config_map,
     k8s_containers,
@@ -129,7 +132,8 @@ def test_every_pod_can_log_in_from_the_auth_secret():
     for doc in workloads:
         pod = doc["spec"]["template"]["spec"]
         (volume,) = [v for v in pod["volumes"] if v["name"] == "auth"]
-        assert volume["secret"] == {"secretName": "nasa-td3-auth", "optional": True, "defaultMode": 0o440}
+        secret = {k: v for k, v in volume["secret"].items() if k != "items"}
+        assert secret == {"secretName": "nasa-td3-auth", "optional": True, "defaultMode": 0o440}
         assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"] == 1000
         (container,) = pod["containers"]
         assert {"name": "auth", "mountPath": "/run/nasa-auth", "readOnly": True} in container["volumeMounts"]
@@ -139,3 +143,111 @@ def test_every_pod_can_log_in_from_the_auth_secret():
     env = {e["name"]: e for e in learner["spec"]["template"]["spec"]["containers"][0]["env"]}
     assert env["NASA_API_TOKEN"]["valueFrom"]["secretKeyRef"] == {
         "name": "nasa-td3-auth", "key": "api-token", "optional": True}
+
+
+AUTH_MOUNT = "/run/nasa-auth"
+
+
+def _secret_keys_of_the_docs() -> list[Path]:
+    """The files `kubectl create secret generic nasa-td3-auth` gets in docs/deployment.md, braces
+    expanded as bash does; each is a key under its own name."""
+    text = (REPO / "docs" / "deployment.md").read_text()
+    command = text[text.index("kubectl create secret generic nasa-td3-auth"):]
+    command = command[: command.index("\n# then")]
+    files = []
+    for arg in re.findall(r"--from-file=(\S+)", command):
+        if match := re.fullmatch(r"(.*)\{(.*)\}", arg):
+            files += [match.group(1) + name for name in match.group(2).split(",")]
+        else:
+            files.append(arg)
+    return [Path(f) for f in files]
+
+
+def _mounted(folder: Path, made: Path, pod: dict) -> Path:
+    """The auth folder a pod sees: its volume's items of the Secret whose files are in `made`."""
+    (volume,) = [v for v in pod["volumes"] if v["name"] == "auth"]
+    for item in volume["secret"]["items"]:
+        assert "/" not in item["key"]  # a Secret's keys cannot hold one
+        target = folder / item["path"]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes((made / item["key"]).read_bytes())
+    return folder
+
+
+def test_each_pod_logs_in_and_loads_its_certificates_from_the_secret_as_the_docs_make_it(tmp_path):
+    """The Secret's keys are file names; each pod's items put them where the services read them
+    (users.txt, the router's acl.json, tls/ca.pem and the role's own tls/<role>.pem and .key)."""
+    import zenoh
+
+    from shared import zenoh_auth, zenoh_tls
+
+    auth = tmp_path / "auth"  # `nasa auth init` and `nasa auth tls --host router`, as the docs say
+    zenoh_auth.init(auth, "default")
+    zenoh_tls.init(auth, ["router"])
+    files = _secret_keys_of_the_docs()
+    secret = tmp_path / "secret"  # kubectl's --from-file: the key is the file's name
+    secret.mkdir()
+    for file in files:
+        assert file.parts[0] == "deploy" and file.parts[1] == "auth", file
+        (secret / file.name).write_bytes((auth / Path(*file.parts[2:])).read_bytes())
+    assert zenoh_tls.TLS_DIR + "/ca.key" not in {"/".join(f.parts[2:]) for f in files}
+    for container in k8s_containers(load_k8s()).values():  # where NASA_ZENOH_AUTH is to point
+        assert {"name": "auth", "mountPath": AUTH_MOUNT, "readOnly": True} in container["volumeMounts"]
+    docs = (REPO / "docs" / "deployment.md").read_text()
+    assert f"NASA_ZENOH_AUTH: {AUTH_MOUNT} in deploy/k8s/config.yaml" in docs
+    for doc in load_k8s():
+        if doc["kind"] not in ("Deployment", "StatefulSet"):
+            continue
+        role, pod = doc["metadata"]["name"], doc["spec"]["template"]["spec"]
+        folder = _mounted(tmp_path / "pods" / role, secret, pod)
+        config = zenoh.Config()
+        if role == "router":
+            zenoh_auth.apply_router(config, folder)
+            zenoh_tls.apply_router(config, folder)
+        else:
+            zenoh_auth.apply_client(config, folder, role)
+            zenoh_tls.apply_client(config, folder, role)
+        other = "actor" if role != "actor" else "learner"
+        assert not (folder / zenoh_tls.TLS_DIR / f"{other}.key").exists()  # its own key only
+
+
+def test_without_certificates_in_the_secret_each_pod_still_logs_in(tmp_path):
+    """The Secret made without `nasa auth tls`: the items it lacks are left out (optional)."""
+    import zenoh
+
+    from shared import zenoh_auth
+
+    zenoh_auth.init(tmp_path / "auth", "default")
+    for doc in load_k8s():
+        if doc["kind"] not in ("Deployment", "StatefulSet"):
+            continue
+        (volume,) = [v for v in doc["spec"]["template"]["spec"]["volumes"] if v["name"] == "auth"]
+        assert volume["secret"]["optional"] is True
+        folder = tmp_path / "pods" / doc["metadata"]["name"]
+        folder.mkdir(parents=True)
+        for item in volume["secret"]["items"]:
+            if (tmp_path / "auth" / item["key"]).exists():
+                (folder / item["path"]).write_bytes((tmp_path / "auth" / item["key"]).read_bytes())
+        if doc["metadata"]["name"] == "router":
+            zenoh_auth.apply_router(zenoh.Config(), folder)
+        else:
+            zenoh_auth.apply_client(zenoh.Config(), folder, doc["metadata"]["name"])
+
+
+def test_every_container_has_requests_and_limits_and_the_learner_the_cores():
+    containers = k8s_containers(load_k8s())
+    for role, container in containers.items():
+        resources = container["resources"]
+        assert {"cpu", "memory"} <= set(resources["requests"]), role
+        assert "memory" in resources["limits"], role
+    for role in ("actor", "evaluator"):  # one core each
+        assert cpu_cores(containers[role]["resources"]["limits"]["cpu"]) == 1
+    learner = containers["learner"]
+    cores = cpu_cores(learner["resources"]["limits"]["cpu"])
+    assert cpu_cores(learner["resources"]["requests"]["cpu"]) == cores
+    others = [c["resources"]["requests"]["cpu"] for r, c in containers.items() if r != "learner"]
+    assert all(cores > cpu_cores(cpu) for cpu in others)
+    # its torch threads are its cores, not the node's
+    assert flag_values(learner["args"])["--threads"] == str(int(cores))
+    (cpus,) = [e for e in learner["env"] if e["name"] == "LEARNER_CPUS"]
+    assert cpus["valueFrom"]["resourceFieldRef"]["resource"] == "limits.cpu"
