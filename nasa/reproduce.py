@@ -388,6 +388,25 @@ def reproduce(argv: list[str]) -> None:
         plan_and_run(cmd, tasks, algos, extra, device, parallel)
 
 
+SPARE_FILES = 256
+"""Open files a `nasa reproduce` keeps for itself beside its runs' locks (logs, its children's pipes)."""
+
+
+def open_files_for(locks: int) -> None:
+    """Raise this process's soft limit of open files to fit a lock per run (each holds one open)
+    and SPARE_FILES more, up to its hard limit; ConfigError if even that is too few."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    needed = locks + SPARE_FILES
+    if soft == resource.RLIM_INFINITY or needed <= soft:
+        return
+    if hard != resource.RLIM_INFINITY and needed > hard:
+        raise ConfigError(f"{locks} runs need {needed} open files (a lock each), over this process's "
+                          f"limit of {hard} (ulimit -Hn): give fewer --tasks, --algos or --seeds at a time")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+
+
 LOCKS_DIR = ".reproduce"
 """Under the results folder: one lock folder per run, RESULTS/.reproduce/<task>/<algo>/seed<S>."""
 
@@ -401,6 +420,7 @@ def lock_runs(results: Path, runs: list[tuple[str, str, int]]) -> Iterator[None]
     not in them: `nasa train` takes its own folder's lock, and waits for any other one there."""
     from shared.faults import RunFolderError, lock_run, owner
 
+    open_files_for(len(runs))
     held = []
     try:
         for task, algo, seed in runs:

@@ -513,3 +513,38 @@ def test_a_killed_reproduce_leaves_no_run_running(fake_reproduce: tuple[subproce
     while any(alive(pid) for pid in pids) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not any(alive(pid) for pid in pids)  # else they would hold their folders from the next one
+
+
+LOCK_MANY = """
+import resource, sys
+from pathlib import Path
+from nasa import reproduce as rep
+from shared.config import ConfigError
+
+soft, hard = int(sys.argv[2]), int(sys.argv[3])
+resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+runs = [("cartpole-balance", "td3_ae", seed) for seed in range(300)]
+try:
+    with rep.lock_runs(Path(sys.argv[1]), runs):
+        print("locked", len(list(Path(sys.argv[1], ".reproduce", "cartpole-balance", "td3_ae").iterdir())))
+except ConfigError as err:
+    print("refused:", err)
+"""
+
+
+def test_more_runs_than_the_open_file_limit_allows_are_locked_or_refused_in_one_line(tmp_path: Path) -> None:
+    """A lock per run holds a file open per run: the soft limit is raised to fit them, and a hard
+    limit too low is one error, not a failure part way through the locks."""
+    import resource
+
+    def lock(soft: int, hard: int) -> str:
+        args = [str(tmp_path / "results"), str(soft), str(hard)]
+        return subprocess.run([sys.executable, "-c", LOCK_MANY, *args], cwd=Path(__file__).parents[1],
+                              capture_output=True, text=True, check=True).stdout
+
+    hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+    if hard != resource.RLIM_INFINITY and hard < 300 + rep.SPARE_FILES:
+        pytest.skip(f"this machine's hard limit of open files, {hard}, is below what the test raises to")
+    assert lock(128, hard) == "locked 300\n"
+    out = lock(128, 128)
+    assert out.startswith("refused: 300 runs need") and "ulimit -Hn" in out and out.count("\n") == 1
