@@ -447,3 +447,19 @@ def test_a_manifest_entry_that_is_no_video_does_not_trip_the_next_video(tmp_path
     media.video(None, obs, [None] * len(obs), step=100, episode_return=1.0)
     media.close()
     assert [v["step"] for v in media.manifest["videos"]] == [50, 100]
+
+
+def test_a_stop_after_the_result_is_out_makes_no_pictures(tmp_path):
+    run = tiny_run("td3_ae", steps=500)
+    stop = StopFlag()
+    ev = EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, video_every=1), None, stop, run)
+    try:
+        _weights(ev, version=0)
+        assert ev.evaluate(ev.due()).step == 0
+        ev.tap.autoencoder = ev.agent  # as when the weights carry the decoder
+        stop.set("SIGTERM")
+        ev.pictures(0)
+        assert not (tmp_path / "media" / "autoencoder.png").exists()
+        assert not list((tmp_path / "media").glob("*.mp4")) and ev.media.newest_video_step() is None
+    finally:
+        ev.media.close()

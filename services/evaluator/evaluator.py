@@ -222,6 +222,10 @@ class EvaluatorService(MessageGuard):
         a full disk or an unwritable folder loses them (said once a minute), never the result."""
         if self.media is None or not self._kept or not self._kept[0]:
             return
+        if self.stop:  # the result is out; a video's encoding would outlast a container's stop
+            self.log(f"step {target}: stopping ({self.stop.reason}), its pictures are not made")
+            self._kept = None
+            return
         obs, cameras, first, video, version = self._kept
         self._kept = None
         try:
