@@ -354,6 +354,17 @@ def parse_list(text: str) -> list[str]:
 
 
 def reproduce(argv: list[str]) -> None:
+    """`nasa reproduce`; a Ctrl-C before any run is under way (while it checks its flags, imports
+    torch or plans) stops it with one line, exit 130, as one while the runs are under way does."""
+    try:
+        checked_and_run(argv)
+    except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second one would cut the line short
+        print("\nnasa reproduce: stopped before any run was under way", file=sys.stderr, flush=True)
+        sys.exit(128 + signal.SIGINT)
+
+
+def checked_and_run(argv: list[str]) -> None:
     argv, extra = (argv[: argv.index("--")], argv[argv.index("--") + 1 :]) if "--" in argv else (argv, [])
     cmd = tyro.cli(ReproduceCommand, args=argv, prog="nasa reproduce")
     tasks = list(PAPER_TASKS) if cmd.tasks == "paper" else parse_list(cmd.tasks)

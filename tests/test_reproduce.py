@@ -548,3 +548,21 @@ def test_more_runs_than_the_open_file_limit_allows_are_locked_or_refused_in_one_
     assert lock(128, hard) == "locked 300\n"
     out = lock(128, 128)
     assert out.startswith("refused: 300 runs need") and "ulimit -Hn" in out and out.count("\n") == 1
+
+
+def test_a_ctrl_c_while_it_plans_is_one_line_and_exit_130(
+    results: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def interrupted(*args: object) -> None:
+        raise KeyboardInterrupt  # as Ctrl-C raises it, here while the folders are read
+
+    monkeypatch.setattr(rep, "plan_runs", interrupted)
+    monkeypatch.setattr(rep, "execute", lambda *a, **k: pytest.fail("runs were started"))
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            main(base_args(results))
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    err = capsys.readouterr().err
+    assert exc.value.code == 130 and err.strip() == "nasa reproduce: stopped before any run was under way"
