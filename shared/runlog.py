@@ -133,7 +133,7 @@ def checkpointed_step(run: str | Path, checkpoint_every: int) -> int | None:
     written: if checkpoint.pt is gone, a resume would start the run over and clear its rows."""
     try:
         steps = [int(float(row["step"])) for row in read_rows(Path(run) / "train.csv", whole=True)]
-    except (OSError, ValueError, KeyError, TypeError, OverflowError):
+    except (OSError, ValueError, KeyError, TypeError, OverflowError, csv.Error):  # csv: a field too long
         return None
     return next((step for step in steps[:-1] if step >= checkpoint_every), None)
 

@@ -17,7 +17,7 @@ from nasa import reproduce as rep
 from nasa.cli import TrainCommand, main
 from nasa.reproduce import Run, execute, plan_runs, run_folder, train_command
 from shared.config import default_config, to_dict
-from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
+from shared.runlog import TRAIN_FIELDS, CsvLog, checkpointed_step, eval_fields
 
 TASKS = ["cartpole-balance", "walker-walk"]
 ALGOS = ["nasa_td3", "sac_ae"]
@@ -364,6 +364,20 @@ def test_an_unknown_flag_after_dashes_is_one_line(tmp_path: Path, capsys: pytest
         assert exc.value.code == 2 and says in err and "nasa train --help" in err
         assert err.count("\n") == 1 and not out and "╭" not in err
     assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("name", ["eval.csv", "train.csv"])
+def test_a_field_past_the_csv_readers_limit_is_planned_for_resume_not_a_traceback(
+    results: Path, name: str
+) -> None:
+    """A damaged file (a binary blob, an unclosed quote) can hold a field past csv's limit."""
+    out = run_folder(results, "cartpole-balance", "nasa_td3", 0)  # finished
+    if name == "train.csv":
+        CsvLog(out / name, TRAIN_FIELDS).append({"step": 1000, "episode": 1, "length": 1000})
+    with open(out / name, "a") as f:
+        f.write('"' + "x" * 200_000 + "\n")
+    assert rep.run_state(out, steps=None) == "resume"
+    assert checkpointed_step(out, 1) is None
 
 
 def test_a_last_eval_row_cut_short_is_not_a_finished_run(results: Path) -> None:
