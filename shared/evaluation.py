@@ -13,11 +13,20 @@ from shared.env_loop import EnvLoop
 from shared.envs import PixelEnv
 
 
-def evaluate(agent: Agent, env: PixelEnv, episodes: int) -> list[float]:
-    """Extrinsic return of each of `episodes` episodes with the deterministic policy."""
-    unused = np.random.default_rng(0)  # explore=False draws nothing
+def evaluate(agent: Agent, env: PixelEnv, episodes: int,
+             act: Callable[[np.ndarray], np.ndarray] | None = None) -> list[float]:
+    """Extrinsic return of each of `episodes` episodes with the deterministic policy (`act`, when
+    given, is that policy wrapped: the evaluator's checks its stop flag before each step)."""
+    if act is None:
+        act = deterministic_policy(agent)
     loop = EnvLoop(env)
-    return [loop.run_episode(lambda obs: agent.act(obs, explore=False, rng=unused)) for _ in range(episodes)]
+    return [loop.run_episode(act) for _ in range(episodes)]
+
+
+def deterministic_policy(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
+    """The agent's action without exploration noise."""
+    unused = np.random.default_rng(0)  # explore=False draws nothing
+    return lambda obs: agent.act(obs, explore=False, rng=unused)
 
 
 def draws_restarter(env: PixelEnv, same_episodes: bool) -> Callable[[], None]:

@@ -43,7 +43,7 @@ from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
-from shared.evaluation import draws_restarter, eval_due, first_done
+from shared.evaluation import deterministic_policy, draws_restarter, eval_due, evaluate, first_done
 from shared.service import Log, MessageGuard, StopFlag
 from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
@@ -132,7 +132,7 @@ class EvaluatorService(MessageGuard):
         self.done = first_done(c)  # the newest step evaluated
         self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
         self._epoch: int | None = None  # the learner's incarnation whose weights it holds
-        self._unused = np.random.default_rng(0)  # explore=False draws nothing
+        self._policy = deterministic_policy(self.agent)
         # Where the evaluation draws stood after the last evaluation, so a restarted evaluator plays
         # the episodes an uninterrupted one would (no run folder: they start from the seed again).
         self.draws_file = Path(args.data) / "evaluator" / DRAWS_FILE if args.data else None
@@ -182,8 +182,7 @@ class EvaluatorService(MessageGuard):
         try:
             self.restart_draws()
             first, obs, cameras = self._first_episode(keep=self.media is not None, video=video)
-            loop = EnvLoop(self.env)  # the other episodes, as shared.evaluation.evaluate plays them
-            returns = [first, *(loop.run_episode(self._act) for _ in range(self.config.eval_episodes - 1))]
+            returns = [first, *evaluate(self.agent, self.env, self.config.eval_episodes - 1, self._act)]
         except _Stopped:
             self.log(f"step {target}: evaluation stopped unfinished ({self.stop.reason}); no result")
             return None
@@ -215,7 +214,7 @@ class EvaluatorService(MessageGuard):
         """The deterministic policy's action; _Stopped once the service is told to stop."""
         if self.stop:
             raise _Stopped
-        return self.agent.act(obs, explore=False, rng=self._unused)
+        return self._policy(obs)
 
     def pictures(self, target: int) -> None:
         """The autoencoder's view and the video of the evaluation just published. They are extras:
