@@ -13,7 +13,6 @@ running the command again after an interruption continues where it stopped:
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
 import io
 import os
@@ -94,9 +93,9 @@ def run_state(out: Path, steps: int | None) -> Action:
         total = steps if steps is not None else own
         last = last_eval_step(out)
         episode = last_episode(out)
-    except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError, csv.Error):  # Overflow: inf
-        # A damaged or missing config.json, or rows it cannot read (csv.Error: a field past csv's
-        # limit): `nasa train --resume` names what is wrong, and that run fails alone.
+    except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError):  # Overflow: inf
+        # A damaged or missing config.json, or rows it cannot read: `nasa train --resume` names
+        # what is wrong, and that run fails alone.
         return "resume"
     # An episode that ended by the final evaluation's step with no row: killed before writing it.
     # A step past its own total is a damaged row.

@@ -118,12 +118,16 @@ def eval_walls(run: str | Path, steps: list[int]) -> dict[int, float]:
 def read_rows(path: str | Path, whole: bool = False) -> list[dict[str, str]]:
     """The rows of a CSV file. `whole`: without a last row that has no line end, one its writer did
     not finish (it died mid-write, or the file was cut short): its values may be cut too, and a
-    resume drops it (CsvLog)."""
+    resume drops it (CsvLog). A file the csv module cannot parse (a field past its length limit: a
+    binary blob, an unclosed quote) is a ValueError naming it, like any other damaged value."""
     with open(path, newline="") as f:
         text = f.read()
     if whole and not text.endswith("\n"):
         text = text[: text.rfind("\n") + 1]
-    return list(csv.DictReader(io.StringIO(text, newline="")))
+    try:
+        return list(csv.DictReader(io.StringIO(text, newline="")))
+    except csv.Error as err:
+        raise ValueError(f"{path}: not a CSV file this version can read ({err})") from None
 
 
 def checkpointed_step(run: str | Path, checkpoint_every: int) -> int | None:
@@ -133,7 +137,7 @@ def checkpointed_step(run: str | Path, checkpoint_every: int) -> int | None:
     written: if checkpoint.pt is gone, a resume would start the run over and clear its rows."""
     try:
         steps = [int(float(row["step"])) for row in read_rows(Path(run) / "train.csv", whole=True)]
-    except (OSError, ValueError, KeyError, TypeError, OverflowError, csv.Error):  # csv: a field too long
+    except (OSError, ValueError, KeyError, TypeError, OverflowError):
         return None
     return next((step for step in steps[:-1] if step >= checkpoint_every), None)
 

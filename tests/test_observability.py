@@ -274,10 +274,11 @@ def test_a_damaged_history_leaves_the_stopped_dashboard_up_without_its_series(tm
     assert "history.json is unreadable" in capsys.readouterr().err
 
 
-def test_a_damaged_eval_csv_leaves_the_history_without_evaluations(tmp_path):
+@pytest.mark.parametrize("damage", [b"0,\xff,0\n", b'"' + b"x" * 200_000 + b"\n"])  # past csv's field limit
+def test_a_damaged_eval_csv_leaves_the_history_without_evaluations(tmp_path, damage):
     (tmp_path / "learner").mkdir()
     (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
-    (tmp_path / "eval.csv").write_bytes(b"step,mean,std\n0,\xff,0\n")
+    (tmp_path / "eval.csv").write_bytes(b"step,mean,std\n" + damage)
     client = TestClient(folder_app(tmp_path))
     response = client.get("/history")
     assert response.status_code == 200 and response.json()["evals"] == []

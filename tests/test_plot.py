@@ -198,6 +198,9 @@ INF_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": 1e400}'
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n10,inf\n"), "not a finite number"),
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,nan\n10,1.0\n"), "not a finite number"),
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n1e20,1.0\n"), "a step out of range"),
+        # A field past the csv module's length limit (an unclosed quote, a binary blob).
+        (lambda f: (f / "eval.csv").write_text('step,mean\n0,1.0\n"' + "x" * 200_000 + "\n"),
+         "not a CSV file this version can read"),
         (lambda f: (f / "config.json").write_text("{not json"), "config.json is unreadable: Expecting"),
         (lambda f: (f / "config.json").write_text("[1, 2]"), "config.json is unreadable: it does not hold"),
         (lambda f: (f / "config.json").write_text(BAD_SEED), "ValueError"),
