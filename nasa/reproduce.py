@@ -429,7 +429,7 @@ def lock_runs(results: Path, runs: list[tuple[str, str, int]]) -> Iterator[None]
     them, and report them failed: it is refused; one with other runs of the same results folder
     (other tasks, algorithms or seeds) goes on beside it. The locks live beside the run folders,
     not in them: `nasa train` takes its own folder's lock, and waits for any other one there."""
-    from shared.faults import RunFolderError, lock_run, owner
+    from shared.faults import RunFolderError, RunHeld, lock_run, owner
 
     open_files_for(len(runs))
     held = []
@@ -438,9 +438,7 @@ def lock_runs(results: Path, runs: list[tuple[str, str, int]]) -> Iterator[None]
             where = run_folder(Path(results) / LOCKS_DIR, task, algo, seed)
             try:
                 held.append(lock_run(where, "nasa reproduce", "--results"))
-            except RunFolderError as err:
-                if "belongs to another run" not in str(err):
-                    raise  # the folder cannot be written: its own error says so
+            except RunHeld as err:  # any other RunFolderError (it cannot be written) says so itself
                 raise RunFolderError(
                     f"{run_folder(results, task, algo, seed)} is a run of another nasa reproduce "
                     f"({owner(where)}); stop that one, or give this one other --tasks, --algos or "

@@ -55,6 +55,10 @@ class RunFolderError(ConfigError):
     """The run folder or a port cannot be had: another run holds it, or it cannot be written."""
 
 
+class RunHeld(RunFolderError):
+    """Another launcher holds the run folder's lock."""
+
+
 class RoleTaken(RunFolderError):
     """Another process already serves this role of the run (its liveliness token is up)."""
 
@@ -175,7 +179,7 @@ def lock_run(data: Path, what: str, flag: str = "--data", wait_s: float = SERVIC
     _writable(data, what)
     lock = RunLock()
     if not lock._take(data / LOCK, True, what):
-        raise RunFolderError(f"{data} belongs to another run ({owner(data)}); stop it or use another {flag}")
+        raise RunHeld(f"{data} belongs to another run ({owner(data)}); stop it or use another {flag}")
     try:
         _wait_for_services(data, wait_s, say or (lambda msg: print(msg, file=sys.stderr, flush=True)))
     except BaseException:
@@ -225,7 +229,7 @@ def lock_service(data: Path, role: str) -> RunLock:
     mine = parent is not None and owner(data).startswith(f"pid {parent} ")
     if not mine and not lock._take(data / LOCK, False, what):
         lock.close()
-        raise RunFolderError(f"{data} belongs to another run ({owner(data)})")
+        raise RunHeld(f"{data} belongs to another run ({owner(data)})")
     if not lock._take(data / f"{LOCK}.{role}", True, what):
         lock.close()
         raise RunFolderError(f"{data} has a {role} already ({owner(data, role)})")
