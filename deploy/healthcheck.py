@@ -15,6 +15,7 @@ the one of each service's role.
 from __future__ import annotations
 
 import os
+import re
 import socket
 import sys
 import urllib.request
@@ -23,8 +24,10 @@ TIMEOUT_S = 4.0
 
 
 def _host_port(endpoint: str, default_port: int) -> tuple[str, int]:
-    # tcp/host:port (Zenoh's endpoint syntax); the first of a comma-separated list
+    # proto/host:port?metadata#config (Zenoh's endpoint syntax); the first of a comma-separated list.
+    # The metadata and config name no part of the address.
     address = endpoint.split(",")[0].strip().split("/", 1)[-1]
+    address = re.split(r"[?#]", address, maxsplit=1)[0]
     host, _, port = address.rpartition(":")
     return (host or "127.0.0.1").strip("[]"), int(port or default_port)
 

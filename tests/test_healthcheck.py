@@ -67,3 +67,17 @@ def test_a_router_listening_on_one_address_is_checked_there(monkeypatch: pytest.
         assert healthcheck.router()
         monkeypatch.setenv("NASA_ZENOH_LISTEN", f"tcp/0.0.0.0:{listener.getsockname()[1]}")
         assert not healthcheck.router()  # nothing on 127.0.0.1 at that port
+
+
+@pytest.mark.parametrize("suffix", ["?prio=1-7", "#iface=lo", "?rel=1#iface=lo"])
+def test_an_endpoint_with_metadata_or_config_is_checked_at_its_address(monkeypatch: pytest.MonkeyPatch,
+                                                                       suffix: str) -> None:
+    """Zenoh's endpoints carry `?metadata` and `#config` after the address: neither is the port."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        monkeypatch.setenv("NASA_ZENOH_LISTEN", f"tcp/127.0.0.1:{port}{suffix}")
+        monkeypatch.setenv("NASA_ZENOH_CONNECT", f"tcp/127.0.0.1:{port}{suffix},tcp/10.0.0.9:7447")
+        assert healthcheck.router()
+        assert healthcheck.reaches_router()
