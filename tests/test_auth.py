@@ -473,3 +473,26 @@ def test_nasa_up_names_a_run_folder_whose_access_rules_it_cannot_write(tmp_path:
     (folder / zenoh_auth.ACL_FILE).mkdir()  # cannot be replaced by a file
     with pytest.raises(ConfigError, match="cannot write the run's access rules"):
         up_auth(SimpleNamespace(zenoh_auth="run"), tmp_path, RUN, {})
+
+
+def test_checkpoint_requests_join_the_pending_one_and_are_refused_right_after(monkeypatch) -> None:  # noqa: ANN001
+    """A client posting in a loop must not have the learner write checkpoints back to back."""
+    from services.learner import status_api
+
+    requests = status_api.CheckpointRequests()
+    app = make_app(lambda: {"updates": 1}, lambda: [], controls={"checkpoint": requests.ask}, token="t")
+    client = TestClient(app)
+    auth = {"Authorization": "Bearer t"}
+    first = client.post("/control/checkpoint", headers=auth)
+    assert first.status_code == 202 and "next update" in first.json()["done"] and requests.pending()
+    joined = client.post("/control/checkpoint", headers=auth)
+    assert joined.status_code == 202 and "already pending" in joined.json()["done"]
+    assert client.post("/control/checkpoint").status_code == 401  # the token still comes first
+    requests.written()  # the loop wrote it: one checkpoint for the three requests
+    assert not requests.pending()
+    soon = client.post("/control/checkpoint", headers=auth)
+    assert soon.status_code == 429 and "ask again in" in soon.json()["detail"]
+    assert int(soon.headers["retry-after"]) >= 1 and not requests.pending()
+    monkeypatch.setattr(status_api, "CHECKPOINT_EVERY_S", 0.0)
+    again = client.post("/control/checkpoint", headers=auth)
+    assert again.status_code == 202 and requests.pending()

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import queue
-import threading
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -41,6 +40,7 @@ from services.learner.evaluation import BetweenUpdates
 from services.learner.health import LearnerArgs, health_reasons
 from services.learner.history import History, HistoryError
 from services.learner.metrics import LearnerMetrics
+from services.learner.status_api import CheckpointRequests
 from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.device import resolve_device
@@ -77,7 +77,7 @@ class Learner:
         self.metrics = LearnerMetrics(self.status)
         self.history = History()  # read by its own thread, never the update loop
         self._scalars_at = 0.0
-        self._checkpoint_asked = threading.Event()  # POST /control/checkpoint; the loop writes it
+        self._checkpoint_asked = CheckpointRequests()  # POST /control/checkpoint; the loop writes it
         self.between = (BetweenUpdates(self.core.config, self.core.agent, self.core.eval["step"],
                                        self.core.restored_eval_draws)
                         if args.eval_between_updates else None)
@@ -151,17 +151,13 @@ class Learner:
     # -- the HTTP controls (POST /control/<name>) ----------------------------------------
 
     def controls(self) -> dict[str, Callable[[], str]]:
-        def checkpoint() -> str:
-            self._checkpoint_asked.set()
-            return "a checkpoint is written at the next update"
-
         def stop() -> str:
             # The run's own Stop message: every service ends as at the end of the budget, this one too.
             self.session.put(self.keys.stop, wire.encode(wire.Stop("stop requested over HTTP")),
                              congestion_control=BLOCK)
             return "the run is stopping (checkpoint, then every service exits)"
 
-        return {"checkpoint": checkpoint, "stop": stop}
+        return {"checkpoint": self._checkpoint_asked.ask, "stop": stop}
 
     # -- the loop ----------------------------------------------------------------------
 
@@ -253,9 +249,11 @@ class Learner:
                 self.wall_s = wall0 + time.monotonic() - wall_start
                 self._drain()
                 self.publish_eval_weights()
-                if core.checkpoint_due() or self._checkpoint_asked.is_set():
-                    self._checkpoint_asked.clear()
+                asked = self._checkpoint_asked.pending()
+                if asked or core.checkpoint_due():
                     core.save_checkpoint(self.wall_s)
+                    if asked:
+                        self._checkpoint_asked.written()
                 if self.between is not None and (target := self.between.due(core.env_steps)) is not None:
                     self._evaluate(target)
                     continue

@@ -52,6 +52,8 @@ MAX_CONNECTIONS = 128
 """Connections the status API holds at once; one more is closed as soon as it is accepted."""
 REQUEST_HEAD_S = 10.0
 """How long a connection may take to send a whole request line and headers."""
+CHECKPOINT_EVERY_S = 10.0
+"""POST /control/checkpoint: the least time between the end of one asked-for checkpoint and the next."""
 
 
 def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
@@ -108,6 +110,40 @@ def _add_control(app: FastAPI, name: str, action: Callable[[], str], token: str 
     @app.post(f"/control/{name}", dependencies=[Depends(bearer_guard(token))], status_code=202)
     def control() -> Response:
         return _json({"control": name, "done": action()}, status=202)
+
+
+class CheckpointRequests:
+    """POST /control/checkpoint's requests, for the update loop to act on. A request while one is
+    pending (asked for, not yet written) joins it, and one within CHECKPOINT_EVERY_S of the last
+    written is refused with 429: a client that posts in a loop would otherwise have the learner
+    write checkpoints back to back instead of training."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pending = False
+        self._written_at: float | None = None
+
+    def ask(self) -> str:
+        """What the request did; HTTPException 429 (with Retry-After) when too soon after the last."""
+        with self._lock:
+            if self._pending:
+                return "a checkpoint is already pending; this request joins it"
+            now = time.monotonic()
+            if self._written_at is not None and (wait := self._written_at + CHECKPOINT_EVERY_S - now) > 0:
+                raise HTTPException(429, f"a checkpoint was written {now - self._written_at:.1f} s ago; "
+                                         f"ask again in {wait:.1f} s",
+                                    headers={"Retry-After": str(math.ceil(wait))})
+            self._pending = True
+            return "a checkpoint is written at the next update"
+
+    def pending(self) -> bool:
+        return self._pending
+
+    def written(self) -> None:
+        """The loop wrote (or tried to write) the checkpoint asked for."""
+        with self._lock:
+            self._pending = False
+            self._written_at = time.monotonic()
 
 
 def bearer_guard(token: str | None) -> Callable[[str | None], None]:
