@@ -82,6 +82,12 @@ class Scalars:
         self.purge_step: int | None = None  # a resumed run: events from this step on are dropped
         self._writer = None
         self._refused_at: float | None = None  # when the disk last refused a write
+        self.refused = 0  # writes the disk refused, each raised once
+
+    @property
+    def refusing(self) -> bool:
+        """Whether the last write was refused (points are dropped until a new file takes them)."""
+        return self._refused_at is not None
 
     @property
     def writer(self):  # noqa: ANN201 (torch.utils.tensorboard.SummaryWriter, imported lazily)
@@ -104,6 +110,7 @@ class Scalars:
             write(self.writer)
         except OSError:
             self._writer, self._refused_at = None, time.monotonic()
+            self.refused += 1
             raise
 
     def add(self, values: dict[str, object], step: int) -> None:

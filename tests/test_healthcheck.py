@@ -51,6 +51,7 @@ def server(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
 @pytest.mark.parametrize(("answer", "healthy"), [
     ((200, b"ok\n"), True), ((503, b"unhealthy: stopping\n"), False),
+    ((200, b"degraded: writes failing: train.csv (last: ...)\n"), True),
     ((302, b""), False), ((200, b"<html>another server</html>"), False), ((200, b""), False)])
 def test_the_learner_is_healthy_only_on_its_own_ok(server: None, monkeypatch: pytest.MonkeyPatch,
                                                     answer: tuple[int, bytes], healthy: bool) -> None:

@@ -240,3 +240,80 @@ def test_a_row_the_disk_refuses_is_dropped_and_the_learner_goes_on(tmp_path, cap
     learner.core.record_episode = record_episode  # room again
     learner._drain()
     assert [r["return"] for r in read_rows(tmp_path / "train.csv")] == ["11"]
+
+
+def test_writes_the_disk_refuses_show_in_status_and_healthz_says_degraded(tmp_path, monkeypatch):
+    import builtins
+    import queue
+    import time
+    from types import SimpleNamespace
+
+    from fastapi.testclient import TestClient
+
+    from services.learner.health import LearnerArgs, degraded_reasons
+    from services.learner.learner import Learner
+    from services.learner.status_api import make_app
+    from shared import checkpoint, runlog
+    from shared.service import Log, StopFlag
+    from tests.test_train import FullFile
+
+    learner = Learner.__new__(Learner)  # what _drain, status and health use, without Zenoh
+    learner.core = core_on(tmp_path)
+    learner.args, learner.stop, learner.keys = LearnerArgs(data=tmp_path), StopFlag(), wire.Keys("r")
+    learner.client = SimpleNamespace(invalid=0)
+    learner.log, learner.wall_s, learner._scalars_at = Log("learner"), 1.0, time.monotonic()
+    learner._evals, learner._episodes = queue.Queue(), queue.Queue()
+    app = make_app(learner.status, learner.health, degraded=lambda: degraded_reasons(learner.core))
+    client = TestClient(app)
+    assert client.get("/status").json()["writes"] == {"failed": {}, "failing": [], "last_error": "",
+                                                      "last_error_at": None}
+    assert client.get("/healthz").text == "ok\n"
+
+    with monkeypatch.context() as full:  # the disk refuses the train.csv row
+        full.setattr(runlog, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
+        learner._episodes.put((10.0, 5))
+        learner._drain()
+    writes = client.get("/status").json()["writes"]
+    assert writes["failed"] == {"train.csv": 1} and writes["failing"] == ["train.csv"]
+    assert writes["last_error"].startswith("train.csv: OSError") and "No space" in writes["last_error"]
+    assert writes["last_error_at"].endswith("Z")
+    health = client.get("/healthz")
+    assert health.status_code == 200 and health.text.startswith("degraded: writes failing: train.csv")
+
+    with monkeypatch.context() as full:  # and a checkpoint
+        full.setattr(checkpoint, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
+        learner.core.board.seen_env_steps(60)
+        assert not learner.core.save_checkpoint(wall_s=1.0)
+    assert client.get("/status").json()["writes"]["failing"] == ["checkpoint", "train.csv"]
+
+    learner._episodes.put((11.0, 5))  # room again: the next row goes in, the failure is history
+    learner._drain()
+    assert learner.core.save_checkpoint(wall_s=2.0)
+    writes = client.get("/status").json()["writes"]
+    assert writes["failed"] == {"checkpoint": 1, "train.csv": 1} and writes["failing"] == []
+    assert client.get("/healthz").text == "ok\n"
+    assert [r["return"] for r in read_rows(tmp_path / "train.csv")] == ["11"]
+
+
+def test_a_tensorboard_point_the_disk_refuses_is_told_apart_from_its_csv_row(tmp_path, monkeypatch):
+    import queue
+    import time
+
+    from services.learner.learner import Learner
+    from shared.service import Log
+
+    learner = Learner.__new__(Learner)
+    learner.core = core_on(tmp_path)
+    learner.log, learner.wall_s, learner._scalars_at = Log("learner"), 1.0, time.monotonic()
+    learner._evals, learner._episodes = queue.Queue(), queue.Queue()
+
+    def refused(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    learner.core.scalars.add({"x": 1.0}, 1)
+    monkeypatch.setattr(learner.core.scalars.writer, "add_scalar", refused)
+    learner._episodes.put((10.0, 5))
+    learner._drain()
+    writes = learner.core.board.snapshot()["writes"]
+    assert writes["failed"] == {"tensorboard": 1} and writes["failing"] == ["tensorboard"]
+    assert [r["return"] for r in read_rows(tmp_path / "train.csv")] == ["10"]  # its row went in

@@ -49,6 +49,9 @@ STATUS = {
     "policy_lag": {"mean": 14.5, "max": 41},
     "losses": {"critic_loss": 0.5, "actor_loss": -1.25, "ae_loss": 0.03, "ensemble_loss": 0.001},
     "invalid_messages": 2,
+    "writes": {"failed": {"train.csv": 3, "checkpoint": 1}, "failing": ["train.csv"],
+               "last_error": "train.csv: OSError: [Errno 28] No space left on device",
+               "last_error_at": "2026-12-06T03:40:00Z"},
 }
 
 
@@ -88,6 +91,9 @@ def expected_samples(status: dict) -> dict[tuple[str, tuple], float]:
     for key, entry in status["nonfinite"]["losses"].items():
         want[("nasa_nonfinite_losses_total", (("name", key),))] = float(entry["count"])
     want[("nasa_replay_write_failing", ())] = 1.0
+    for key, count in status["writes"]["failed"].items():
+        want[("nasa_write_failures_total", (("file", key),))] = float(count)
+        want[("nasa_write_failing", (("file", key),))] = float(key in status["writes"]["failing"])
     want[("nasa_status_a_field_added_later_count", ())] = 7.0  # a field no table names yet
     return want
 
@@ -124,7 +130,9 @@ def test_metrics_parse_and_hold_every_figure_of_status():
         | {f"actors[].{key}" for key, *_ in ACTOR_FIGURES} | {"actors[].id"} | set(INFO) \
         | {"actors[].fault", "actors[].env_step_seconds"} \
         | {"nonfinite.losses.critic_loss.count", "nonfinite.losses.critic_loss.last", "replay.write_error",
-           "a_field_added_later.count"} | {"nonfinite.dropped_rows[]"}
+           "a_field_added_later.count"} | {"nonfinite.dropped_rows[]"} \
+        | {f"writes.failed.{k}" for k in STATUS["writes"]["failed"]} \
+        | {"writes.failing[]", "writes.last_error", "writes.last_error_at"}
     assert leaves(STATUS) <= covered, leaves(STATUS) - covered
     # An actor whose environment reports no fault state (a suite task) has no fault series.
     assert not any(name == "nasa_actor_fault_state" and ("actor", "1") in labels for name, labels in got)

@@ -192,7 +192,9 @@ class LearnerCore:
                                          eval_env_rng=self.eval_draws())
             except (OSError, RuntimeError) as err:  # a full disk (torch.save raises RuntimeError): retry
                 self.checkpoint_error = f"{type(err).__name__}: {err}"
+                self.board.writes.failed("checkpoint", err)
             else:
+                self.board.writes.ok("checkpoint")
                 self.counters = counters
                 self.last_checkpoint_step = counters.env_steps
                 return True

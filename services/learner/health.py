@@ -74,3 +74,12 @@ def health_reasons(core: LearnerCore, a: LearnerArgs, stop: StopFlag) -> list[st
         reasons.append(f"actor(s) {looping} restarted more than {a.actor_restarts} times in "
                        f"{a.crash_window_s:.0f} s")
     return reasons
+
+
+def degraded_reasons(core: LearnerCore) -> list[str]:
+    """The run folder's writes the disk refuses still (CSV rows, TensorBoard points, checkpoints):
+    the learner trains on, dropping them, so /healthz answers degraded, not unhealthy."""
+    writes = core.board.writes
+    if not (failing := writes.failing()):
+        return []
+    return [f"writes failing: {', '.join(failing)} (last: {writes.last_error})"]

@@ -37,7 +37,7 @@ import zenoh
 
 from services.learner.core import LearnerCore
 from services.learner.evaluation import BetweenUpdates
-from services.learner.health import LearnerArgs, health_reasons
+from services.learner.health import LearnerArgs, degraded_reasons, health_reasons
 from services.learner.history import History, HistoryError
 from services.learner.metrics import LearnerMetrics
 from services.learner.status_api import CheckpointRequests
@@ -199,7 +199,7 @@ class Learner:
             self.log(f"warning: the status API binds {self.args.host} with no token: anyone who reaches it "
                      "can checkpoint or stop the run (set NASA_API_TOKEN)")
         app = make_app(self.status, self.health, self.history.points, self.metrics.render, self.args.data,
-                       controls=self.controls(), token=token)
+                       controls=self.controls(), token=token, degraded=lambda: degraded_reasons(self.core))
         server = StatusServer(app, self.args.host, self.args.port)
         server.start()
         self.history.start(self.status)
@@ -380,17 +380,40 @@ class Learner:
         on, as with a checkpoint: exiting lost the updates since the last checkpoint, and the
         restarted learner met the same disk again, in a loop until there was space."""
         self.core.board.sample_rates(self.core.agent.num_updates)
+        if time.monotonic() - self._scalars_at >= 10.0:  # TensorBoard's fleet figures
+            self._scalars_at = time.monotonic()
+            if not self._write(None, lambda: self.core.scalars.status(self.status())):
+                return
+        while not self._evals.empty():
+            result = self._evals.get_nowait()
+            if not self._write("eval.csv", lambda r=result: self._record_eval(r)):
+                return  # the rest waits for the next drain
+        while not self._episodes.empty():
+            ret, length = self._episodes.get_nowait()
+            if not self._write("train.csv",
+                               lambda r=ret, n=length: self.core.record_episode(r, n, wall_s=self.wall_s)):
+                return
+
+    def _write(self, csv_file: str | None, write: Callable[[], None]) -> bool:
+        """`write()`, which writes a row of `csv_file` and/or TensorBoard points; one the disk refuses
+        is logged and counted on the board (/status, /healthz) by what refused it, and dropped (False)."""
+        scalars, writes = self.core.scalars, self.core.board.writes
+        refused = scalars.refused
         try:
-            if time.monotonic() - self._scalars_at >= 10.0:  # TensorBoard's fleet figures
-                self._scalars_at = time.monotonic()
-                self.core.scalars.status(self.status())
-            while not self._evals.empty():
-                self._record_eval(self._evals.get_nowait())
-            while not self._episodes.empty():
-                self.core.record_episode(*self._episodes.get_nowait(), wall_s=self.wall_s)
+            write()
         except OSError as err:
+            what = "tensorboard" if scalars.refused > refused or csv_file is None else csv_file
+            if what != csv_file and csv_file is not None:
+                writes.ok(csv_file)  # its row went in before the TensorBoard point was refused
+            writes.failed(what, err)
             self.log.every("write", 60.0, f"cannot write the run folder, what it refused is dropped: "
-                                          f"{type(err).__name__}: {err}")
+                                          f"{what}: {type(err).__name__}: {err}")
+            return False
+        if csv_file is not None:
+            writes.ok(csv_file)
+        if not scalars.refusing:
+            writes.ok("tensorboard")
+        return True
 
     # -- status ------------------------------------------------------------------------
 

@@ -80,7 +80,7 @@ INFO = ("run_id", "algo", "task", "device", "config_digest")
 # Parts of /status given otherwise (the above, the info, the intrinsic means, the non-finite losses
 # and the replay's write error below) or that are no figure (row indices of dropped batches).
 HANDLED = {"actors", "policy_lag", "losses", "nonfinite.losses", "nonfinite.dropped_rows",
-           "replay.write_error", *(f"intrinsic.{k}" for k in INTRINSIC_MEANS), *INFO}
+           "replay.write_error", "writes", *(f"intrinsic.{k}" for k in INTRINSIC_MEANS), *INFO}
 
 
 def unnamed_figures(status: dict, prefix: str = "") -> list[tuple[str, float]]:
@@ -195,7 +195,8 @@ class StatusCollector:
 
     @staticmethod
     def collect_health(s: dict) -> Iterator[Metric]:
-        """The non-finite losses by name and whether the replay's writes fail."""
+        """The non-finite losses by name, whether the replay's writes fail, and the learner's own
+        refused writes by file."""
         family = CounterMetricFamily("nasa_nonfinite_losses", "Non-finite values of each loss",
                                      labels=["name"])
         entries = lookup(s, "nonfinite.losses")
@@ -207,6 +208,18 @@ class StatusCollector:
             family = GaugeMetricFamily("nasa_replay_write_failing", "1 while the replay cannot write")
             family.add_metric([], float(bool(error)))
             yield family
+        counts, failing = lookup(s, "writes.failed"), lookup(s, "writes.failing")
+        family = CounterMetricFamily("nasa_write_failures", "Writes of the run folder the disk refused "
+                                     "(dropped: the learner goes on)", labels=["file"])
+        for key, count in (counts.items() if isinstance(counts, dict) else ()):
+            if (n := figure(count)) is not None:
+                family.add_metric([str(key)], n)
+        yield family
+        family = GaugeMetricFamily("nasa_write_failing", "1 while the disk refuses this kind of write",
+                                   labels=["file"])
+        for key in (counts if isinstance(counts, dict) else ()):
+            family.add_metric([str(key)], float(isinstance(failing, list) and key in failing))
+        yield family
 
 
 def _buckets(h: object) -> tuple[list[tuple[str, float]], float] | None:

@@ -6,7 +6,8 @@
 - `/history`: the learner's bounded series of /status figures, every
   evaluation in eval.csv, and the evaluator's media manifest (the
   autoencoder's view, evaluation videos), whose files are under /media/.
-- `/healthz`: 200 "ok", or 503 with the reasons the health callable gives.
+- `/healthz`: 200 "ok"; 200 "degraded: <reasons>" while the learner trains on past a fault (writes
+  the disk refuses); or 503 "unhealthy: <reasons>".
 - `/metrics`: Prometheus' text format, from prometheus-client (metrics.py).
 - `POST /control/<name>`: the learner's controls (`checkpoint`, `stop`), which change its state.
   With a token configured (env NASA_API_TOKEN or the learner's --api-token-file) they answer 401
@@ -59,8 +60,9 @@ CHECKPOINT_EVERY_S = 10.0
 def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
              history: Callable[[], list[dict]] | None = None, metrics: Callable[[], bytes] | None = None,
              data: Path | None = None, controls: dict[str, Callable[[], str]] | None = None,
-             token: str | None = None) -> FastAPI:
-    """The routes; `health` returns the reasons the learner is unhealthy (empty: healthy).
+             token: str | None = None, degraded: Callable[[], list[str]] | None = None) -> FastAPI:
+    """The routes; `health` returns the reasons the learner is unhealthy (empty: healthy), `degraded`
+    those it works on with a fault (writes the disk refuses).
     `controls`: name -> action (returns what it did), each at POST /control/<name>, behind `token`."""
     app = FastAPI(title="nasa-td3 learner", docs_url=None, redoc_url=None)
     for name, action in (controls or {}).items():
@@ -94,9 +96,12 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
         reasons = health()
         if isinstance(reasons, bool):  # a health callable of the older form: True when healthy
             reasons = [] if reasons else ["stopping"]
-        if not reasons:
-            return PlainTextResponse("ok\n")
-        return PlainTextResponse("unhealthy: " + "; ".join(reasons) + "\n", status_code=503)
+        faults = degraded() if degraded is not None else []
+        if reasons:
+            return PlainTextResponse("unhealthy: " + "; ".join(reasons + faults) + "\n", status_code=503)
+        if faults:  # 200: it trains on, and a restart (a liveness probe's) would meet the same disk
+            return PlainTextResponse("degraded: " + "; ".join(faults) + "\n")
+        return PlainTextResponse("ok\n")
 
     @app.get("/metrics")
     def get_metrics() -> Response:

@@ -182,8 +182,11 @@ async function poll() {
     drawStatus(s);
     drawHistory(h);
     state.polls++;
-    stateEl.textContent = health.ok ? "running" : (await health.text()).trim();
-    stateEl.className = "state" + (health.ok ? "" : " stopped");
+    // 200 is "ok" or "degraded: <why>" (writes the disk refuses while training goes on).
+    const said = (await health.text()).trim();
+    const degraded = health.ok && said.startsWith("degraded");
+    stateEl.textContent = health.ok && !degraded ? "running" : said;
+    stateEl.className = "state" + (degraded ? " degraded" : health.ok ? "" : " stopped");
   } catch (err) {
     stateEl.textContent = "no answer: " + err.message;
     stateEl.className = "state error";
