@@ -574,3 +574,71 @@ def test_a_tensorboard_write_the_disk_refuses_is_raised_once_and_a_new_file_is_t
     acc.Reload()
     assert [e.step for e in acc.Scalars("x")] == [1, 4]
 
+
+
+def _serve(app, monkeypatch, **limits):  # noqa: ANN001, ANN202 (a started StatusServer, its port)
+    from nasa.up import free_port
+    from services.learner import status_api
+
+    for name, value in limits.items():
+        monkeypatch.setattr(status_api, name, value, raising=False)
+    port = free_port()
+    server = status_api.StatusServer(app, "127.0.0.1", port)
+    server.start()
+    return server, port
+
+
+def test_a_client_that_never_reads_its_response_is_dropped(monkeypatch):
+    big = STATUS | {"padding": "x" * (32 << 20)}  # more than the kernel's buffers take
+    server, port = _serve(make_app(lambda: big, lambda: []), monkeypatch, WRITE_STALL_S=0.5)
+    connections = server.server.server_state.connections
+    try:
+        with socket.socket() as sleeper:
+            sleeper.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sleeper.connect(("127.0.0.1", port))
+            sleeper.sendall(b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # and never reads
+            deadline = time.monotonic() + 60
+            while not connections and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert connections, "the request never arrived"
+            while connections and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not connections, "the connection that reads nothing is still held"
+        assert httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=30).text == "ok\n"
+    finally:
+        server.stop()
+
+
+def test_a_reader_with_a_small_window_is_served_whole(monkeypatch):
+    big = STATUS | {"padding": "x" * (8 << 20)}
+    server, port = _serve(make_app(lambda: big, lambda: []), monkeypatch, WRITE_STALL_S=2.0)
+    try:
+        with socket.socket() as reader:
+            reader.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            reader.connect(("127.0.0.1", port))
+            reader.sendall(b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+            got = bytearray()
+            while chunk := reader.recv(1 << 16):
+                got += chunk
+        head, _, body = bytes(got).partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 200") and json.loads(body)["padding"] == big["padding"]
+    finally:
+        server.stop()
+
+
+def test_one_client_address_cannot_take_every_connection(monkeypatch):
+    # A late request head closes a connection too: not within this test.
+    server, port = _serve(make_app(lambda: STATUS, lambda: []), monkeypatch, MAX_PER_PEER=2,
+                          REQUEST_HEAD_S=600.0)
+    held = [socket.create_connection(("127.0.0.1", port), timeout=30) for _ in range(2)]
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as beyond:
+            assert beyond.recv(1) == b""  # a third from the same address: closed on arrival
+        other = socket.create_connection(("127.0.0.1", port), timeout=30, source_address=("127.0.0.2", 0))
+        with other:  # another address still gets in
+            other.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            assert other.recv(1 << 16).startswith(b"HTTP/1.1 200")
+    finally:
+        for s in held:
+            s.close()
+        server.stop()

@@ -53,6 +53,10 @@ MAX_CONNECTIONS = 128
 """Connections the status API holds at once; one more is closed as soon as it is accepted."""
 REQUEST_HEAD_S = 10.0
 """How long a connection may take to send a whole request line and headers."""
+MAX_PER_PEER = 32
+"""Connections one client address holds at once; one more from it is closed as soon as it is accepted."""
+WRITE_STALL_S = 10.0
+"""How long a response waiting to be sent may go without the client reading any of it."""
 CHECKPOINT_EVERY_S = 10.0
 """POST /control/checkpoint: the least time between the end of one asked-for checkpoint and the next."""
 
@@ -288,20 +292,55 @@ def folder_app(data: Path) -> FastAPI:
 
 
 class GuardedH11Protocol(H11Protocol):
-    """uvicorn's HTTP/1.1 with the two limits it lacks. It holds a connection that sends no request
-    (or half of one) for ever, so idle connections could take every file descriptor of the
-    learner's process: its checkpoint and log writes would fail, and no other client be served.
-    Here a connection that has not sent a whole request head within REQUEST_HEAD_S is closed, and
-    one beyond MAX_CONNECTIONS at once is closed on arrival."""
+    """uvicorn's HTTP/1.1 with the limits it lacks. It holds a connection that sends no request (or
+    half of one), or that never reads its response, for ever (a close waits for the unsent bytes),
+    so such clients could take every connection slot and file descriptor of the learner's process:
+    its checkpoint and log writes would fail, and no other client be served. Here a connection that
+    has not sent a whole request head within REQUEST_HEAD_S is closed; one whose unsent response
+    shrinks by nothing for WRITE_STALL_S is dropped (its unsent bytes with it); and one beyond
+    MAX_CONNECTIONS at once, or beyond MAX_PER_PEER from one client address, is closed on arrival."""
 
     _head_timer: asyncio.TimerHandle | None = None
+    _write_timer: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        if len(self.connections) > MAX_CONNECTIONS:
+        peer = self.client[0] if self.client else None
+        same_peer = sum(1 for c in self.connections if c.client is not None and c.client[0] == peer)
+        if len(self.connections) > MAX_CONNECTIONS or (peer is not None and same_peer > MAX_PER_PEER):
             transport.close()
             return
+        # Writing pauses as soon as the kernel's buffer holds no more, so the stall check below sees
+        # every response the client leaves unread, however small.
+        transport.set_write_buffer_limits(high=0)
         self._await_head()
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        self._watch_writes(self.transport.get_write_buffer_size())
+
+    def resume_writing(self) -> None:
+        self._writes_drained()
+        super().resume_writing()
+
+    def _watch_writes(self, unsent: int) -> None:
+        """While writing is paused no more is written, so the unsent bytes only shrink as the client
+        reads: none read in WRITE_STALL_S is a client that stopped reading."""
+        self._writes_drained()
+        self._write_timer = self.loop.call_later(WRITE_STALL_S, self._write_check, unsent)
+
+    def _write_check(self, before: int) -> None:
+        self._write_timer = None
+        unsent = self.transport.get_write_buffer_size()
+        if unsent >= before > 0:
+            self.transport.abort()
+        elif unsent > 0:
+            self._watch_writes(unsent)
+
+    def _writes_drained(self) -> None:
+        if self._write_timer is not None:
+            self._write_timer.cancel()
+            self._write_timer = None
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
@@ -312,6 +351,7 @@ class GuardedH11Protocol(H11Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._head_received()
+        self._writes_drained()
         super().connection_lost(exc)
 
     def _await_head(self) -> None:
