@@ -263,7 +263,8 @@ def test_writes_the_disk_refuses_show_in_status_and_healthz_says_degraded(tmp_pa
     learner.client = SimpleNamespace(invalid=0)
     learner.log, learner.wall_s, learner._scalars_at = Log("learner"), 1.0, time.monotonic()
     learner._evals, learner._episodes = queue.Queue(), queue.Queue()
-    app = make_app(learner.status, learner.health, degraded=lambda: degraded_reasons(learner.core))
+    app = make_app(learner.status, learner.health, degraded=lambda: degraded_reasons(learner.core),
+                   render_every_s=0.0)
     client = TestClient(app)
     assert client.get("/status").json()["writes"] == {"failed": {}, "failing": [], "last_error": "",
                                                       "last_error_at": None}

@@ -642,3 +642,32 @@ def test_one_client_address_cannot_take_every_connection(monkeypatch):
         for s in held:
             s.close()
         server.stop()
+
+
+def test_many_pollers_cost_one_render_and_the_next_interval_renders_anew(monkeypatch):
+    from concurrent.futures import ThreadPoolExecutor
+
+    calls = {"status": 0, "history": 0}
+
+    def status() -> dict:
+        calls["status"] += 1
+        return STATUS | {"updates": calls["status"]}
+
+    def history() -> list[dict]:
+        calls["history"] += 1
+        return [{"updates": calls["history"]}]
+
+    server, port = _serve(make_app(status, lambda: [], history, render_every_s=600.0), monkeypatch)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        with ThreadPoolExecutor(8) as pool:  # eight pollers, five polls each, of both
+            got = list(pool.map(lambda i: httpx.get(url + ("/status", "/history")[i % 2], timeout=30).json(),
+                                range(80)))
+        assert calls == {"status": 1, "history": 1}
+        assert {g["updates"] for g in got if "updates" in g} == {1}
+        assert {g["points"][0]["updates"] for g in got if "points" in g} == {1}
+    finally:
+        server.stop()
+    client = TestClient(make_app(status, lambda: [], history, render_every_s=0.0))
+    assert client.get("/status").json()["updates"] == 2  # a new interval: rendered again
+    assert client.get("/status").json()["updates"] == 3

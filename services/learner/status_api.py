@@ -57,6 +57,9 @@ MAX_PER_PEER = 32
 """Connections one client address holds at once; one more from it is closed as soon as it is accepted."""
 WRITE_STALL_S = 10.0
 """How long a response waiting to be sent may go without the client reading any of it."""
+RENDER_EVERY_S = 1.0
+"""/status, /history and /metrics: a body is rendered at most once in this long, however many clients
+poll (the dashboard polls every 2 s)."""
 CHECKPOINT_EVERY_S = 10.0
 """POST /control/checkpoint: the least time between the end of one asked-for checkpoint and the next."""
 
@@ -64,11 +67,19 @@ CHECKPOINT_EVERY_S = 10.0
 def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
              history: Callable[[], list[dict]] | None = None, metrics: Callable[[], bytes] | None = None,
              data: Path | None = None, controls: dict[str, Callable[[], str]] | None = None,
-             token: str | None = None, degraded: Callable[[], list[str]] | None = None) -> FastAPI:
+             token: str | None = None, degraded: Callable[[], list[str]] | None = None,
+             render_every_s: float | None = None) -> FastAPI:
     """The routes; `health` returns the reasons the learner is unhealthy (empty: healthy), `degraded`
     those it works on with a fault (writes the disk refuses).
-    `controls`: name -> action (returns what it did), each at POST /control/<name>, behind `token`."""
+    `controls`: name -> action (returns what it did), each at POST /control/<name>, behind `token`.
+    `render_every_s` (default RENDER_EVERY_S): how long a rendered /status, /history or /metrics is
+    served again."""
     app = FastAPI(title="nasa-td3 learner", docs_url=None, redoc_url=None)
+    every_s = RENDER_EVERY_S if render_every_s is None else render_every_s
+    status_body = Rendered(lambda: _json_bytes(status()), every_s)
+    history_body = Rendered(lambda: _json_bytes({"points": history() if history else [],
+                                                 "evals": evaluations(data), "media": media(data)}), every_s)
+    metrics_body = Rendered(metrics if metrics is not None else lambda: status_metrics(status()), every_s)
     for name, action in (controls or {}).items():
         _add_control(app, name, action, token)
 
@@ -82,12 +93,11 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
 
     @app.get("/status")
     def get_status() -> Response:
-        return _json(status())
+        return Response(status_body(), media_type="application/json")
 
     @app.get("/history")
     def get_history() -> Response:
-        points = history() if history else []
-        return _json({"points": points, "evals": evaluations(data), "media": media(data)})
+        return Response(history_body(), media_type="application/json")
 
     @app.get("/media/{name}")
     def get_media(name: str) -> FileResponse:
@@ -109,8 +119,7 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
 
     @app.get("/metrics")
     def get_metrics() -> Response:
-        body = metrics() if metrics is not None else status_metrics(status())
-        return Response(body, media_type=PROMETHEUS_TEXT)
+        return Response(metrics_body(), media_type=PROMETHEUS_TEXT)
 
     return app
 
@@ -194,7 +203,29 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def _json(body: dict, status: int = 200) -> Response:
+class Rendered:
+    """A response body rendered at most once per `every_s`: the first request after that renders it
+    (the others meanwhile wait for it), and every request until then gets the same bytes. Each
+    render costs the learner's process CPU and interpreter lock, which its updates need; N clients
+    polling cost one render, not N."""
+
+    def __init__(self, render: Callable[[], bytes], every_s: float) -> None:
+        self.render, self.every_s = render, every_s
+        self._lock = threading.Lock()
+        self._body: bytes | None = None
+        self._at = 0.0
+        self.renders = 0
+
+    def __call__(self) -> bytes:
+        with self._lock:
+            if self._body is None or time.monotonic() - self._at >= self.every_s:
+                self._body = self.render()
+                self._at = time.monotonic()
+                self.renders += 1
+            return self._body
+
+
+def _json_bytes(body: dict) -> bytes:
     """JSON straight from json.dumps: FastAPI's encoder walks every value first, which costs the
     learner's process more than the encoding for a long history. A non-finite number (which
     JSON has no word for, and a browser refuses) goes out as null."""
@@ -202,7 +233,11 @@ def _json(body: dict, status: int = 200) -> Response:
         text = json.dumps(body, allow_nan=False)
     except ValueError:
         text = json.dumps(_finite_only(body), allow_nan=False)
-    return Response(text, status_code=status, media_type="application/json")
+    return text.encode()
+
+
+def _json(body: dict, status: int = 200) -> Response:
+    return Response(_json_bytes(body), status_code=status, media_type="application/json")
 
 
 def _finite_only(value: object) -> object:
