@@ -20,7 +20,7 @@ from tiny import tiny_config, tiny_run
 from nasa.train import Trainer
 from services.evaluator.media import AutoencoderTap, EvalMedia
 from services.learner.history import History, HistoryError
-from services.learner.metrics import ACTOR_FIGURES, INFO, SCALARS, LearnerMetrics
+from services.learner.metrics import ACTOR_FIGURES, INFO, SCALARS, LearnerMetrics, run_gauge
 from services.learner.status import StatusBoard
 from services.learner.status_api import StoppedRunError, folder_app, make_app
 from shared.agents import make_agent
@@ -66,10 +66,13 @@ def samples(text: str) -> dict[tuple[str, tuple], float]:
 def expected_samples(status: dict) -> dict[tuple[str, tuple], float]:
     """Every figure of /status as the sample it must be in /metrics."""
     want: dict[tuple[str, tuple], float] = {}
-    for path, name, _, _ in SCALARS:
+    for path, name, kind, _ in SCALARS:
         value = status
         for key in path.split("."):
             value = value[key]
+        if kind == "counter":  # the run's figure in a gauge; the counter counts from this process's start
+            want[(run_gauge(name), ())] = float(value)
+            value = 0
         want[(name, ())] = float(value)
     for key, value in status["policy_lag"].items():
         want[("nasa_policy_lag_updates", (("stat", key),))] = float(value)
@@ -112,7 +115,7 @@ def leaves(d: dict, prefix: str = "") -> set[str]:
 
 
 def test_metrics_parse_and_hold_every_figure_of_status():
-    metrics = LearnerMetrics(lambda: STATUS)
+    metrics = LearnerMetrics(lambda: STATUS, start=STATUS)
     metrics.update_seconds.observe(0.02)
     metrics.batch_wait_seconds.observe(0.001)
     client = TestClient(make_app(lambda: STATUS, lambda: [], metrics=metrics.render))
@@ -473,7 +476,7 @@ def test_a_damaged_stopped_status_costs_its_own_figures_not_the_scrape(tmp_path,
     response = client.get("/metrics")
     assert response.status_code == 200, response.text
     got = samples(response.text)
-    assert got[("nasa_env_steps_total", ())] == STATUS["env_steps"]
+    assert got[("nasa_run_env_steps", ())] == STATUS["env_steps"]
 
 
 def test_idle_connections_cannot_take_the_status_apis_process(monkeypatch):
@@ -671,3 +674,31 @@ def test_many_pollers_cost_one_render_and_the_next_interval_renders_anew(monkeyp
     client = TestClient(make_app(status, lambda: [], history, render_every_s=0.0))
     assert client.get("/status").json()["updates"] == 2  # a new interval: rendered again
     assert client.get("/status").json()["updates"] == 3
+
+
+def test_counters_count_from_the_process_start_and_never_step_back():
+    """A learner resumed from its checkpoint starts below the figures last scraped: its counters
+    start at 0 (a reset Prometheus knows), the run's position goes in a gauge."""
+    run = {"updates": 1000, "env_steps": 5000, "replay": {"limiter_samples": 900}}
+    metrics = LearnerMetrics(lambda: run, start=run)
+
+    def scrape() -> dict:
+        return samples(metrics.render().decode())
+
+    got = scrape()
+    assert got[("nasa_updates_total", ())] == 0 and got[("nasa_run_updates", ())] == 1000
+    assert got[("process_start_time_seconds", ())] > 0
+    run.update(updates=1010, env_steps=5040)
+    got = scrape()
+    assert got[("nasa_updates_total", ())] == 10 and got[("nasa_env_steps_total", ())] == 40
+    run["replay"]["limiter_samples"] = 600  # the limiter resynced lower: the counter holds
+    assert scrape()[("nasa_replay_limiter_samples_total", ())] == 0
+    run["replay"]["limiter_samples"] = 650
+    got = scrape()
+    assert got[("nasa_replay_limiter_samples_total", ())] == 50
+    assert got[("nasa_run_replay_limiter_samples", ())] == 650
+    # The next learner resumes from a checkpoint at 1005 updates: its counter starts at 0, not 1005
+    # below the 1010 last scraped.
+    resumed = {"updates": 1005, "env_steps": 5040}
+    after = samples(LearnerMetrics(lambda: resumed, start=resumed).render().decode())
+    assert after[("nasa_updates_total", ())] == 0 and after[("nasa_run_updates", ())] == 1005

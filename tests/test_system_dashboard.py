@@ -163,7 +163,8 @@ def test_dashboard_shows_the_run_in_chromium(tmp_path):
             page.screenshot(path=str(tmp_path / "dashboard-live.png"), full_page=True)
             metrics = metric_values(system.url)
             assert metrics[("nasa_actor_alive", (("actor", "0"),))] == 1.0
-            assert metrics[("nasa_updates_total", ())] >= status["updates"]
+            assert metrics[("nasa_run_updates", ())] >= status["updates"]
+            assert metrics[("nasa_updates_total", ())] >= status["updates"]  # one learner since step 0
             assert metrics[("nasa_update_duration_seconds_count", ())] > 0
             system.wait_exit(timeout=240)
             assert all(c.exited == 0 for c in system.sup.children.values()), system.logs()

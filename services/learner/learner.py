@@ -74,7 +74,7 @@ class Learner:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._published: int | None = None  # the update count of the actors' weights last published
         self.wall_s = self.core.counters.wall_s
-        self.metrics = LearnerMetrics(self.status)
+        self.metrics = LearnerMetrics(self.status, start=self.status())  # counters from here
         self.history = History()  # read by its own thread, never the update loop
         self._scalars_at = 0.0
         self._checkpoint_asked = CheckpointRequests()  # POST /control/checkpoint; the loop writes it

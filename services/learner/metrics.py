@@ -2,6 +2,12 @@
 
 Every figure of /status is one sample: the table below names each one's
 metric (Prometheus conventions: units in the name, `_total` for counters),
+and a count of the run (env steps, updates, ...) is two: a counter `_total` of
+what it grew by since this process started (0 at each start, never lower: a
+learner resumed from a checkpoint restarts below the last value scraped,
+which Prometheus would read as a reset followed by the whole run at once),
+and a gauge `nasa_run_...` of the run's own figure (its position, which may
+step back on a resume); `process_start_time_seconds` marks each start,
 the actors' figures carry an `actor` label (an actor's fault state is a
 gauge of 1 labelled with the state, its env step times a histogram), losses
 and intrinsic means a `name` label, and the run's identity (run id, algorithm, task, device, config
@@ -15,7 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 
-from prometheus_client import CollectorRegistry, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Histogram, ProcessCollector, generate_latest
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -125,6 +131,32 @@ def _actors(status: dict) -> list[dict]:
     return [a for a in actors if isinstance(a, dict) and "id" in a] if isinstance(actors, list) else []
 
 
+def run_gauge(counter: str) -> str:
+    """The gauge of a run-wide count beside its counter: nasa_updates_total -> nasa_run_updates."""
+    return "nasa_run_" + counter.removeprefix("nasa_").removesuffix("_total")
+
+
+class Growth:
+    """How much each run-wide count grew while this process watched it, from its value at the start
+    (`start`: a /status then; a count absent there starts at its first value seen). A count that
+    falls (the replay restarted, the limiter resynced) adds nothing, and what it grows by after
+    counts again."""
+
+    def __init__(self, start: dict | None = None) -> None:
+        self._last: dict[str, float] = {}
+        self._grown: dict[str, float] = {}
+        for path, _, kind, _ in SCALARS:
+            if kind == "counter" and start is not None and (value := figure(lookup(start, path))) is not None:
+                self._last[path] = value
+
+    def __call__(self, path: str, value: float) -> float:
+        last = self._last.setdefault(path, value)
+        if value > last and math.isfinite(value):
+            self._grown[path] = self._grown.get(path, 0.0) + value - last
+        self._last[path] = value
+        return self._grown.get(path, 0.0)
+
+
 def _family(kind: str, name: str, help_text: str, labels: list[str]) -> Metric:
     cls = CounterMetricFamily if kind == "counter" else GaugeMetricFamily
     return cls(name, help_text, labels=labels)
@@ -133,8 +165,9 @@ def _family(kind: str, name: str, help_text: str, labels: list[str]) -> Metric:
 class StatusCollector:
     """Turns one /status into metric families at scrape time."""
 
-    def __init__(self, status: Callable[[], dict]) -> None:
+    def __init__(self, status: Callable[[], dict], start: dict | None = None) -> None:
         self.status = status
+        self.growth = Growth(start)
 
     def describe(self) -> list[Metric]:
         return []  # unknown until scraped: registering must not call status()
@@ -145,10 +178,17 @@ class StatusCollector:
         info.add_metric([], {k: str(s.get(k, "")) for k in INFO})
         yield info
         for path, name, kind, help_text in SCALARS:
-            if (value := figure(lookup(s, path))) is not None:
-                family = _family(kind, name, help_text, [])
+            if (value := figure(lookup(s, path))) is None:
+                continue
+            if kind == "counter":
+                family = GaugeMetricFamily(run_gauge(name), f"{help_text}, over the run")
                 family.add_metric([], value)
                 yield family
+                value = self.growth(path, value)
+                help_text += ", since this process started"
+            family = _family(kind, name, help_text, [])
+            family.add_metric([], value)
+            yield family
         for path, name, label, help_text in LABELLED:
             family = GaugeMetricFamily(name, help_text, labels=[label])
             entries = lookup(s, path)
@@ -237,9 +277,11 @@ class LearnerMetrics:
     """The learner's registry: /status's figures plus the update-time, scoring-time and batch-wait
     histograms."""
 
-    def __init__(self, status: Callable[[], dict]) -> None:
+    def __init__(self, status: Callable[[], dict], start: dict | None = None) -> None:
+        """`start`: the /status at this process's start, which the counters count from."""
         self.registry = CollectorRegistry(auto_describe=False)
-        self.registry.register(StatusCollector(status))  # type: ignore[arg-type]
+        self.registry.register(StatusCollector(status, start))  # type: ignore[arg-type]
+        ProcessCollector(registry=self.registry)  # process_start_time_seconds: each start shows
         buckets = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
         self.update_seconds = Histogram(
             "nasa_update_duration_seconds", "Time of one update (scoring owed rows, then agent.update)",
@@ -257,7 +299,8 @@ class LearnerMetrics:
 
 
 def status_metrics(status: dict) -> bytes:
-    """The text a stopped run's /status gives (no histograms: nothing is being measured)."""
+    """The text a stopped run's /status gives (no histograms: nothing is being measured; the
+    counters 0: nothing grows)."""
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(StatusCollector(lambda: status))  # type: ignore[arg-type]
+    registry.register(StatusCollector(lambda: status, start=status))  # type: ignore[arg-type]
     return generate_latest(registry)
