@@ -1,6 +1,7 @@
 """Container health checks, one per role: `python healthcheck.py ROLE`, exit 0 when healthy.
 
-    learner   GET /healthz of its status API (NASA_STATUS_PORT, default 8000) answers 200 "ok", or
+    learner   GET /healthz of its status API (NASA_STATUS_HOST, NASA_STATUS_PORT; default
+              127.0.0.1:8000) answers 200 "ok", or
               200 "degraded: ..." (it trains on past writes the disk refuses; the reason is printed)
     router    its Zenoh port (from NASA_ZENOH_LISTEN, default 7447) accepts a connection
     replay    its liveliness token is visible through the router (NASA_ZENOH_CONNECT, NASA_RUN_ID)
@@ -50,9 +51,13 @@ def learner() -> bool:
     """The learner's /healthz answers 200 "ok" itself: a redirect (to a page that answers 200) or
     another server's 200 on the port is not the learner being healthy."""
     port = int(os.environ.get("NASA_STATUS_PORT", "8000"))
+    host = os.environ.get("NASA_STATUS_HOST", "127.0.0.1").strip("[]")
+    # Listening on every interface: loopback is one of them; on one address: only that one.
+    host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
     opener = urllib.request.build_opener(_NoRedirect)
     try:
-        with opener.open(f"http://127.0.0.1:{port}/healthz", timeout=TIMEOUT_S) as response:
+        url_host = f"[{host}]" if ":" in host else host
+        with opener.open(f"http://{url_host}:{port}/healthz", timeout=TIMEOUT_S) as response:
             body = response.read(4096)
     except OSError:
         return False

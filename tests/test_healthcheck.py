@@ -82,3 +82,19 @@ def test_an_endpoint_with_metadata_or_config_is_checked_at_its_address(monkeypat
         monkeypatch.setenv("NASA_ZENOH_CONNECT", f"tcp/127.0.0.1:{port}{suffix},tcp/10.0.0.9:7447")
         assert healthcheck.router()
         assert healthcheck.reaches_router()
+
+
+def test_a_learner_listening_on_one_address_is_checked_there(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Not on 127.0.0.1, where a status API bound to another address (NASA_STATUS_HOST) never answers."""
+    httpd = ThreadingHTTPServer(("127.0.0.2", 0), Handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        monkeypatch.setenv("NASA_STATUS_PORT", str(httpd.server_address[1]))
+        monkeypatch.setenv("NASA_STATUS_HOST", "127.0.0.2")
+        assert healthcheck.learner()
+        monkeypatch.setenv("NASA_STATUS_HOST", "0.0.0.0")
+        assert not healthcheck.learner()  # nothing on 127.0.0.1 at that port
+    finally:
+        httpd.shutdown()
+        httpd.server_close()

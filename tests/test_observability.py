@@ -702,3 +702,11 @@ def test_counters_count_from_the_process_start_and_never_step_back():
     resumed = {"updates": 1005, "env_steps": 5040}
     after = samples(LearnerMetrics(lambda: resumed, start=resumed).render().decode())
     assert after[("nasa_updates_total", ())] == 0 and after[("nasa_run_updates", ())] == 1005
+
+
+def test_healthz_answers_head_as_uptime_checkers_ask():
+    reasons: list[str] = []
+    client = TestClient(make_app(lambda: STATUS, lambda: reasons))
+    assert client.head("/healthz").status_code == 200
+    reasons.append("stopping (SIGTERM)")
+    assert client.head("/healthz").status_code == 503

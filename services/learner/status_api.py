@@ -105,7 +105,7 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
             raise HTTPException(404)
         return FileResponse(_inside(Path(data) / MEDIA_DIR, name))
 
-    @app.get("/healthz")
+    @app.api_route("/healthz", methods=["GET", "HEAD"])  # uptime checkers often ask with HEAD
     def get_healthz() -> PlainTextResponse:
         reasons = health()
         if isinstance(reasons, bool):  # a health callable of the older form: True when healthy
