@@ -280,6 +280,18 @@ def test_controls_need_the_bearer_token() -> None:
     assert client.get("/control/stop").status_code == 405  # a control is never a GET
 
 
+def test_the_bearer_scheme_is_case_insensitive_as_in_http() -> None:
+    client, done = control_app("s3cret-token")
+    def post(header: str) -> int:
+        return client.post("/control/checkpoint", headers={"Authorization": header}).status_code
+
+    for header in ("bearer s3cret-token", "BEARER s3cret-token", "Bearer  s3cret-token"):
+        assert post(header) == 202, header
+    for header in ("Basic s3cret-token", "bearer", "bearer s3cret", "Bearers3cret-token"):
+        assert post(header) == 401, header
+    assert done == ["checkpoint"] * 3
+
+
 def test_controls_are_open_without_a_token() -> None:
     client, done = control_app(None)
     assert client.post("/control/checkpoint").status_code == 202

@@ -166,13 +166,15 @@ class CheckpointRequests:
 
 def bearer_guard(token: str | None) -> Callable[[str | None], None]:
     """A dependency that lets a request through only with `Authorization: Bearer <token>` (any request
-    when `token` is None). The comparison takes the same time wherever the two first differ."""
-    expected = f"Bearer {token}".encode()
+    when `token` is None; the scheme's case is free, as HTTP's auth schemes are). The comparison
+    takes the same time wherever the two first differ."""
+    expected = (token or "").encode()
 
     def guard(authorization: str | None = Header(default=None)) -> None:
         if token is None:
             return
-        if authorization is None or not hmac.compare_digest(authorization.encode(), expected):
+        scheme, _, given = (authorization or "").strip().partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected):
             raise HTTPException(401, "a bearer token is required", headers={"WWW-Authenticate": "Bearer"})
 
     return guard
