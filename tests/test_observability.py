@@ -697,6 +697,10 @@ def test_counters_count_from_the_process_start_and_never_step_back():
     got = scrape()
     assert got[("nasa_replay_limiter_samples_total", ())] == 50
     assert got[("nasa_run_replay_limiter_samples", ())] == 650
+    run["updates"] = float("nan")  # no count for one scrape: the counter holds, and counts on after
+    assert scrape()[("nasa_updates_total", ())] == 10
+    run["updates"] = 1012
+    assert scrape()[("nasa_updates_total", ())] == 12
     # The next learner resumes from a checkpoint at 1005 updates: its counter starts at 0, not 1005
     # below the 1010 last scraped.
     resumed = {"updates": 1005, "env_steps": 5040}

@@ -146,12 +146,15 @@ class Growth:
         self._last: dict[str, float] = {}
         self._grown: dict[str, float] = {}
         for path, _, kind, _ in SCALARS:
-            if kind == "counter" and start is not None and (value := figure(lookup(start, path))) is not None:
+            value = figure(lookup(start, path)) if kind == "counter" and start is not None else None
+            if value is not None and math.isfinite(value):
                 self._last[path] = value
 
     def __call__(self, path: str, value: float) -> float:
+        if not math.isfinite(value):  # no count (a damaged status): it must not stop the counting
+            return self._grown.get(path, 0.0)
         last = self._last.setdefault(path, value)
-        if value > last and math.isfinite(value):
+        if value > last:
             self._grown[path] = self._grown.get(path, 0.0) + value - last
         self._last[path] = value
         return self._grown.get(path, 0.0)
