@@ -148,7 +148,8 @@ class CheckpointRequests:
                 return "a checkpoint is already pending; this request joins it"
             now = time.monotonic()
             if self._written_at is not None and (wait := self._written_at + CHECKPOINT_EVERY_S - now) > 0:
-                raise HTTPException(429, f"a checkpoint was written {now - self._written_at:.1f} s ago; "
+                ago = now - self._written_at
+                raise HTTPException(429, f"the last checkpoint asked for ended {ago:.1f} s ago; "
                                          f"ask again in {wait:.1f} s",
                                     headers={"Retry-After": str(math.ceil(wait))})
             self._pending = True
