@@ -411,8 +411,10 @@ def test_a_non_finite_figure_goes_out_as_null_not_as_json_no_browser_reads():
     assert json.loads(client.get("/history").text)["points"] == [{"novelty_mean": None}]
 
 
-def test_a_status_read_that_fails_does_not_end_the_series():
-    reads = iter([STATUS, RuntimeError("dictionary changed size during iteration")])
+@pytest.mark.parametrize("first", [True, False])
+def test_a_status_read_that_fails_does_not_end_the_series(first):
+    failure = RuntimeError("dictionary changed size during iteration")
+    reads = iter([failure] if first else [STATUS, failure])  # the first read at start, or a later one
 
     def status() -> dict:
         item = next(reads, STATUS)

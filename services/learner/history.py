@@ -83,15 +83,18 @@ class History:
         """Read `status` every `every_s` seconds on a daemon thread until `stop`."""
         def run() -> None:
             while not self._stop.wait(self.every_s):
-                try:
-                    self.add(status())
-                except Exception as err:  # noqa: BLE001 -- one bad read must not end the series
-                    self.failed_reads += 1
-                    self.last_error = f"{type(err).__name__}: {err}"
+                self._read(status)
 
-        self.add(status())
+        self._read(status)
         self._thread = threading.Thread(target=run, name="history", daemon=True)
         self._thread.start()
+
+    def _read(self, status: Callable[[], dict]) -> None:
+        try:
+            self.add(status())
+        except Exception as err:  # noqa: BLE001 -- one bad read must not end the series (nor the learner)
+            self.failed_reads += 1
+            self.last_error = f"{type(err).__name__}: {err}"
 
     def stop(self) -> None:
         self._stop.set()
