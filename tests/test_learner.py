@@ -286,6 +286,8 @@ def test_writes_the_disk_refuses_show_in_status_and_healthz_says_degraded(tmp_pa
         learner.core.board.seen_env_steps(60)
         assert not learner.core.save_checkpoint(wall_s=1.0)
     assert client.get("/status").json()["writes"]["failing"] == ["checkpoint", "train.csv"]
+    health = client.get("/healthz")  # degraded, not 503: a liveness probe would restart it onto the disk
+    assert health.status_code == 200 and "checkpoint, train.csv" in health.text
 
     learner._episodes.put((11.0, 5))  # room again: the next row goes in, the failure is history
     learner._drain()

@@ -68,7 +68,9 @@ def health_reasons(core: LearnerCore, a: LearnerArgs, stop: StopFlag) -> list[st
         reasons.append(f"{board.skipped_updates} updates skipped for non-finite losses or gradients")
     if board.replay["write_error"]:
         reasons.append(f"the replay cannot write: {board.replay['write_error']}")
-    if core.checkpoint_error:
+    # A checkpoint the disk refused is degraded (degraded_reasons): a restart, which a liveness probe
+    # makes of a 503, would lose the updates since the last one and meet the same disk.
+    if core.checkpoint_error and "checkpoint" not in board.writes.failing():
         reasons.append(f"checkpoint not written: {core.checkpoint_error}")
     if looping := board.crash_looping(a.actor_restarts, a.crash_window_s):
         reasons.append(f"actor(s) {looping} restarted more than {a.actor_restarts} times in "
