@@ -1,7 +1,9 @@
-"""File-system helpers shared by the run's writers: whole-file replacement, folder fsync, log tails."""
+"""File-system helpers shared by the run's writers: whole-file replacement, folder fsync, log tails,
+and values made fit for strict JSON."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -45,3 +47,14 @@ def last_line(path: str | Path, max_bytes: int = 4096) -> str:
         f.seek(max(0, f.seek(0, os.SEEK_END) - max_bytes))
         lines = f.read().decode("utf-8", "replace").splitlines()
     return next((line.strip() for line in reversed(lines) if line.strip()), "")
+
+
+def finite_only(value: object) -> object:
+    """`value` with each NaN or infinite float, which JSON has no word for, as None (null)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_only(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_only(v) for v in value]
+    return value

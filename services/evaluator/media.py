@@ -14,7 +14,6 @@ an evaluation's episodes: the learner's update loop renders nothing.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 from pathlib import Path
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.agents.base import check_fits, module_state
-from shared.files import replace_text
+from shared.files import finite_only, replace_text
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.video import (
     CAMERA_SIZE,
@@ -36,17 +35,6 @@ from shared.video import (
 
 MEDIA_DIR = "media"
 AE_IMAGE = "autoencoder.png"
-
-
-def finite_only(value: object) -> object:
-    """`value` with each NaN or infinite float, which JSON has no word for, as None (null)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite_only(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [finite_only(v) for v in value]
-    return value
 
 
 class AutoencoderTap:

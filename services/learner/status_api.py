@@ -39,6 +39,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol, h11  # the h11 that uvi
 from services.learner import history as run_history
 from services.learner.metrics import status_metrics
 from shared.config import ConfigError
+from shared.files import finite_only
 from shared.run_config import read_json_object
 from shared.runlog import read_rows
 
@@ -235,22 +236,12 @@ def _json_bytes(body: dict) -> bytes:
     try:
         text = json.dumps(body, allow_nan=False)
     except ValueError:
-        text = json.dumps(_finite_only(body), allow_nan=False)
+        text = json.dumps(finite_only(body), allow_nan=False)
     return text.encode()
 
 
 def _json(body: dict, status: int = 200) -> Response:
     return Response(_json_bytes(body), status_code=status, media_type="application/json")
-
-
-def _finite_only(value: object) -> object:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite_only(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite_only(v) for v in value]
-    return value
 
 
 def _inside(folder: Path, name: str) -> Path:
