@@ -2,45 +2,44 @@
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import signal
-import sys
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from nasa.stopping import interrupted  # first, and light: a Ctrl-C during the imports below is one line
 
-import tyro
+with interrupted("nasa", "while starting"):
+    import argparse
+    import contextlib
+    import os
+    import signal
+    import sys
+    from collections.abc import Callable
+    from dataclasses import dataclass, field
+    from pathlib import Path
+    from typing import TYPE_CHECKING, Annotated
 
-from nasa.plot import plot
-from nasa.reproduce import reproduce
-from shared import run_config
-from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
-from shared.device import resolve_device
-from shared.service import EXIT_BAD_INPUT, bad_input_errors, die_with_parent, given_flags, parse_with_preset
+    import tyro
+
+    from nasa.plot import plot
+    from nasa.reproduce import reproduce
+    from nasa.stopping import (
+        STOP_SIGNALS,
+        Terminated,
+        ignore_stop_signals,
+        raise_terminated,
+        second_signal_forces,
+        signal_code,
+    )
+    from shared import run_config
+    from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
+    from shared.device import resolve_device
+    from shared.service import (
+        EXIT_BAD_INPUT,
+        bad_input_errors,
+        die_with_parent,
+        given_flags,
+        parse_with_preset,
+    )
 
 if TYPE_CHECKING:
     from nasa.train import Trainer
-
-
-class Terminated(Exception):
-    """SIGTERM, raised where the run is, as Ctrl-C raises KeyboardInterrupt: the same clean stop."""
-
-
-def _raise_terminated(_signum: int, _frame: object) -> None:
-    raise Terminated
-
-
-def _signal_code(err: BaseException) -> int:
-    """128 + the signal that raised `err` (130, 143), the shell's convention."""
-    return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
-
-
-def _ignore_stop_signals() -> None:
-    """A second Ctrl-C or SIGTERM would cut the stop message short; the run is stopping anyway."""
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @dataclass
@@ -134,17 +133,17 @@ def open_trainer(make: Callable[[], Trainer], out: Path) -> Trainer:
     with one line, as in the run: what the folder holds is cut back again on the next resume."""
     from shared.faults import RunFolderError
 
-    signal.signal(signal.SIGTERM, _raise_terminated)
+    signal.signal(signal.SIGTERM, raise_terminated)
     try:
         return make()
     except OSError as err:
         raise RunFolderError(f"{out}: {write_error(err)}") from err
     except (KeyboardInterrupt, Terminated) as err:
-        _ignore_stop_signals()
+        ignore_stop_signals()  # one line to print, then it exits
         how = (f"continue with: nasa train --resume {out}" if (out / run_config.CONFIG_FILE).exists()
                else "start it again")
         print(f"\nnasa train: stopped before the run began; {how}", file=sys.stderr, flush=True)
-        sys.exit(_signal_code(err))
+        sys.exit(signal_code(err))
 
 
 def run_until_stopped(trainer: Trainer, out: Path) -> None:
@@ -155,11 +154,11 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
     from nasa.train import EnvFaultsInARow
     from shared.envs import EnvFault
 
-    signal.signal(signal.SIGTERM, _raise_terminated)
+    signal.signal(signal.SIGTERM, raise_terminated)
     try:
         trainer.run()
     except (KeyboardInterrupt, Terminated) as err:
-        _stopped(trainer, out, "", _signal_code(err))
+        _stopped(trainer, out, "", signal_code(err))
     except OSError as err:
         _stopped(trainer, out, f": {write_error(err)}", 1, "once it can be written again, ")
     except (EnvFaultsInARow, EnvFault) as err:  # a step's EnvFault is handled in the run: a reset's
@@ -173,14 +172,27 @@ def write_error(err: OSError) -> str:
 
 
 def _stopped(trainer: Trainer, out: Path, why: str, code: int, when: str = "") -> None:
-    _ignore_stop_signals()
-    with contextlib.suppress(OSError):  # closing flushes files the disk may still refuse
-        trainer.close()
     saved = trainer.last_checkpoint_step
     where = (f"its last checkpoint holds step {saved}" if saved
              else "it has no checkpoint yet, so --resume starts it over")
-    print(f"\nnasa train: stopped at step {trainer.counters.env_steps}{why}; {where}; "
-          f"{when}continue with: nasa train --resume {out}", file=sys.stderr, flush=True)
+    # Closing flushes the replay's log and TensorBoard's files: a slow disk can hold it up, and a
+    # second signal then ends it at once (the checkpoint is whole, the logs drop what was cut).
+    # Under `nasa reproduce`, its SIGTERM follows the terminal's Ctrl-C that both got: a stop,
+    # not a second signal; the terminal's second Ctrl-C still forces.
+    ignore_stop_signals()
+    forcing = (signal.SIGINT,) if os.environ.get("NASA_PARENT_PID") else STOP_SIGNALS
+    second_signal_forces("nasa train", f"{where}; {when}continue with: nasa train --resume {out}",
+                         signals=forcing)
+    signalled = code > 128
+    if signalled:
+        print(f"\nnasa train: stopping at step {trainer.counters.env_steps}: closing the run's files "
+              "(Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+    with contextlib.suppress(OSError):  # closing flushes files the disk may still refuse
+        trainer.close()
+    ignore_stop_signals()  # closed: one line to print, then it exits
+    lead = "" if signalled else "\n"  # after the "stopping" line, or the first
+    print(f"{lead}nasa train: stopped at step {trainer.counters.env_steps}{why}; "
+          f"{where}; {when}continue with: nasa train --resume {out}", file=sys.stderr, flush=True)
     sys.exit(code)
 
 
@@ -191,7 +203,7 @@ def up(argv: list[str]) -> None:
         run_up(argv)
     except KeyboardInterrupt:  # Ctrl-C before nasa up's own handlers, so before any service started
         print("\nnasa up: interrupted before any service started", file=sys.stderr, flush=True)
-        sys.exit(_signal_code(KeyboardInterrupt()))
+        sys.exit(signal_code(KeyboardInterrupt()))
 
 
 def status(argv: list[str]) -> None:
@@ -233,7 +245,8 @@ def main(argv: list[str] | None = None) -> None:
         print(usage(), file=sys.stdout if asked else sys.stderr)
         sys.exit(0 if asked else EXIT_BAD_INPUT)
     try:
-        COMMANDS[argv[0]][0](argv[1:])
+        with interrupted(f"nasa {argv[0]}"):  # a command's own stop takes over once it is set up
+            COMMANDS[argv[0]][0](argv[1:])
     except (*bad_input_errors(), FileExistsError) as err:
         print(f"nasa {argv[0]}: error: {err}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)

@@ -253,16 +253,16 @@ def log_error(path: Path) -> str:
 def run_until_stopped(jobs: list[tuple[Run, list[str]]], parallel: int) -> list[Run]:
     """`execute`; on Ctrl-C (SIGINT) or SIGTERM, once the runs under way have stopped, say how to
     go on in one line and exit 128 + the signal (130, 143), the shell's convention."""
-    from nasa.cli import Terminated, _ignore_stop_signals, _raise_terminated, _signal_code
+    from nasa.stopping import Terminated, ignore_stop_signals, raise_terminated, signal_code
 
-    signal.signal(signal.SIGTERM, _raise_terminated)
+    signal.signal(signal.SIGTERM, raise_terminated)
     try:
         return execute(jobs, parallel)
     except (KeyboardInterrupt, Terminated) as err:
-        _ignore_stop_signals()
+        ignore_stop_signals()
         print("\nnasa reproduce: stopped, and so were the runs under way; run the same command "
               "again to resume them", file=sys.stderr, flush=True)
-        sys.exit(_signal_code(err))
+        sys.exit(signal_code(err))
 
 
 def launch(run: Run, cmd: list[str]) -> tuple[subprocess.Popen, IO[str]]:

@@ -24,12 +24,13 @@ bus, or the real gripper.
 
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
-then exits non-zero: 2 if it refused its input), on Ctrl-C, SIGTERM or SIGHUP (its terminal
-closed; exit 130, 143 or 129, the shell's 128 + the signal: a run stopped from outside is not a
-finished one).
+then exits non-zero: 2 if it refused its input), on Ctrl-C, SIGTERM or SIGHUP
+(its terminal closed; exit 130, 143 or 129, the shell's 128 + the signal: a run
+stopped from outside is not a finished one).
 Children are stopped in order (actors, evaluator, learner, replay), killed if
-they do not exit in time, and get SIGTERM if the launcher itself dies
-(PR_SET_PDEATHSIG, set by each service at start), so no process is left.
+they do not exit in time, or at once on a second Ctrl-C or SIGTERM (StopSignals),
+and get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG, set by each
+service at start), so no process is left.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from typing import Annotated, BinaryIO, Literal
 import tyro
 
 from nasa import layout
+from nasa.stopping import second_signal_forces
 from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.files import last_line
@@ -60,6 +62,8 @@ RUN_AUTH = "run"
 """--zenoh-auth's default: the run folder's own credentials."""
 
 STOP_ORDER = ("actor", "robot_bridge", "evaluator", "learner", "replay")  # a bridge e-stops as it stops
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+FORCE_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # a closed terminal can send SIGHUP twice
 
 
 def service_command(role: str) -> list[str]:
@@ -274,6 +278,77 @@ class Supervisor:
             if c.proc is not None and c.proc.poll() is None:
                 c.proc.kill()
                 c.proc.wait()
+
+    def kill_all(self, wait_s: float = 5.0) -> list[str]:
+        """SIGKILL every child still running and reap it; returns their names. For a forced stop,
+        from a signal handler: Popen's own wait takes a lock the interrupted stop may hold, so the
+        processes are killed and reaped by pid (a killed learner leaves its last checkpoint whole:
+        it lands by a rename)."""
+        self.stopping = True
+        alive = [c for c in list(self.children.values()) if c.proc is not None and c.proc.returncode is None]
+        killed = []
+        for c in alive:
+            try:
+                os.kill(c.proc.pid, signal.SIGKILL)  # a zombie not yet reaped takes it harmlessly
+            except ProcessLookupError:
+                continue
+            killed.append(c)
+        deadline = time.monotonic() + wait_s  # one stuck in the kernel (a device, a network disk) is left
+        names = []
+        for c in killed:
+            while True:
+                try:
+                    pid, status = os.waitpid(c.proc.pid, os.WNOHANG)
+                except ChildProcessError:  # reaped already, by the stop this interrupts
+                    break
+                if pid:
+                    c.proc.returncode = os.waitstatus_to_exitcode(status)
+                    if c.proc.returncode == -signal.SIGKILL:
+                        names.append(c.name)
+                    break
+                if time.monotonic() >= deadline:
+                    names.append(f"{c.name} (not yet gone)")
+                    break
+                time.sleep(0.01)
+        return names
+
+
+class StopSignals:
+    """Why `nasa up` stops. The first Ctrl-C, SIGTERM or SIGHUP stops the run in order (`reason`,
+    `signum`); from then on (or once the run stops by itself) a Ctrl-C or SIGTERM forces it: every
+    service left is killed and `nasa up` exits at once, 128 + that signal."""
+
+    def __init__(self, sup: Supervisor, after: str) -> None:
+        self.sup = sup
+        self.after = after  # said once forced: how the run goes on
+        self.reason = ""
+        self.signum = 0
+
+    def install(self) -> None:
+        # SIGHUP: the terminal went away (an ssh session dropped); stop in order as for SIGTERM, where
+        # its default would end this process at once and leave the services to stop all together.
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, self._on_signal)
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        if self.signum:  # a second SIGHUP (a shell passes its own on): not a user's "force"
+            return
+        self.reason, self.signum = signal.Signals(signum).name, signum
+        self._arm()
+
+    def _arm(self) -> None:
+        second_signal_forces("nasa up", self.after, self._force, FORCE_SIGNALS, sys.stdout.fileno())
+
+    def _force(self) -> str:
+        killed = self.sup.kill_all()
+        return f"killed {', '.join(killed)}" if killed else "no service was left"
+
+    def stopping(self) -> None:
+        """The stop in order begins: say so, and that a Ctrl-C kills what is left."""
+        if not self.signum:  # the run ended by itself: a first Ctrl-C now forces
+            self._arm()
+        again = "again " if self.signum else ""
+        say(f"stopping in order ({self.reason or 'error'}); Ctrl-C {again}kills what is left")
 
 
 @dataclass
@@ -547,47 +622,45 @@ def up(argv: list[str]) -> None:
     auth = up_auth(cmd, data, run_id, env)
     from shared.zenoh_session import open_router
 
-    stop = {"reason": "", "signum": 0}
-
-    def on_signal(signum: int, _frame: object) -> None:
-        stop["reason"], stop["signum"] = signal.Signals(signum).name, signum
-
-    # SIGHUP: the terminal went away (an ssh session dropped); stop in order as for SIGTERM, where
-    # its default would end this process at once and leave the services to stop all together.
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, on_signal)
+    sup = Supervisor(env, data / "logs" if cmd.logs else None)
+    stop = StopSignals(sup, f"the same command resumes the run from {data}")
+    stop.install()
     ended: Child | None = None
     with open_router(endpoint, auth=auth):
-        sup = Supervisor(env, data / "logs" if cmd.logs else None)
         try:
             for name, args in with_bridges(cmd, service_argv(cmd, data, lay), run_id).items():
                 role = name.split("-")[0]
                 sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0,
                         env=omp_env(cmd, lay, role))
             say(f"run {run_id} in {data}; router {endpoint}; status http://127.0.0.1:{cmd.port}/status")
-            while not stop["reason"]:
+            while not stop.reason:
                 sup.poll(say)
-                # The run cannot go on without its learner or its replay, nor without any actor.
-                ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
-                if ended is not None:
-                    if ended.role == "actor":  # all_ended: none of them with 0
-                        last = f"{ended.name}, {exit_text(ended.exited)}"
-                        stop["reason"] = f"no actor is left: the last, {last}"
-                    elif ended.exited == 0:
-                        stop["reason"] = f"the run is done ({ended.name} finished)"
-                    else:
-                        stop["reason"] = f"{ended.name} {exit_text(ended.exited)}"
+                if end := run_ends(sup):
+                    ended, stop.reason = end
                     break
                 time.sleep(0.2)
         finally:
-            say(f"stopping ({stop['reason'] or 'error'})")
+            stop.stopping()
             sup.stop_all(on_event=say)
     say("stopped")
     lock.close()
     if ended is not None and ended.exited:
         sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
-    if stop["signum"]:  # 130, 143, 129 (as `nasa train`): a run stopped from outside is not a finished one
-        sys.exit(128 + stop["signum"])
+    if stop.signum:  # 130, 143, 129 (as `nasa train`): a run stopped from outside is not a finished one
+        sys.exit(128 + stop.signum)
+
+
+def run_ends(sup: Supervisor) -> tuple[Child, str] | None:
+    """The child whose end ends the run, and why; None while it goes on. The run cannot go on
+    without its learner or its replay, nor without any actor."""
+    ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
+    if ended is None:
+        return None
+    if ended.role == "actor":  # all_ended: none of them with 0
+        return ended, f"no actor is left: the last, {ended.name}, {exit_text(ended.exited)}"
+    if ended.exited == 0:
+        return ended, f"the run is done ({ended.name} finished)"
+    return ended, f"{ended.name} {exit_text(ended.exited)}"
 
 
 def say(msg: str) -> None:

@@ -65,7 +65,7 @@ def test_a_run_with_logins_acl_and_token(tmp_path: Path) -> None:
         out, _ = up.communicate(timeout=120)
         assert up.returncode == 0, out
         # Ended by the Stop message: the run is done, not a service that died.
-        assert re.search(r"stopping \(the run is done \((learner|replay) finished\)\)", out), out
+        assert re.search(r"stopping in order \(the run is done \((learner|replay) finished\)\)", out), out
         assert "stop message: stop requested over HTTP" in (data / "logs" / "learner.log").read_text()
     finally:
         if up.poll() is None:

@@ -1,0 +1,202 @@
+"""How the `nasa` commands stop: a second Ctrl-C forces the stop, a Ctrl-C during start-up is one
+line, with real processes and real signals (no Zenoh, no torch in the children)."""
+
+from __future__ import annotations
+
+import ast
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+# nasa up's StopSignals over a Supervisor whose two services ignore SIGTERM: the stop in order
+# would wait 600 s for each. argv: the folder, and `signal` (a Ctrl-C starts the stop) or `done`
+# (the run ends by itself and stops in order).
+UP_STOP = """
+import pathlib, sys, time
+from nasa.up import StopSignals, Supervisor, say
+folder, how = pathlib.Path(sys.argv[1]), sys.argv[2]
+child = '''
+import pathlib, signal, sys, time
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+(pathlib.Path(sys.argv[2]) / ("ready-" + sys.argv[1])).touch()
+while True:
+    time.sleep(0.05)
+'''
+sup = Supervisor({}, folder / "logs", command=lambda role: [sys.executable, "-c", child, role])
+stop = StopSignals(sup, "the same command resumes it")
+stop.install()
+for role in ("actor", "learner"):
+    sup.add({"actor": "actor-0"}.get(role, role), role, [str(folder)])
+while not all((folder / ("ready-" + r)).exists() for r in ("actor", "learner")):
+    time.sleep(0.02)
+print("pids", *[c.proc.pid for c in sup.children.values()], flush=True)
+if how == "done":
+    stop.reason = "the run is done (learner finished)"
+while not stop.reason:
+    time.sleep(0.05)
+stop.stopping()
+sup.stop_all(timeout_s=600, on_event=say)
+say("stopped")
+"""
+
+
+def start(script: str, *args: str, env: dict | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", script, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=REPO, env=env or ENV)
+
+
+def gone(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] == "Z"  # a zombie is gone too
+    except FileNotFoundError:
+        return True
+
+
+def test_a_second_ctrl_c_while_nasa_up_stops_in_order_kills_what_is_left_and_exits_130(tmp_path):
+    up = start(UP_STOP, str(tmp_path), "signal")
+    try:
+        pids = [int(p) for p in up.stdout.readline().split()[1:]]
+        assert len(pids) == 2
+        up.send_signal(signal.SIGINT)
+        assert up.stdout.readline().strip() == ("nasa up: stopping in order (SIGINT); Ctrl-C again "
+                                                "kills what is left")
+        up.send_signal(signal.SIGINT)  # both services ignore SIGTERM: without it, a 600 s wait
+        out, err = up.communicate(timeout=120)
+    finally:
+        up.kill()
+    assert up.returncode == 130, (out, err)
+    assert out.strip() == ("nasa up: forced to stop (SIGINT); killed actor-0, learner; the same command "
+                           "resumes it")
+    assert "Traceback" not in err, err
+    assert all(gone(p) for p in pids)
+
+
+def test_a_ctrl_c_while_a_finished_run_stops_in_order_forces_it(tmp_path):
+    up = start(UP_STOP, str(tmp_path), "done")
+    try:
+        pids = [int(p) for p in up.stdout.readline().split()[1:]]
+        assert up.stdout.readline().strip() == ("nasa up: stopping in order (the run is done (learner "
+                                                "finished)); Ctrl-C kills what is left")
+        up.send_signal(signal.SIGTERM)
+        out, _ = up.communicate(timeout=120)
+    finally:
+        up.kill()
+    assert up.returncode == 143, out
+    assert out.strip().startswith("nasa up: forced to stop (SIGTERM); killed actor-0, learner")
+    assert all(gone(p) for p in pids)
+
+
+def test_a_second_sighup_does_not_force_the_stop(tmp_path):
+    # A closed terminal can send SIGHUP twice (the kernel, then the shell): it still stops in order.
+    up = start(UP_STOP, str(tmp_path), "signal")
+    try:
+        up.stdout.readline()
+        up.send_signal(signal.SIGHUP)
+        assert up.stdout.readline().startswith("nasa up: stopping in order (SIGHUP)")
+        up.send_signal(signal.SIGHUP)
+        up.send_signal(signal.SIGINT)  # only this one forces: the exit code says which
+        out, _ = up.communicate(timeout=120)
+    finally:
+        up.kill()
+    assert up.returncode == 130 and out.startswith("nasa up: forced to stop (SIGINT)"), out
+
+
+# nasa train's stop (nasa.cli.run_until_stopped) around a trainer whose closing hangs (a slow disk).
+TRAIN_STOP = """
+import sys, time
+from pathlib import Path
+from types import SimpleNamespace
+from nasa.cli import run_until_stopped
+
+class Trainer:
+    counters, last_checkpoint_step = SimpleNamespace(env_steps=7), 5
+    def run(self):
+        print("running", flush=True)
+        time.sleep(600)
+    def close(self):
+        print("closing", flush=True)
+        time.sleep(600)
+
+run_until_stopped(Trainer(), Path(sys.argv[1]))
+"""
+
+
+@pytest.mark.parametrize("launched", [False, True])
+def test_a_second_ctrl_c_while_nasa_train_closes_its_files_stops_it_at_once(tmp_path, launched):
+    # Under `nasa reproduce` (NASA_PARENT_PID), its SIGTERM follows the Ctrl-C both got: not a second
+    # signal; the terminal's second Ctrl-C still forces.
+    env = {**ENV, "NASA_PARENT_PID": str(os.getpid())} if launched else ENV
+    train = start(TRAIN_STOP, str(tmp_path / "run"), env=env)
+    try:
+        assert train.stdout.readline() == "running\n"
+        train.send_signal(signal.SIGINT)
+        assert train.stdout.readline() == "closing\n"
+        if launched:
+            train.send_signal(signal.SIGTERM)
+        train.send_signal(signal.SIGINT)
+        _, err = train.communicate(timeout=120)
+    finally:
+        train.kill()
+    assert train.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert lines == [
+        "nasa train: stopping at step 7: closing the run's files (Ctrl-C again to stop at once)",
+        f"nasa train: forced to stop (SIGINT); its last checkpoint holds step 5; continue with: "
+        f"nasa train --resume {tmp_path / 'run'}",
+    ], err
+
+
+# A Ctrl-C at a given import (a real SIGINT to itself, from an import hook), then the command.
+INTERRUPT_AT_IMPORT = """
+import os, runpy, signal, sys
+module, at = sys.argv[1], sys.argv[2]
+class Hook:
+    def find_spec(self, name, path, target=None):
+        if name == at:
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+sys.meta_path.insert(0, Hook())
+sys.argv = ["nasa", *sys.argv[3:]]
+if module == "script":  # what the installed `nasa` script runs
+    from nasa.cli import main
+    sys.exit(main())
+runpy.run_module(module, run_name="__main__", alter_sys=True)
+"""
+
+
+@pytest.mark.parametrize(("module", "at", "argv", "line"), [
+    ("script", "tyro", ["train", "--help"], "nasa: interrupted while starting"),
+    ("nasa", "torch", ["plot", "--help"], "nasa: interrupted while starting"),
+    ("nasa.cli", "shared.config", ["up", "--help"], "nasa: interrupted while starting"),
+    # after the imports, inside a command before it has a stop of its own
+    ("nasa.cli", "nasa.train", ["train", "--task", "cartpole-balance", "--out", "OUT"],
+     "nasa train: interrupted"),
+])
+def test_a_ctrl_c_while_a_command_starts_is_one_line_and_130(tmp_path, module, at, argv, line):
+    argv = [str(tmp_path / "run") if a == "OUT" else a for a in argv]
+    done = subprocess.run([sys.executable, "-c", INTERRUPT_AT_IMPORT, module, at, *argv], capture_output=True,
+                          text=True, cwd=REPO, env=ENV, timeout=300)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip() == line, done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_no_module_uses_another_modules_private_name():
+    # nasa.reproduce took nasa.cli's private signal helpers; they are nasa.stopping's now.
+    found = []
+    for package in ("nasa", "services", "shared", "bench"):
+        for path in sorted((REPO / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if (isinstance(node, ast.ImportFrom) and node.module
+                        and node.module.split(".")[0] in ("nasa", "services", "shared", "bench")):
+                    found += [f"{path.relative_to(REPO)}: {node.module}.{a.name}" for a in node.names
+                              if a.name.startswith("_") and not a.name.startswith("__")]
+    assert found == []
