@@ -5,8 +5,8 @@ mode) and starts replay, learner, evaluator and N actors as child processes
 (`python -m services.<role>`, the same commands the deployment files run). A
 child that dies is restarted (a restarted actor draws a new incarnation),
 unless it refused its input (exit code 2: a bad flag, device, task name,
-checkpoint, replay folder or settings that differ from the run's), which would
-only fail again.
+checkpoint, replay folder or settings that differ from the run's) or the
+router refused its login (exit code 3), which would only fail again.
 
 One config per run: `nasa up` parses its config flags with the parser every
 service uses (shared.service.parse_with_preset, defaults from shared.config),
@@ -24,9 +24,10 @@ bus, or the real gripper.
 
 The run ends when the learner finishes the step budget (it publishes Stop and
 every service exits), when the learner or the replay ends for good (`nasa up`
-then exits non-zero: 2 if it refused its input), on Ctrl-C, SIGTERM or SIGHUP
-(its terminal closed; exit 130, 143 or 129, the shell's 128 + the signal: a run
-stopped from outside is not a finished one).
+then exits non-zero: 2 if it refused its input), when the router refuses a
+service's login (exit 2), on Ctrl-C, SIGTERM or SIGHUP (its terminal closed;
+exit 130, 143 or 129, the shell's 128 + the signal: a run stopped from outside
+is not a finished one).
 Children are stopped in order (actors, evaluator, learner, replay), killed if
 they do not exit in time, or at once on a second Ctrl-C or SIGTERM (StopSignals),
 and get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG, set by each
@@ -55,7 +56,7 @@ from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.files import last_line
 from shared.run_config import RunConfig
-from shared.service import EXIT_BAD_INPUT, given_flags, parse_with_preset
+from shared.service import EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED, given_flags, parse_with_preset
 from shared.zenoh_auth import USERS_FILE
 
 RUN_AUTH = "run"
@@ -202,6 +203,11 @@ class Supervisor:
                 child.exited = code
                 on_event(f"{child.name} refused its input: {self.last_error(child)}; not restarted")
                 continue
+            if code == EXIT_LOGIN_REFUSED:  # the same credentials would be refused again
+                child.exited = code
+                on_event(f"{child.name}'s Zenoh login was refused by the router: {self.last_error(child)}; "
+                         "not restarted")
+                continue
             since = self._dead_since.setdefault(child.name, now)
             if since - child.started >= self.stable_s:
                 child.restarts = 0  # it ran well for a while: a crash now and then is not a loop
@@ -241,6 +247,10 @@ class Supervisor:
             return f"{log}: cannot be read ({err.strerror or err})"
         # A service on a full disk dies unable to write why: say what it could not.
         return f"{log}: {line or 'no output'}{disk_full(log.parent)}"
+
+    def refused(self) -> Child | None:
+        """The first child whose Zenoh login the router refused: the run cannot heal itself."""
+        return next((c for c in self.children.values() if c.exited == EXIT_LOGIN_REFUSED), None)
 
     def ended(self, roles: tuple[str, ...]) -> Child | None:
         """The first child of one of `roles` that ended for good (exited 0, refused, or out of restarts)."""
@@ -635,7 +645,7 @@ def up(argv: list[str]) -> None:
             say(f"run {run_id} in {data}; router {endpoint}; status http://127.0.0.1:{cmd.port}/status")
             while not stop.reason:
                 sup.poll(say)
-                if end := run_ends(sup):
+                if end := run_ends(sup, auth):
                     ended, stop.reason = end
                     break
                 time.sleep(0.2)
@@ -645,14 +655,20 @@ def up(argv: list[str]) -> None:
     say("stopped")
     lock.close()
     if ended is not None and ended.exited:
-        sys.exit(EXIT_BAD_INPUT if ended.exited == EXIT_BAD_INPUT else 1)
+        # Refused input or a refused login: the same command fails again until it is fixed.
+        sys.exit(EXIT_BAD_INPUT if ended.exited in (EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED) else 1)
     if stop.signum:  # 130, 143, 129 (as `nasa train`): a run stopped from outside is not a finished one
         sys.exit(128 + stop.signum)
 
 
-def run_ends(sup: Supervisor) -> tuple[Child, str] | None:
+def run_ends(sup: Supervisor, auth: Path | None) -> tuple[Child, str] | None:
     """The child whose end ends the run, and why; None while it goes on. The run cannot go on
-    without its learner or its replay, nor without any actor."""
+    without its learner or its replay, nor without any actor, nor with a service whose login the
+    router refuses (the run's credentials do not change while it runs)."""
+    if (refused := sup.refused()) is not None:
+        where = f" ({auth})" if auth is not None else ""
+        return refused, (f"{refused.name}'s Zenoh login was refused by the run's router: its credentials"
+                         f"{where} are not the router's, and a restart would not change them")
     ended = sup.ended(("learner", "replay")) or sup.all_ended("actor")
     if ended is None:
         return None

@@ -50,6 +50,10 @@ T = TypeVar("T")
 # A service ending with this code failed on its input (flags, device, task name,
 # checkpoint): restarting it would fail the same way, so `nasa up` does not.
 EXIT_BAD_INPUT = 2
+# A service ending with this code found the Zenoh router up but refusing its login (its password or
+# TLS certificate is not the router's): restarted with the same credentials it would be refused
+# again, so `nasa up`, whose router and credentials are the run's, stops the run instead.
+EXIT_LOGIN_REFUSED = 3
 
 
 def bad_input_errors() -> tuple[type[Exception], ...]:
@@ -259,7 +263,7 @@ def run_service(
     """A service's main: parse its flags, `check` them (a bad value is refused before the service
     connects, so it is the first error even with no router), stop on SIGINT/SIGTERM, run it on a
     client session."""
-    from shared.zenoh_session import RouterUnreachable, open_client  # zenoh only for services
+    from shared.zenoh_session import RouterUnreachable, SessionRefused, open_client  # zenoh only for services
 
     try:
         args, _ = parse(cls, argv, prog)
@@ -274,6 +278,9 @@ def run_service(
     except bad_input_errors() as err:
         print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
+    except SessionRefused as err:
+        print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_LOGIN_REFUSED)
     except RouterUnreachable as err:  # not the input's fault: exit 1, so a supervisor retries
         print(f"{prog}: error: {err}", file=sys.stderr, flush=True)
         sys.exit(1)

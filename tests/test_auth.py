@@ -19,6 +19,7 @@ from system_harness import REPO
 from nasa.up import free_port
 from services.learner.status_api import api_token, is_loopback, make_app
 from shared import wire, zenoh_auth
+from shared.service import EXIT_LOGIN_REFUSED
 from shared.zenoh_session import open_client, open_router, token_up
 
 RUN = "authrun"
@@ -92,6 +93,19 @@ def test_router_refuses_a_wrong_or_missing_password(router: str, auth_dir: Path,
         open_client(router, timeout_s=1.0, auth=auth_dir)  # a folder but no role
     with login(router, auth_dir, "actor") as session:
         assert session.info.zid() is not None
+
+
+@pytest.mark.timeout(180)
+def test_a_service_whose_login_is_refused_exits_with_its_own_code(router: str, tmp_path: Path) -> None:
+    # Not exit 1 (the router unreachable, worth retrying): `nasa up` does not restart it.
+    other = zenoh_auth.init(tmp_path / "other", RUN)  # the same roles, other passwords
+    env = {**os.environ, "NASA_ZENOH_CONNECT": router, "NASA_RUN_ID": RUN, "NASA_ZENOH_AUTH": str(other),
+           "PYTHONPATH": str(REPO)}
+    done = subprocess.run([sys.executable, "-m", "services.actor", "--actor-id", "0"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=150)
+    assert done.returncode == EXIT_LOGIN_REFUSED == 3, done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith(
+        f"python -m services.actor: error: the Zenoh router at {router} is up but refused 'actor''s login")
 
 
 def into(q: queue.Queue):  # noqa: ANN201

@@ -9,10 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from nasa.up import STOP_ORDER, Supervisor
+from nasa.up import STOP_ORDER, Supervisor, run_ends
 
 # Each child runs `python -c SCRIPT <role> <folder>`.
 EXIT_WITH = "import sys; print('child says: bad flag --x', flush=True); sys.exit(int(sys.argv[2]))"
+# As EXIT_WITH, but with code 0 it runs on.
+EXIT_OR_RUN_ON = EXIT_WITH.replace("import sys", "import sys, time").replace(
+    "sys.exit(int(sys.argv[2]))", "int(sys.argv[2]) and sys.exit(int(sys.argv[2])); time.sleep(60)")
 WAIT_FOR_SIGTERM = """
 import pathlib, signal, sys, time
 role, folder = sys.argv[1], pathlib.Path(sys.argv[2])
@@ -194,6 +197,23 @@ def test_a_child_that_refuses_its_input_is_not_restarted_and_its_error_is_report
     assert events == [f"replay refused its input: {tmp_path / 'logs' / 'replay.log'}: "
                       "child says: bad flag --x; not restarted"]
     assert sup.ended(("learner", "replay")) is child
+
+
+def test_a_child_whose_login_is_refused_is_not_restarted_and_ends_the_run(tmp_path):
+    # The run's router and credentials do not change while it runs: a restart would be refused again.
+    sup = supervisor(tmp_path, EXIT_OR_RUN_ON)
+    learner = sup.add("learner", "learner", ["0"])  # runs on
+    actor = sup.add("actor-1", "actor", ["3"])
+    events: list[str] = []
+    poll_until(sup, lambda: actor.exited is not None, events)
+    assert actor.exited == 3 and actor.restarts == 0 and len(actor.pids) == 1
+    assert f"actor-1's Zenoh login was refused by the router: {tmp_path / 'logs' / 'actor-1.log'}: " \
+           "child says: bad flag --x; not restarted" in events
+    ended, why = run_ends(sup, tmp_path / "auth")
+    assert ended is actor and learner.exited is None
+    assert why == ("actor-1's Zenoh login was refused by the run's router: its credentials "
+                   f"({tmp_path / 'auth'}) are not the router's, and a restart would not change them")
+    sup.stop_all(timeout_s=10.0)
 
 
 def test_stop_all_stops_role_by_role_in_order(tmp_path):
