@@ -581,7 +581,8 @@ def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, li
     common = ["--run-config", str(data / run_config.CONFIG_FILE)]
     lead = lay.lead_argv(cmd.config.updates_per_step)
     out = {
-        "replay": [*common, "--data", str(data), *lead["replay"]],
+        # `up` has checked the camera (envs.check_camera): the replay need not load the model again.
+        "replay": [*common, "--data", str(data), "--camera-checked", *lead["replay"]],
         "learner": [*common, "--data", str(data), "--port", str(cmd.port),
                     "--threads", str(lay.learner_threads)],
     }

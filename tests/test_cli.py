@@ -157,6 +157,8 @@ def test_every_service_of_nasa_up_gets_the_run_config(tmp_path):
         assert args[:2] == ["--run-config", str(tmp_path / "config.json")]
     assert argv["learner"][2:] == ["--data", str(tmp_path), "--port", "9", "--threads", "1",
                                    "--publish-every", "1"]
+    # nasa up has checked the camera: the replay does not load the task's model again at each start
+    assert argv["replay"][2:5] == ["--data", str(tmp_path), "--camera-checked"]
     cmd.evaluator = False
     assert "evaluator" not in service_argv(cmd, tmp_path, layout_of(cmd, gpu=False))
 
@@ -180,7 +182,8 @@ def test_nasa_up_passes_the_actor_lead_to_the_replay_and_the_actors(tmp_path):
     def flags(argv: list[str], gpu: bool) -> tuple[list[str], list[str]]:
         cmd, _ = parse_up(["--preset", "cpu-small", *argv])
         out = service_argv(cmd, tmp_path, layout_of(cmd, gpu=gpu, cores=2))
-        return out["replay"][4:], out["actor-0"][4:]  # after the run config and --data / --actor-id
+        # after the run config and --data --camera-checked / --actor-id
+        return out["replay"][5:], out["actor-0"][4:]
 
     assert flags([], gpu=False) == (["--error-buffer", "1"], ["--send-batch", "1", "--max-in-flight", "1"])
     assert flags(["--updates-per-step", "3"], gpu=False)[0] == ["--error-buffer", "3"]

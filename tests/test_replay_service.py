@@ -10,13 +10,13 @@ import time
 import numpy as np
 import pytest
 
-from services.replay.service import ReplayArgs, ReplayService
+from services.replay.service import ReplayArgs, ReplayService, check_args
 from shared import wire
-from shared.config import default_config
+from shared.config import ConfigError, default_config
 from shared.envs import EnvSpec
 from shared.replay.client import decode_reply
 from shared.run_config import RunConfig
-from shared.service import StopFlag
+from shared.service import StopFlag, parse
 
 SHAPE = (3, 16, 16)
 SPEC = EnvSpec(SHAPE, 3, 2)
@@ -166,6 +166,13 @@ def test_a_flag_it_cannot_serve_with_is_refused_before_it_connects(tmp_path, fla
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and says in done.stderr, done.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_the_camera_is_checked_unless_nasa_up_has_checked_it(tmp_path):
+    argv = ["--data", str(tmp_path), "--task", "cartpole-balance", "--camera-id", "99"]
+    with pytest.raises(ConfigError, match="env.camera_id 99 is not a camera of cartpole-balance"):
+        check_args(parse(ReplayArgs, argv, "replay")[0])  # started alone: its own check
+    check_args(parse(ReplayArgs, [*argv, "--camera-checked"], "replay")[0])  # no model loaded again
 
 
 def test_a_refused_batch_is_acknowledged_so_its_actor_does_not_wait_on_it(tmp_path):

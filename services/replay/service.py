@@ -74,6 +74,9 @@ class ReplayArgs(ServiceArgs):
     stats_every_s: float = 0.5
     snapshot_every: int = SNAPSHOT_EVERY
     """Compact the store's log every this many inserts."""
+    camera_checked: bool = False
+    """Set by `nasa up`, which has checked the run's camera against the task's model before starting
+    anything: the replay does not load the model again at each start. A replay started alone checks it."""
     max_abs_reward: float = wire.Bounds.max_abs_reward
     """Refuse transitions whose reward is beyond +-this (a huge finite reward poisons the critic);
     at most the wire's bound, which the learner applies to the batches it samples. Intrinsic scores
@@ -96,7 +99,8 @@ def check_args(args: ReplayArgs) -> None:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     # The replay's config is the run's (every other service joins it): its camera must exist before
     # any actor renders with it.
-    envs.check_camera(args.config.env)
+    if not args.camera_checked:
+        envs.check_camera(args.config.env)
 
 
 def default_error_buffer(updates_per_step: int) -> float:
