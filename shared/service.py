@@ -256,6 +256,11 @@ class MessageGuard:
             self._invalid(f"stop: {err}")
 
 
+def _raise_interrupt(signum: int, _frame: object) -> None:
+    """SIGTERM as Ctrl-C is by default: a KeyboardInterrupt where the main thread is (with its signal)."""
+    raise KeyboardInterrupt(signum)
+
+
 def run_service(
     cls: type[T], argv: list[str] | None, prog: str, run: Callable[[T, object, StopFlag], None],
     check: Callable[[T], None] | None = None,
@@ -269,10 +274,20 @@ def run_service(
         args, _ = parse(cls, argv, prog)
         if check is not None:
             check(args)
+        role = prog.rsplit(".", 1)[-1]  # "python -m services.<role>": its Zenoh login under auth
+        # open_client retries for up to 30 s where no router answers: a stop signal meanwhile ends
+        # the service there, rather than once the retries give up.
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+        try:
+            session = open_client(args.connect, role=role)  # type: ignore[attr-defined]
+        except KeyboardInterrupt as err:
+            signum = err.args[0] if err.args else signal.SIGINT
+            print(f"{prog}: stopped ({signal.Signals(signum).name}) before it connected", file=sys.stderr,
+                  flush=True)
+            sys.exit(128 + signum)
         stop = StopFlag()
         stop.install_signal_handlers()
-        role = prog.rsplit(".", 1)[-1]  # "python -m services.<role>": its Zenoh login under auth
-        with open_client(args.connect, role=role) as session:  # type: ignore[attr-defined]
+        with session:
             run(args, session, stop)
         stop.exit_if_signalled()
     except bad_input_errors() as err:

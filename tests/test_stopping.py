@@ -200,3 +200,28 @@ def test_no_module_uses_another_modules_private_name():
                     found += [f"{path.relative_to(REPO)}: {node.module}.{a.name}" for a in node.names
                               if a.name.startswith("_") and not a.name.startswith("__")]
     assert found == []
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_service_still_looking_for_its_router_stops_on_a_signal(tmp_path, signum):
+    # Something listens on the router's port but speaks no Zenoh: the service's connection shows
+    # it is trying, and it would go on trying for 30 s, then exit 3 (a router that refuses it).
+    import socket
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        listener.settimeout(120)
+        port = listener.getsockname()[1]
+        replay = subprocess.Popen(
+            [sys.executable, "-m", "services.replay", "--data", str(tmp_path / "run"),
+             "--connect", f"tcp/127.0.0.1:{port}"], stderr=subprocess.PIPE, text=True, cwd=REPO, env=ENV)
+        try:
+            listener.accept()[0].close()
+            replay.send_signal(signum)
+            _, err = replay.communicate(timeout=120)
+        finally:
+            replay.kill()
+    assert replay.returncode == 128 + signum, err
+    assert err.strip() == (f"python -m services.replay: stopped ({signal.Signals(signum).name}) before it "
+                           "connected"), err
