@@ -139,6 +139,32 @@ def test_nasa_up_runs_reports_stops_on_ctrl_c_and_resumes(tmp_path):
         stop_with_ctrl_c(again)
 
 
+@pytest.mark.timeout(420)
+def test_a_second_ctrl_c_kills_the_services_left_and_the_same_command_resumes_the_run(tmp_path):
+    data = tmp_path / "run"
+    with nasa_up(data) as (up, port):
+        wait_status(up, port, lambda s: s["actors"] and s["updates"] > 0, "actors and updates")
+        replay = service_pids(up.pid)["replay"]
+        os.kill(replay, signal.SIGSTOP)  # it cannot stop in order now: the stop would wait 20 s for it
+        up.send_signal(signal.SIGINT)
+        line = next(line for line in up.stdout if line.startswith("nasa up: stopping in order"))
+        assert line.strip() == "nasa up: stopping in order (SIGINT); Ctrl-C again kills what is left"
+        up.send_signal(signal.SIGINT)
+        rest, _ = up.communicate(timeout=90)
+    assert up.returncode == 130, rest
+    forced = rest.strip().splitlines()[-1]
+    assert forced.startswith("nasa up: forced to stop (SIGINT); killed ") and "replay" in forced, rest
+    assert forced.endswith(f"; the same command resumes the run from {data}"), rest
+    assert "did not stop within" not in rest, rest  # forced, not waited out
+    assert not Path(f"/proc/{replay}").exists()
+    # Killed mid-stop, the run folder is whole: the replay reopens its log, the learner goes on.
+    with nasa_up(data) as (again, port):
+        wait_status(again, port, lambda s: s["replay"]["size"] > 0 and s["updates"] > 0, "the run going on")
+        again.send_signal(signal.SIGINT)
+        out, _ = again.communicate(timeout=90)
+    assert again.returncode == 130 and "nasa up: stopped" in out, out
+
+
 @pytest.mark.timeout(180)
 def test_nasa_up_ends_with_a_clear_error_on_a_checkpoint_it_cannot_continue(tmp_path):
     # The learner refuses the checkpoint (exit 2); restarting it would only fail again,
