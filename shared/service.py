@@ -17,6 +17,7 @@ the replay (shared.run_config).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import dataclasses
 import json
@@ -181,8 +182,17 @@ class StopFlag:
     def wait(self, timeout: float | None = None) -> bool:
         return self.event.wait(timeout)
 
-    def install_signal_handlers(self) -> None:
+    def install_signal_handlers(self, forced: str = "") -> None:
+        """SIGINT and SIGTERM set the flag. With `forced` (the line to say), a Ctrl-C after a first
+        signal ends the process at once, 128 + SIGINT: a user who will not wait for the stop. Only
+        a Ctrl-C: a second SIGTERM comes from a launcher (PR_SET_PDEATHSIG once `nasa up` is gone),
+        which leaves the stop to take its course."""
+
         def handler(signum: int, _frame: object) -> None:
+            if forced and signum == signal.SIGINT and self.signum:
+                with contextlib.suppress(OSError):  # unbuffered: safe in a handler
+                    os.write(2, f"{forced} (SIGINT)\n".encode())
+                os._exit(128 + signum)
             if not self.event.is_set():
                 self.signum = signum
             self.set(signal.Signals(signum).name)
@@ -286,7 +296,8 @@ def run_service(
                   flush=True)
             sys.exit(128 + signum)
         stop = StopFlag()
-        stop.install_signal_handlers()
+        # Not for a robot bridge (its own main), which turns its torque off as it stops.
+        stop.install_signal_handlers(forced=f"{prog}: forced to stop")
         with session:
             run(args, session, stop)
         stop.exit_if_signalled()

@@ -225,3 +225,37 @@ def test_a_service_still_looking_for_its_router_stops_on_a_signal(tmp_path, sign
     assert replay.returncode == 128 + signum, err
     assert err.strip() == (f"python -m services.replay: stopped ({signal.Signals(signum).name}) before it "
                            "connected"), err
+
+
+# A service (shared.service.run_service, on a real router) whose stop takes long.
+SLOW_SERVICE = """
+import sys, time
+from nasa.up import free_port
+from shared.service import run_service
+from shared.zenoh_session import ServiceArgs, open_router
+
+def run(args, session, stop):
+    print("running", flush=True)
+    stop.wait()
+    print("stopping", flush=True)
+    time.sleep(600)
+
+endpoint = f"tcp/127.0.0.1:{free_port()}"
+with open_router(endpoint):
+    run_service(ServiceArgs, ["--connect", endpoint], "python -m services.slow", run)
+"""
+
+
+@pytest.mark.parametrize("first", [signal.SIGINT, signal.SIGTERM])
+def test_a_ctrl_c_after_a_first_signal_ends_a_slow_service_stop_at_once(first):
+    service = start(SLOW_SERVICE, env={k: v for k, v in ENV.items() if k != "NASA_ZENOH_AUTH"})
+    try:
+        assert service.stdout.readline() == "running\n"
+        service.send_signal(first)
+        assert service.stdout.readline() == "stopping\n"
+        service.send_signal(signal.SIGINT)
+        _, err = service.communicate(timeout=120)
+    finally:
+        service.kill()
+    assert service.returncode == 130, err
+    assert err.strip() == "python -m services.slow: forced to stop (SIGINT)", err
