@@ -201,9 +201,10 @@ def up(argv: list[str]) -> None:
         from nasa.up import up as run_up  # the launcher imports zenoh; keep `nasa train --help` light
 
         run_up(argv)
-    except KeyboardInterrupt:  # Ctrl-C before nasa up's own handlers, so before any service started
-        print("\nnasa up: interrupted before any service started", file=sys.stderr, flush=True)
-        sys.exit(signal_code(KeyboardInterrupt()))
+    except (KeyboardInterrupt, Terminated) as err:  # before nasa up's own handlers, so before any service
+        how = "interrupted" if isinstance(err, KeyboardInterrupt) else "stopped (SIGTERM)"
+        print(f"\nnasa up: {how} before any service started", file=sys.stderr, flush=True)
+        sys.exit(signal_code(err))
 
 
 def status(argv: list[str]) -> None:
@@ -244,12 +245,17 @@ def main(argv: list[str] | None = None) -> None:
             print(f"nasa: unknown command {argv[0]!r}", file=sys.stderr)
         print(usage(), file=sys.stdout if asked else sys.stderr)
         sys.exit(0 if asked else EXIT_BAD_INPUT)
+    # SIGTERM as Ctrl-C until a command sets its own stop: its default would end the process
+    # without a word (and in a container, as process 1, not at all).
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
         with interrupted(f"nasa {argv[0]}"):  # a command's own stop takes over once it is set up
             COMMANDS[argv[0]][0](argv[1:])
     except (*bad_input_errors(), FileExistsError) as err:
         print(f"nasa {argv[0]}: error: {err}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
+    finally:
+        signal.signal(signal.SIGTERM, previous)  # main() called in a process of another's (a test)
 
 
 if __name__ == "__main__":

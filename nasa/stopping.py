@@ -72,9 +72,11 @@ def second_signal_forces(prog: str, after: str, force: Callable[[], str] | None 
 @contextlib.contextmanager
 def interrupted(prog: str, when: str = "") -> Iterator[None]:
     """Around what has no stop of its own (start-up's imports, a command before its handlers): a
-    Ctrl-C there is one line and exit 130, not a traceback."""
+    Ctrl-C there, or a SIGTERM raised as Terminated, is one line and 128 + the signal, not a
+    traceback."""
     try:
         yield
-    except KeyboardInterrupt:
-        write_line(f"\n{prog}: interrupted{' ' + when if when else ''}")
-        sys.exit(signal_code(KeyboardInterrupt()))
+    except (KeyboardInterrupt, Terminated) as err:
+        how = "interrupted" if isinstance(err, KeyboardInterrupt) else "stopped (SIGTERM)"
+        write_line(f"\n{prog}: {how}{' ' + when if when else ''}")
+        sys.exit(signal_code(err))

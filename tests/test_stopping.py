@@ -156,15 +156,15 @@ def test_a_second_ctrl_c_while_nasa_train_closes_its_files_stops_it_at_once(tmp_
 # A Ctrl-C at a given import (a real SIGINT to itself, from an import hook), then the command.
 INTERRUPT_AT_IMPORT = """
 import os, runpy, signal, sys
-module, at = sys.argv[1], sys.argv[2]
+module, at, signum = sys.argv[1], sys.argv[2], getattr(signal, sys.argv[3])
 class Hook:
     def find_spec(self, name, path, target=None):
         if name == at:
             sys.meta_path.remove(self)
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signum)
         return None
 sys.meta_path.insert(0, Hook())
-sys.argv = ["nasa", *sys.argv[3:]]
+sys.argv = ["nasa", *sys.argv[4:]]
 if module == "script":  # what the installed `nasa` script runs
     from nasa.cli import main
     sys.exit(main())
@@ -182,10 +182,20 @@ runpy.run_module(module, run_name="__main__", alter_sys=True)
 ])
 def test_a_ctrl_c_while_a_command_starts_is_one_line_and_130(tmp_path, module, at, argv, line):
     argv = [str(tmp_path / "run") if a == "OUT" else a for a in argv]
-    done = subprocess.run([sys.executable, "-c", INTERRUPT_AT_IMPORT, module, at, *argv], capture_output=True,
-                          text=True, cwd=REPO, env=ENV, timeout=300)
+    done = subprocess.run([sys.executable, "-c", INTERRUPT_AT_IMPORT, module, at, "SIGINT", *argv],
+                          capture_output=True, text=True, cwd=REPO, env=ENV, timeout=300)
     assert done.returncode == 130, done.stderr
     assert done.stderr.strip() == line, done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_sigterm_before_a_command_has_its_own_stop_is_one_line_and_143(tmp_path):
+    # Its default would end the process without a word (and not at all as a container's process 1).
+    done = subprocess.run([sys.executable, "-c", INTERRUPT_AT_IMPORT, "nasa.cli", "nasa.train", "SIGTERM",
+                           "train", "--task", "cartpole-balance", "--out", str(tmp_path / "run")],
+                          capture_output=True, text=True, cwd=REPO, env=ENV, timeout=300)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr.strip() == "nasa train: stopped (SIGTERM)", done.stderr
     assert not (tmp_path / "run").exists()
 
 

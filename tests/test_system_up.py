@@ -236,7 +236,9 @@ def test_nasa_up_stops_every_service_in_order_when_its_terminal_closes(tmp_path)
 
 
 @pytest.mark.timeout(180)
-def test_nasa_up_waits_for_an_earlier_launchs_service_and_ctrl_c_there_is_one_line(tmp_path):
+@pytest.mark.parametrize(("signum", "said"), [(signal.SIGINT, "interrupted"),
+                                              (signal.SIGTERM, "stopped (SIGTERM)")])
+def test_nasa_up_waits_for_an_earlier_launchs_service_and_ctrl_c_there_is_one_line(tmp_path, signum, said):
     # The evaluator of a `nasa up` killed with SIGKILL still holds its role's lock while it stops:
     # the same command again says it waits for it; Ctrl-C then ends it with one line and 130.
     from tests.test_hardening_faults import ROLE_HOLD
@@ -251,10 +253,10 @@ def test_nasa_up_waits_for_an_earlier_launchs_service_and_ctrl_c_there_is_one_li
             first = up.stdout.readline()
             assert first.startswith("nasa up: the evaluator of an earlier launch on"), first
             assert f"(pid {orphan.pid} " in first and "waiting up to 60 s for it to exit" in first, first
-            up.send_signal(signal.SIGINT)
+            up.send_signal(signum)
             rest, _ = up.communicate(timeout=60)
-        assert up.returncode == 130, rest
-        assert rest.strip() == "nasa up: interrupted before any service started", rest
+        assert up.returncode == 128 + signum, rest
+        assert rest.strip() == f"nasa up: {said} before any service started", rest
         assert orphan.poll() is None
     finally:
         orphan.kill()
