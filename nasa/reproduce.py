@@ -226,8 +226,18 @@ def execute(jobs: list[tuple[Run, list[str]]], parallel: int, poll_s: float = 1.
                 time.sleep(poll_s)
     except BaseException:
         # Stop our own children and wait for them; the next invocation resumes them. A second
-        # Ctrl-C would cut the wait short and leave them running.
-        handlers = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+        # Ctrl-C or SIGTERM during the wait kills them (a run stopping slowly, or stuck), never
+        # leaving one running on its own.
+        from nasa.stopping import STOP_SIGNALS, second_signal_forces
+
+        def kill_left() -> str:
+            left = [proc for _, proc, _log in running if proc.poll() is None]
+            for proc in left:
+                proc.kill()
+            return f"{len(left)} run(s) under way killed" if left else ""
+
+        handlers = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+        second_signal_forces("nasa reproduce", "run the same command again to resume them", kill_left)
         try:
             for _, proc, _log in running:
                 proc.terminate()

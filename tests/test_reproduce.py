@@ -467,6 +467,9 @@ def sleeper(run, *args):  # a run that records its pid and goes on until stopped
     # it asks for SIGTERM when its launcher dies
     code = ("import os, pathlib, sys, time; from shared.service import die_with_parent; die_with_parent(); "
             "pathlib.Path(sys.argv[1]).write_text(str(os.getpid())); time.sleep(600)")
+    if len(sys.argv) > 2:  # a run that does not stop on SIGTERM (one stuck, or stopping slowly)
+        code = ("import pathlib, signal, sys; signal.signal(signal.SIGTERM, "
+                "lambda *_: pathlib.Path(sys.argv[1] + '.term').write_text('got it')); " + code)
     return [sys.executable, "-c", code, str(run.out / "pid")]
 
 rep.train_command = sleeper
@@ -484,10 +487,12 @@ def alive(pid: int) -> bool:
 
 
 @pytest.fixture
-def fake_reproduce(tmp_path: Path):  # noqa: ANN201 -- a generator of (process, its runs' pids)
-    """`nasa reproduce` of two runs that go on until stopped, in its own process, once both run."""
+def fake_reproduce(tmp_path: Path, request: pytest.FixtureRequest):  # noqa: ANN201 -- yields (process, its runs' pids)
+    """`nasa reproduce` of two runs that go on until stopped, in its own process, once both run;
+    indirect parametrization "stubborn": runs that ignore SIGTERM."""
     results = tmp_path / "results"
-    proc = subprocess.Popen([sys.executable, "-c", FAKE_REPRODUCE, str(results)],
+    stubborn = ["stubborn"] if getattr(request, "param", None) == "stubborn" else []
+    proc = subprocess.Popen([sys.executable, "-c", FAKE_REPRODUCE, str(results), *stubborn],
                             cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     pid_files = [run_folder(results, "cartpole-balance", "td3_ae", s) / "pid" for s in (0, 1)]
@@ -517,6 +522,28 @@ def test_a_stopped_reproduce_stops_its_runs_and_says_so_in_one_line(
     assert proc.returncode == code
     assert "Traceback" not in err and "nasa reproduce: stopped" in err
     assert not any(alive(pid) for pid in pids)  # none left running on its own
+
+
+@pytest.mark.parametrize("fake_reproduce", ["stubborn"], indirect=True)
+@pytest.mark.parametrize(("second", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_second_signal_while_its_runs_stop_kills_them_and_exits_at_once(
+    fake_reproduce: tuple[subprocess.Popen, list[int]], tmp_path: Path, second: int, code: int
+) -> None:
+    proc, pids = fake_reproduce
+    proc.send_signal(signal.SIGTERM)  # the runs note the SIGTERM it passes on, and go on: the stop waits
+    noted = [run_folder(tmp_path / "results", "cartpole-balance", "td3_ae", s) / "pid.term" for s in (0, 1)]
+    deadline = time.monotonic() + 60
+    while not all(f.exists() for f in noted) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None and all(alive(pid) for pid in pids) and all(f.exists() for f in noted)
+    proc.send_signal(second)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == code
+    assert "nasa reproduce: forced to stop" in err and "2 run(s) under way killed" in err
+    deadline = time.monotonic() + 60
+    while any(alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(alive(pid) for pid in pids)
 
 
 def test_a_killed_reproduce_leaves_no_run_running(fake_reproduce: tuple[subprocess.Popen, list[int]]) -> None:
