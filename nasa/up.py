@@ -541,7 +541,8 @@ def with_bridges(cmd: UpCommand, argv: dict[str, list[str]], run_id: str) -> dic
 
     def bridge(ident: int | str, seed: int) -> list[str]:
         return ["--bridge-id", bridge_id(run_id, ident), "--task", c.env.task, "--seed", str(seed),
-                "--image-size", str(c.env.image_size), "--render-quality", c.env.render_quality, *how]
+                "--image-size", str(c.env.image_size), "--camera-id", str(c.env.camera_id),
+                "--render-quality", c.env.render_quality, *how]
 
     bridges = {f"robot_bridge-{i}": bridge(i, c.seed + i) for i in range(len(actors))}
     if "evaluator" in argv:  # its own bridge, seeded as an in-process evaluator's environment

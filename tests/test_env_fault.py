@@ -148,11 +148,15 @@ def test_nasa_up_starts_a_bridge_per_actor_and_points_each_actor_at_its_own(tmp_
         assert bridge[bridge.index("--bridge-id") + 1] == bridge_id("run1", i) == f"run1-{i}"
         assert bridge[bridge.index("--task") + 1] == "gripper-valve_reset" and "--emulate" in bridge
         assert bridge[bridge.index("--image-size") + 1] == "32"
+        assert bridge[bridge.index("--camera-id") + 1] == "0"  # the run's camera, as in-process
         assert bridge[bridge.index("--seed") + 1] == str(5 + i)
         assert actor[-2:] == ["--bridge", f"run1-{i}"]
     evaluator, eval_bridge = argv["evaluator"], argv["robot_bridge-eval"]  # its own bridge, its own seed
     assert evaluator[-2:] == ["--bridge", "run1-eval"] and "--emulate" in eval_bridge
     assert eval_bridge[eval_bridge.index("--seed") + 1] == str(5 + 1_000_000)
+    cmd.config.env.camera_id = 3  # whatever the run holds is what its bridges render from
+    argv = with_bridges(cmd, service_argv(cmd, tmp_path, layout_of(cmd, gpu=False)), "run1")
+    assert all(argv[name][argv[name].index("--camera-id") + 1] == "3" for name in argv if "bridge" in name)
     off, _ = parse_up(["--task", "gripper-valve"])
     lay = layout_of(off, gpu=False)
     assert with_bridges(off, service_argv(off, tmp_path, lay), "run1") == service_argv(off, tmp_path, lay)

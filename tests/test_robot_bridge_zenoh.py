@@ -186,6 +186,21 @@ def test_a_bad_gripper_config_exits_as_bad_input(tmp_path) -> None:
     assert done.returncode == 2 and "bus.baud: 7" in done.stderr and "servos.ids: missing" in done.stderr
 
 
+def test_the_camera_id_reaches_the_stand_in_and_is_refused_elsewhere() -> None:
+    from services.robot_bridge.main import BridgeArgs, build_env
+
+    sim = build_env(BridgeArgs(task=TASK, camera_id=0, image_size=32))
+    try:
+        assert sim.camera_id == 0
+    finally:
+        sim.close()
+    # The stand-in's model has one camera: the run's camera id is checked there, not dropped.
+    with pytest.raises(ValueError, match="camera_id 1 out of range"):
+        build_env(BridgeArgs(task=TASK, camera_id=1, image_size=32))
+    with pytest.raises(ValueError, match="--camera-id 1: the stand-in's camera"):
+        build_env(BridgeArgs(task=TASK, camera_id=1, emulate=True))
+
+
 class BrokenCamera(ValveSim):
     """A stand-in whose next step fails the way a camera that stopped would."""
 

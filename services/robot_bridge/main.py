@@ -38,6 +38,9 @@ class BridgeArgs:
     seed: int = 0
     """Draws targets and reset angles."""
     image_size: int = 84
+    camera_id: int = 0
+    """The stand-in's MuJoCo camera (the run's env.camera_id). The emulated and the real camera are
+    the only ones there: any other id is refused."""
     render_quality: RenderQuality = "fast"
     """The stand-in's render quality."""
     connect: str = field(default_factory=env_connect)
@@ -45,6 +48,9 @@ class BridgeArgs:
 
 
 def build_env(args: BridgeArgs):
+    if (args.config is not None or args.emulate) and args.camera_id != 0:
+        raise ValueError(f"--camera-id {args.camera_id}: the stand-in's camera; the emulated and the real "
+                         "gripper have one camera each (id 0)")
     if args.config is None and args.emulate:
         from services.robot_bridge.emulated import EmulatedGripper
 
@@ -52,7 +58,8 @@ def build_env(args: BridgeArgs):
     if args.config is None:
         from shared.gripper.sim import ValveSim
 
-        return ValveSim(args.task, args.seed, image_size=args.image_size, render_quality=args.render_quality)
+        return ValveSim(args.task, args.seed, image_size=args.image_size, camera_id=args.camera_id,
+                        render_quality=args.render_quality)
     from services.robot_bridge.config import load
     from services.robot_bridge.hardware import GripperHardware
 
