@@ -1,6 +1,8 @@
 """The servo driver through the real dynamixel-sdk against the Protocol 2.0 emulator on a pty."""
 
 import os
+import random
+import select
 import time
 from collections.abc import Callable, Iterator
 
@@ -156,3 +158,65 @@ def test_a_failing_serial_port_is_a_bus_error(rig) -> None:
             call()
     bus.port.ser = real
     assert list(bus.read_state().position) == [300, 400, 500, 600]
+
+
+def status_reply(fd: int) -> protocol.Packet:
+    """The next status packet the emulator writes on the bus (decoded with resynchronisation)."""
+    reply = bytearray()
+    got: list[protocol.Packet] = []
+
+    def arrived() -> bool:
+        ready, _, _ = select.select([fd], [], [], 0.05)
+        if ready:
+            reply.extend(os.read(fd, 256))
+        packet = protocol.decode(reply)
+        return packet is not None and not got.append(packet)
+
+    wait_until(arrived)
+    return got[0]
+
+
+@pytest.fixture
+def raw_bus() -> Iterator[tuple[BusEmulator, int]]:
+    with BusEmulator([7]) as emu:
+        fd = os.open(emu.port, os.O_RDWR | os.O_NOCTTY)
+        try:
+            yield emu, fd
+        finally:
+            os.close(fd)
+
+
+@pytest.mark.parametrize("noise", [
+    protocol.HEADER + bytes((7, 0, 0)),  # a length too short for an instruction and a CRC
+    protocol.HEADER + bytes((7, 2, 0, 0x01)),
+    protocol.HEADER + bytes((7, 0xFF, 0xFF)),  # a length no packet has: would wait forever
+    protocol.HEADER + bytes((7, 40, 0, 0x01)),  # a plausible length that swallows the real packet
+    protocol.HEADER + bytes((7, 0x00, 0x02)),
+    b"\xff\xff\xfd" + protocol.HEADER[:3],  # a header cut short by the next one
+], ids=["length-0", "length-2", "length-65535", "length-40", "length-512", "cut-header"])
+def test_the_emulator_resynchronises_after_a_noise_header(raw_bus, noise: bytes) -> None:
+    emu, fd = raw_bus
+    os.write(fd, noise + protocol.encode(7, protocol.PING))
+    reply = status_reply(fd)
+    assert (reply.servo_id, reply.instruction, reply.params[0]) == (7, protocol.STATUS, 0)
+    assert int.from_bytes(reply.params[1:3], "little") == xl320.MODEL_NUMBER
+    os.write(fd, protocol.encode(7, protocol.PING))  # and it goes on serving
+    assert status_reply(fd).params[0] == 0
+
+
+def test_the_emulator_answers_every_packet_among_random_noise(raw_bus) -> None:
+    emu, fd = raw_bus
+    rng = random.Random(3)
+    for i in range(60):
+        junk = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 40)))
+        if rng.random() < 0.5:  # noise that starts like a packet, with any length
+            junk = protocol.HEADER + bytes((rng.randrange(256), rng.randrange(256), rng.randrange(3))) + junk
+        if rng.random() < 0.5:  # well-formed packets of any instruction and parameters, none for id 7
+            params = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 12)))
+            junk += protocol.encode(9, rng.randrange(256), params)
+            junk += protocol.encode(protocol.BROADCAST_ID, protocol.SYNC_WRITE, params[:4] + b"\x09" + params)
+        goal = (300 + i).to_bytes(2, "little")
+        os.write(fd, junk + protocol.encode(7, protocol.WRITE, bytes((xl320.GOAL_POSITION, 0)) + goal))
+        reply = status_reply(fd)
+        assert (reply.servo_id, reply.params) == (7, b"\x00")
+        assert emu.snapshot(7, xl320.GOAL_POSITION) == 300 + i

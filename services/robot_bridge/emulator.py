@@ -7,7 +7,8 @@ the real `dynamixel-sdk` code path runs unchanged. Emulated servos move toward t
 their moving speed while torque is on. Faults are injected per servo: `kill` (stops answering),
 `delay` (answers late, so the host times out), `overload` (the overload error bit: torque off
 and the alert bit in every status, as the XL-320's shutdown does) and `corrupt` (the next
-status packets carry a wrong CRC).
+status packets carry a wrong CRC). Like a servo's firmware, it resynchronises on noise: a header
+with an impossible length or a bad CRC costs its bytes, never the packets after it (`protocol.decode`).
 """
 
 from __future__ import annotations

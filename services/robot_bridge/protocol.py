@@ -100,26 +100,59 @@ class BadCrc(ValueError):
         self.servo_id = servo_id
 
 
-def decode(buffer: bytearray) -> Packet | None:
-    """Take the first whole packet off the front of `buffer` (dropping noise before it).
+# The length field counts instruction, parameters and CRC: at least an instruction and the CRC.
+MIN_LENGTH = 3
+# Packets this long or longer are noise: the SDK's own buffers hold 1,024 bytes, header included.
+MAX_LENGTH = 1024 - 7
 
-    Returns None when no whole packet is there yet; raises BadCrc (having consumed the packet)
-    when its CRC is wrong.
+
+def _whole_packet_at(buffer: bytearray, start: int) -> bool:
+    """Whether a whole packet with a sane length and a matching CRC starts at `start`."""
+    if len(buffer) < start + 7:
+        return False
+    length = int.from_bytes(buffer[start + 5 : start + 7], "little")
+    end = start + 7 + length
+    if not MIN_LENGTH <= length <= MAX_LENGTH or len(buffer) < end:
+        return False
+    return crc16(buffer[start : end - 2]) == int.from_bytes(buffer[end - 2 : end], "little")
+
+
+def decode(buffer: bytearray) -> Packet | None:
+    """Take the first whole packet off the front of `buffer`, resynchronising past noise.
+
+    Returns None when no whole packet is there yet. A header whose length is out of bounds is
+    noise: its first byte is dropped and the scan goes on. So is an unfinished packet when a
+    whole, valid packet already starts at a later header (no stuffed packet holds a header), and
+    a bad-CRC packet that holds a later header: noise whose length field swallowed real packets
+    does not hide them. A bad-CRC packet with no header inside is consumed and raises BadCrc, so
+    its servo can answer with a CRC error.
     """
-    start = buffer.find(HEADER)
-    if start < 0:
-        del buffer[: max(0, len(buffer) - 3)]  # keep a possible partial header
-        return None
-    del buffer[:start]
-    if len(buffer) < 7:
-        return None
-    length = int.from_bytes(buffer[5:7], "little")
-    end = 7 + length
-    if len(buffer) < end:
-        return None
-    packet = bytes(buffer[:end])
-    del buffer[:end]
-    if crc16(packet[:-2]) != int.from_bytes(packet[-2:], "little"):
-        raise BadCrc(packet[4])
-    body = unstuff(packet[7:-2])
-    return Packet(packet[4], body[0], body[1:])
+    while True:
+        start = buffer.find(HEADER)
+        if start < 0:
+            del buffer[: max(0, len(buffer) - 3)]  # keep a possible partial header
+            return None
+        del buffer[:start]
+        if len(buffer) < 7:
+            return None
+        length = int.from_bytes(buffer[5:7], "little")
+        if not MIN_LENGTH <= length <= MAX_LENGTH:
+            del buffer[:1]
+            continue
+        end = 7 + length
+        later = buffer.find(HEADER, 1, end)
+        if len(buffer) < end:
+            if later > 0 and _whole_packet_at(buffer, later):
+                del buffer[:later]
+                continue
+            return None
+        packet = bytes(buffer[:end])
+        if crc16(packet[:-2]) != int.from_bytes(packet[-2:], "little"):
+            if later > 0:
+                del buffer[:later]
+                continue
+            del buffer[:end]
+            raise BadCrc(packet[4])
+        del buffer[:end]
+        body = unstuff(packet[7:-2])
+        return Packet(packet[4], body[0], body[1:])
