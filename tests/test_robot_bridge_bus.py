@@ -3,6 +3,7 @@
 import os
 import random
 import select
+import threading
 import time
 from collections.abc import Callable, Iterator
 
@@ -220,3 +221,78 @@ def test_the_emulator_answers_every_packet_among_random_noise(raw_bus) -> None:
         reply = status_reply(fd)
         assert (reply.servo_id, reply.params) == (7, b"\x00")
         assert emu.snapshot(7, xl320.GOAL_POSITION) == 300 + i
+
+
+REPLY_NOISE = {
+    "junk": bytes(range(0x10, 0x30)),
+    "cut-header": protocol.HEADER[:3],
+    "short-length": protocol.HEADER + bytes((2, 2, 0, 0x55)),  # a status header too short for a status
+    "zero-length": protocol.HEADER + bytes((2, 0, 0, 0x55)),
+    "long-length": protocol.HEADER + bytes((2, 0x00, 0x02, 0x55)),  # would swallow the replies after it
+    "plausible-length": protocol.HEADER + bytes((2, 30, 0, 0x55)),
+    "bad-crc": protocol.status(2, 0, b"\x01\x02")[:-1] + b"\x00",
+}
+
+
+@pytest.mark.parametrize("split", [False, True], ids=["whole", "split"])
+@pytest.mark.parametrize("noise", list(REPLY_NOISE.values()), ids=list(REPLY_NOISE))
+def test_the_driver_finds_a_reply_behind_line_noise(rig, noise: bytes, split: bool) -> None:
+    emu, bus = rig
+    emu.garble(2, noise, split)
+    assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
+    emu.garble(2, noise, split)  # between servo 1's reply and servo 2's in one sync read
+    assert list(bus.read_state().position) == [300, 400, 500, 600]
+    emu.garble(4, noise, split)  # after the last reply: nothing to find, nothing broken
+    assert list(bus.read_state().position) == [300, 400, 500, 600]
+    assert bus.ping(4)
+
+
+def test_a_servo_that_refuses_a_sync_read_is_a_bus_error_naming_it(rig) -> None:
+    emu, bus = rig
+    emu.refuse(3, protocol.ERR_CRC)  # what it answers to a sync read that reached it corrupted
+    with pytest.raises(BusError, match="servo 3.*CRC") as err:
+        bus.read_state()
+    assert err.value.servo_ids == (3,)
+    emu.refuse(2, protocol.ERR_DATA_LENGTH)
+    with pytest.raises(BusError, match="servo 2"):
+        bus.read(2, xl320.PRESENT_POSITION, 2)
+    assert list(bus.read_state().position) == [300, 400, 500, 600]
+
+
+def test_a_babbling_bus_times_out_instead_of_hanging(rig) -> None:
+    emu, bus = rig
+    babbling = threading.Event()
+    stop = threading.Event()
+
+    def babble() -> None:  # a device on the line that never stops sending noise (no header in it)
+        end = time.monotonic() + 60.0
+        while not stop.is_set() and time.monotonic() < end:
+            babbling.set()
+            try:
+                os.write(emu._master, bytes(range(0x10, 0x30)))
+            except BlockingIOError:  # the pty is full: nobody reads just now
+                time.sleep(0.01)
+        babbling.clear()
+
+    emu.kill(2)
+    os.set_blocking(emu._master, False)  # nothing else writes: servo 2 is dead
+    thread = threading.Thread(target=babble, daemon=True)
+    thread.start()
+    try:
+        babbling.wait()
+        with pytest.raises(BusError, match="servo 2"):
+            bus.read(2, xl320.PRESENT_POSITION, 2)
+        assert babbling.is_set()  # it gave up by its own timeout, not because the noise stopped
+    finally:
+        stop.set()
+        thread.join()
+        os.set_blocking(emu._master, True)
+
+
+def test_a_late_answer_to_another_instruction_is_not_taken_for_the_reply(rig) -> None:
+    emu, bus = rig
+    late_ping = protocol.status(2, 0, xl320.MODEL_NUMBER.to_bytes(2, "little") + b"\x25")
+    emu.garble(2, late_ping)  # on the line before the read's own reply
+    assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400  # not the model number, 350
+    emu.garble(2, protocol.status(2, 0))  # a write's bare status before the sync read's reply
+    assert list(bus.read_state().position) == [300, 400, 500, 600]

@@ -5,6 +5,12 @@ position, speed, load, voltage, temperature, moving flag and hardware error bits
 comes back in one GroupSyncRead, since these are one contiguous block of the XL-320's table.
 A failed transfer raises `BusError` naming the servo(s) that did not answer properly, found by
 pinging each one, so the bridge's recovery knows which to reboot.
+
+Status packets are parsed here (`_Packets.rxPacket`), not by the SDK's own parser, which lost a
+reply behind line noise that looks like a header (a short length failed the transfer at once, a
+long one waited out the timeout for bytes that were the reply) and handed a sync read a status
+packet without data (a servo refusing the read), which it then indexed past its end, and took a
+late answer to an earlier instruction for the reply (a ping's model number read as a position).
 """
 
 from __future__ import annotations
@@ -15,7 +21,15 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
-from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncRead,
+    GroupSyncWrite,
+    PortHandler,
+)
+from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
 
 from services.robot_bridge import xl320
 
@@ -60,13 +74,118 @@ class _Port(PortHandler):
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.latency_ms * 2.0 + 2.0
 
 
+_HEADER = bytes((0xFF, 0xFF, 0xFD, 0x00))
+_STATUS = 0x55
+_MAX_ID = 0xFC
+_MIN_LENGTH = 4  # a status packet's length field counts instruction, error and CRC at least
+_MAX_LENGTH = 1024 - 7  # the SDK's buffers hold 1,024 bytes, header included
+_PING, _READ, _SYNC_READ = 0x01, 0x02, 0x82
+
+
+class _Packets(Protocol2PacketHandler):
+    """Protocol 2.0 with a status-packet parser that resynchronises on noise.
+
+    It scans a stream for the header, takes a length in bounds and a matching CRC, and drops a
+    byte and scans on after anything else; an unfinished packet is skipped when a whole valid
+    one starts at a later header (a stuffed packet holds no header), so noise whose length field
+    covers real replies does not hide them. It checks the timeout at every turn, so a bus that
+    never stops talking cannot hold it. A reply has the length its instruction asks for, or is an
+    error status without data: a late answer to another instruction is skipped as noise. Bytes
+    read past one reply (the next servo's, in a sync
+    read) are kept for the next call, and dropped when a new instruction goes out.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._pending = bytearray()
+        self._corrupt = False  # a packet with a sane header failed its CRC since the last instruction
+        self._expected = 0  # the length field of a reply to the last instruction (0: not known)
+        self.last_error: dict[int, int] = {}  # each servo's last status error byte
+
+    def txPacket(self, port, txpacket):  # noqa: N802, ANN001, ANN201 (the SDK's name and signature)
+        self._pending.clear()  # the SDK clears the port's input as it sends: stale replies go too
+        self._corrupt = False
+        # The length a reply to this instruction has: a status packet of another length (a late
+        # answer to an earlier instruction) is not its reply. An error status has no data.
+        instruction = txpacket[7]
+        if instruction in (_READ, _SYNC_READ):
+            self._expected = _MIN_LENGTH + (txpacket[10] | txpacket[11] << 8)
+        else:
+            self._expected = {_PING: _MIN_LENGTH + 3}.get(instruction, _MIN_LENGTH)
+        return super().txPacket(port, txpacket)
+
+    def _crc_ok(self, packet: bytes | bytearray) -> bool:
+        return self.updateCRC(0, packet, len(packet) - 2) == int.from_bytes(packet[-2:], "little")
+
+    def _take(self, max_id: int) -> bytes | None:
+        """The first whole valid status packet off the front of the pending bytes (None if none yet)."""
+        buf = self._pending
+        while True:
+            start = buf.find(_HEADER)
+            if start < 0:
+                del buf[: max(0, len(buf) - 3)]  # keep a possible partial header
+                return None
+            del buf[:start]
+            if len(buf) < 9:
+                return None
+            length = int.from_bytes(buf[5:7], "little")
+            if not self._sane(buf, 0, max_id):
+                del buf[:1]
+                continue
+            end = 7 + length
+            if len(buf) < end:
+                later = buf.find(_HEADER, 1)
+                if later > 0 and self._whole_at(later, max_id):
+                    del buf[:later]
+                    continue
+                return None
+            if not self._crc_ok(buf[:end]):
+                self._corrupt = True
+                del buf[:1]
+                continue
+            packet = bytes(buf[:end])
+            del buf[:end]
+            return packet
+
+    def _whole_at(self, start: int, max_id: int) -> bool:
+        buf = self._pending
+        if len(buf) < start + 9:
+            return False
+        end = start + 7 + int.from_bytes(buf[start + 5 : start + 7], "little")
+        return self._sane(buf, start, max_id) and len(buf) >= end and self._crc_ok(buf[start:end])
+
+    def _sane(self, buf: bytearray, start: int, max_id: int) -> bool:
+        """Whether the header at `start` begins a status packet that can answer the last instruction:
+        its length is the reply's, or it is an error status (no data)."""
+        length = int.from_bytes(buf[start + 5 : start + 7], "little")
+        refused = length == _MIN_LENGTH and buf[start + 8] & 0x7F
+        fits = length == self._expected or refused if self._expected else _MIN_LENGTH <= length <= _MAX_LENGTH
+        return bool(fits) and buf[start + 4] <= max_id and buf[start + 7] == _STATUS
+
+    def rxPacket(self, port, fast_option):  # noqa: N802, ANN001, ANN201 (the SDK's name and signature)
+        max_id = 0xFE if fast_option else _MAX_ID
+        try:
+            while True:
+                packet = self._take(max_id)
+                if packet is not None:
+                    self.last_error[packet[4]] = packet[8]
+                    rxpacket = list(packet)
+                    return (rxpacket if fast_option else self.removeStuffing(rxpacket)), COMM_SUCCESS
+                if port.isPacketTimeout():
+                    return [], (COMM_RX_CORRUPT if self._pending or self._corrupt else COMM_RX_TIMEOUT)
+                waiting = port.getBytesAvailable()
+                self._pending.extend(port.readPort(waiting if waiting > 0 else 1))
+        finally:
+            port.is_using = False
+
+
 class ServoBus:
     """A Protocol 2.0 bus of XL-320 servos on a serial port."""
 
     def __init__(self, port: str, baud: int, ids: Iterable[int], latency_ms: float = 16.0) -> None:
         self.ids = tuple(ids)
         self.port = _Port(port, latency_ms)
-        self.packet = PacketHandler(2.0)
+        self.packet = _Packets()
         if not self.port.openPort():
             raise BusError(f"cannot open {port}", self.ids)
         if not self.port.setBaudRate(baud):
@@ -119,6 +238,13 @@ class ServoBus:
             message = self.packet.getTxRxResult(result)
             named = silent or "none"
             raise BusError(f"sync read failed: {message}; servos not answering: {named}", silent or ids)
+        short = [sid for sid in ids if len(group.data_dict[sid]) != xl320.STATE_BLOCK_LENGTH]
+        if short:
+            # A status packet without the data: the servo refused the read (its error says why).
+            why = "; ".join(f"servo {sid} answered without its data: "
+                            f"{self.packet.getRxPacketError(self.packet.last_error.get(sid, 0) & 0x7F)}"
+                            for sid in short)
+            raise BusError(f"sync read failed: {why}", short)
         get = group.getData
         return ServoState(
             position=np.array([get(i, xl320.PRESENT_POSITION, 2) for i in ids], dtype=np.int64),

@@ -6,9 +6,12 @@ XL-320 control table per id. The driver opens the slave path as if it were the U
 the real `dynamixel-sdk` code path runs unchanged. Emulated servos move toward their goal at
 their moving speed while torque is on. Faults are injected per servo: `kill` (stops answering),
 `delay` (answers late, so the host times out), `overload` (the overload error bit: torque off
-and the alert bit in every status, as the XL-320's shutdown does) and `corrupt` (the next
-status packets carry a wrong CRC). Like a servo's firmware, it resynchronises on noise: a header
-with an impossible length or a bad CRC costs its bytes, never the packets after it (`protocol.decode`).
+and the alert bit in every status, as the XL-320's shutdown does), `corrupt` (the next
+status packets carry a wrong CRC), `garble` (line noise before the next status packets, or each
+sent in two parts) and `refuse` (the next instructions answered with an error number and no
+data, as a servo answers a packet that reached it corrupted). Like a servo's firmware, it
+resynchronises on noise: a header with an impossible length or a bad CRC costs its bytes, never
+the packets after it (`protocol.decode`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,11 @@ class EmulatedServo:
         self.dead = False
         self.delay_s = 0.0
         self.corrupt_replies = 0
+        self.noise = b""  # written before each of the next `garbled_replies` status packets
+        self.split = False
+        self.garbled_replies = 0
+        self.refuse_number = 0
+        self.refused_replies = 0
         self.reboots = 0
         self._sync_outputs()
 
@@ -164,6 +172,18 @@ class BusEmulator:
         with self._lock:
             self.servos[servo_id].corrupt_replies = replies
 
+    def garble(self, servo_id: int, noise: bytes = b"", split: bool = False, replies: int = 1) -> None:
+        """The next `replies` status packets come after `noise`, and in two writes if `split`."""
+        with self._lock:
+            servo = self.servos[servo_id]
+            servo.noise, servo.split, servo.garbled_replies = noise, split, replies
+
+    def refuse(self, servo_id: int, number: int = p.ERR_CRC, replies: int = 1) -> None:
+        """The next `replies` instructions are answered with error `number` and no data."""
+        with self._lock:
+            servo = self.servos[servo_id]
+            servo.refuse_number, servo.refused_replies = number, replies
+
     def snapshot(self, servo_id: int, addr: int) -> int:
         """A control-table value as the servo holds it now (for tests)."""
         with self._lock:
@@ -212,7 +232,23 @@ class BusEmulator:
         if servo.corrupt_replies:
             servo.corrupt_replies -= 1
             packet = packet[:-1] + bytes(((packet[-1] + 1) & 0xFF,))
+        if servo.garbled_replies:
+            servo.garbled_replies -= 1
+            packet = servo.noise + packet
+            if servo.split:
+                half = len(packet) // 2
+                os.write(self._master, packet[:half])
+                time.sleep(0.005)  # long enough that the host reads the first part alone
+                packet = packet[half:]
         os.write(self._master, packet)
+
+    def _refused(self, servo: EmulatedServo) -> bool:
+        """Answer with the injected error number instead of carrying the instruction out."""
+        if not servo.refused_replies:
+            return False
+        servo.refused_replies -= 1
+        self._send(servo, p.status(servo.servo_id, servo.status_error(servo.refuse_number)))
+        return True
 
     def _handle(self, packet: p.Packet) -> None:
         with self._lock:
@@ -223,7 +259,7 @@ class BusEmulator:
                 self._sync_read(packet.params)
             else:
                 servo = self.servos.get(packet.servo_id)
-                if servo is not None and not servo.dead:
+                if servo is not None and not servo.dead and not self._refused(servo):
                     self._single(servo, packet)
 
     def _single(self, servo: EmulatedServo, packet: p.Packet) -> None:
@@ -255,6 +291,6 @@ class BusEmulator:
         addr, length = int.from_bytes(params[:2], "little"), int.from_bytes(params[2:4], "little")
         for sid in params[4:]:
             servo = self.servos.get(sid)
-            if servo is not None and not servo.dead:
+            if servo is not None and not servo.dead and not self._refused(servo):
                 number, data = servo.read(addr, length)
                 self._send(servo, p.status(sid, servo.status_error(number), data))
