@@ -168,3 +168,35 @@ def test_estop_over_zenoh_wins_over_a_hardware_step_in_flight(tmp_path: Path) ->
         finally:
             hw.close()
 
+
+
+def test_an_estop_during_a_rearm_leaves_the_server_and_the_fingers_estopped(gripper) -> None:
+    from services.robot_bridge.server import BridgeServer
+    from shared import wire
+
+    emu, hw = gripper
+    server = BridgeServer(None, "hw", hw, "gripper-valve_reset", log=lambda _: None)  # no Zenoh needed
+    server.estop("first")
+    set_limits, in_arm, go_on = hw.bus.set_limits, threading.Event(), threading.Event()
+
+    def slow_limits(servo_id: int, moving_speed: int, torque_limit: int) -> None:
+        in_arm.set()
+        go_on.wait()
+        set_limits(servo_id, moving_speed, torque_limit)
+
+    hw.bus.set_limits = slow_limits
+    rearming = threading.Thread(target=server.rearm)  # its homing holds the bus
+    rearming.start()
+    in_arm.wait()
+    assert not server.estopped and hw.fingers.status()["state"] == "recovering"
+    stopping = threading.Thread(target=server.estop, args=("second",))
+    stopping.start()
+    wait_until(lambda: hw.fingers.estopped)
+    go_on.set()
+    rearming.join()
+    stopping.join()
+    assert server.estopped and hw.fingers.estopped  # one e-stop, not two flags that drift
+    assert hw.fingers.status()["state"] == "estop"
+    refusal = server.handle_reset(wire.BridgeReset("actor-0", False))
+    assert not refusal.ok and "second" in refusal.reason and refusal.info["safety"]["state"] == "estop"
+    assert [emu.snapshot(sid, xl320.TORQUE_ENABLE) for sid in (*IDS, VALVE)] == [0] * 5

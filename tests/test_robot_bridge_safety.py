@@ -8,7 +8,7 @@ import pytest
 
 from services.robot_bridge import xl320
 from services.robot_bridge.config import SafetyConfig, ServoConfig
-from services.robot_bridge.dynamixel import ServoBus
+from services.robot_bridge.dynamixel import BusError, ServoBus
 from services.robot_bridge.emulator import BusEmulator
 from services.robot_bridge.safety import Refused, SafeFingers, State, Watchdog
 from tests.test_robot_bridge_bus import LATENCY_MS, wait_until
@@ -144,4 +144,64 @@ def test_a_failed_recovery_waits_for_the_operator(emu) -> None:
     emu.kill(2, dead=False)  # the operator fixed the cable
     f.rearm()
     assert f.status()["state"] == "ready" and torque(emu) == [1, 1, 1, 1]
+    f.bus.close()
+
+
+def test_a_racing_estop_is_the_state_while_a_faulted_step_recovers_and_after(emu) -> None:
+    f = fingers(emu)
+    write_goals, in_write, go_on = f.bus.write_goals, threading.Event(), threading.Event()
+
+    def failing_write(goals: dict[int, int]) -> None:  # the bus fails while the e-stop comes in
+        in_write.set()
+        go_on.wait()
+        raise BusError("servo 2: sync write failed", [2])
+
+    f.bus.write_goals = failing_write
+    stepping = threading.Thread(target=f.step, args=(np.zeros(4),))
+    stepping.start()
+    in_write.wait()
+    stopping = threading.Thread(target=f.estop)  # waits for the bus, held by the step
+    stopping.start()
+    wait_until(lambda: f.estopped)
+    assert f.status()["state"] == "estop"
+    f.bus.write_goals = write_goals
+    go_on.set()  # the step's fault now starts a recovery, which the e-stop refuses
+    stepping.join()
+    stopping.join()
+    status = f.status()
+    assert status["state"] == "estop" and f.state is State.ESTOP  # not `recovering`
+    assert torque(emu) == [0, 0, 0, 0]
+    with pytest.raises(Refused, match="e-stop"):
+        f.step(np.zeros(4))
+    f.rearm()
+    assert f.status()["state"] == "ready" and torque(emu) == [1, 1, 1, 1]
+    f.bus.close()
+
+
+def test_status_never_says_ready_while_a_rearm_has_not_homed(emu) -> None:
+    f = fingers(emu)
+    f.estop()
+    set_limits, in_arm, go_on = f.bus.set_limits, threading.Event(), threading.Event()
+    seen: list[str] = []
+
+    def slow_limits(servo_id: int, moving_speed: int, torque_limit: int) -> None:
+        if not in_arm.is_set():
+            seen.append(f.status()["state"])
+            in_arm.set()
+            go_on.wait()
+        set_limits(servo_id, moving_speed, torque_limit)
+
+    f.bus.set_limits = slow_limits
+    rearming = threading.Thread(target=f.rearm)
+    rearming.start()
+    in_arm.wait()
+    assert f.status()["state"] == "recovering" and seen == ["recovering"]
+    stopping = threading.Thread(target=f.estop)  # the operator changed their mind: it wins
+    stopping.start()
+    wait_until(lambda: f.estopped)  # its torque-off waits for the bus, held by the re-arm
+    assert f.status()["state"] == "estop"
+    go_on.set()
+    rearming.join()
+    stopping.join()
+    assert f.status()["state"] == "estop" and torque(emu) == [0, 0, 0, 0]
     f.bus.close()

@@ -14,6 +14,12 @@
 - a servo fault (no reply, error bits) runs the recovery sequence: reboot the faulty servos,
   restore their limits, torque on, home; if homing fails, torque off and wait for an operator
   (`rearm()`). The state is in `status()` for the bridge to publish.
+
+The e-stop flag is the one source of truth for `estop`: `state` reads it first, so no recovery
+that finishes, fails or starts around a racing e-stop can report anything else while it holds.
+The flag, the other states and the fault change together under one small lock that is never
+held across bus work (`_flags`), so `status()` is one consistent snapshot, and e-stops and
+re-arms take effect in the order they are made.
 """
 
 from __future__ import annotations
@@ -82,7 +88,8 @@ class SafeFingers:
         self._lock = threading.RLock()
         self._estop = threading.Event()
         self._torque_cut = threading.Event()  # set once an e-stop's torque-off has gone out
-        self.state = State.READY
+        self._flags = threading.Lock()  # the e-stop flag, state and fault change together under it
+        self._state = State.READY  # what holds when the e-stop flag is clear
         self.watchdog = Watchdog.ACTIVE
         self.fault = ""
         self.fault_servos: tuple[int, ...] = ()
@@ -175,13 +182,13 @@ class SafeFingers:
     # -- e-stop --------------------------------------------------------------------------------
     def estop(self) -> None:
         """Torque off and refuse steps until `rearm()`; safe to call from any thread, any number of times."""
-        self._estop.set()  # first: a step in flight sees it before its next bus write
-        self.state = State.ESTOP
+        with self._flags:
+            self._estop.set()  # first: a step in flight sees it before its next bus write
         with self._lock:
             unreached = self._torque_off()
             if unreached:
                 # A servo that cannot hear the torque-off is a fault an operator must see.
-                self.fault, self.fault_servos = f"e-stop could not reach servos {unreached}", tuple(unreached)
+                self._set(fault=f"e-stop could not reach servos {unreached}", servos=tuple(unreached))
         self._torque_cut.set()
 
     def wait_torque_cut(self, timeout_s: float = TORQUE_CUT_WAIT_S) -> bool:
@@ -198,11 +205,28 @@ class SafeFingers:
     def estopped(self) -> bool:
         return self._estop.is_set()
 
+    @property
+    def state(self) -> State:
+        with self._flags:
+            return State.ESTOP if self._estop.is_set() else self._state
+
     def rearm(self) -> None:
         """The operator's explicit re-arm after an e-stop or a failed recovery: recover and home."""
-        self._estop.clear()
-        self._torque_cut.clear()
-        self.state = State.RECOVERING
+        self.release()
+        self.recover()
+
+    def release(self) -> None:
+        """The re-arm's first half, at once: the e-stop is cleared and the state is `recovering`
+        (never `ready` before the homing). A caller that runs `recover()` on another thread calls
+        this on its own, so an e-stop made after the re-arm always wins over it."""
+        with self._flags:
+            self._state = State.RECOVERING
+            self._estop.clear()
+            self._torque_cut.clear()
+
+    def recover(self) -> None:
+        """The re-arm's second half: reboot the faulty servos, arm, home (an e-stop made meanwhile
+        stops it, and stays)."""
         self._recover(self.fault_servos)
 
     # -- watchdog ------------------------------------------------------------------------------
@@ -230,19 +254,33 @@ class SafeFingers:
                     self.last_goals = present.copy()
                     self.watchdog = Watchdog.HOLDING
             except BusError as e:
-                self.state, self.fault, self.fault_servos = State.WAITING_FOR_OPERATOR, str(e), e.servo_ids
+                self._set(State.WAITING_FOR_OPERATOR, str(e), e.servo_ids)
         return self.watchdog
 
     # -- status --------------------------------------------------------------------------------
     def status(self) -> dict:
-        return {
-            "state": self.state.value,
-            "watchdog": self.watchdog.value,
-            "fault": self.fault,
-            "fault_servos": list(self.fault_servos),
-            "recoveries": self.recoveries,
-            "errors": {str(k): v for k, v in self.last_errors.items()},
-        }
+        """One consistent snapshot: the state with the fault it goes with."""
+        with self._flags:
+            return {
+                "state": (State.ESTOP if self._estop.is_set() else self._state).value,
+                "watchdog": self.watchdog.value,
+                "fault": self.fault,
+                "fault_servos": list(self.fault_servos),
+                "recoveries": self.recoveries,
+                "errors": {str(k): v for k, v in self.last_errors.items()},
+            }
+
+    def _set(self, state: State | None = None, fault: str | None = None,
+             servos: tuple[int, ...] | None = None) -> None:
+        """Change the state (under an e-stop it shows once the e-stop is released) and the fault
+        together."""
+        with self._flags:
+            if state is not None:
+                self._state = state
+            if fault is not None:
+                self.fault = fault
+            if servos is not None:
+                self.fault_servos = tuple(servos)
 
     # -- internals -----------------------------------------------------------------------------
     def _refuse_if_stopped(self) -> None:
@@ -265,8 +303,7 @@ class SafeFingers:
             self._sleep(min(left, 0.01))
 
     def _faulted(self, goals: np.ndarray, clamped: bool, start: float, servo_ids, reason: str) -> StepReport:
-        self.fault, self.fault_servos = reason, tuple(servo_ids)
-        self.state = State.RECOVERING
+        self._set(State.RECOVERING, reason, tuple(servo_ids))
         self._recover(self.fault_servos)
         return StepReport(goals, clamped, None, self._clock() - start, True, reason)
 
@@ -280,12 +317,13 @@ class SafeFingers:
                 self._arm()
             homed = self.go_home()
         except (BusError, Refused) as e:
-            homed, self.fault = False, f"{self.fault}; recovery failed: {e}"
+            homed = False
+            self._set(fault=f"{self.fault}; recovery failed: {e}")
         if homed:
-            self.state, self.fault, self.fault_servos = State.READY, "", ()
+            self._set(State.READY, "", ())
             return
-        if not self.estopped:
-            self.state = State.WAITING_FOR_OPERATOR
+        # Under an e-stop the state shows `estop` until the re-arm, which starts a recovery anew.
+        self._set(State.WAITING_FOR_OPERATOR)
         with self._lock:
             # A servo that cannot hear it is the fault already reported; the watchdog tells it
             # again until it does (a cable that comes back would leave it holding torque).

@@ -38,7 +38,7 @@ class BridgeServer:
         self._start_draws = env.rng_state()  # where a `rewind` puts the draws back
         self.episode = -1
         self.step_index = 0
-        self.estopped = False
+        self._estopped = threading.Event()  # the stand-in's e-stop; the hardware's is its interlocks'
         self.estop_reason = ""
         self.invalid = 0
         self._done = True
@@ -48,18 +48,36 @@ class BridgeServer:
         self._safety = getattr(env, "fingers", None)  # the real gripper's interlocks, if any
 
     # -- e-stop ---------------------------------------------------------------------------------
+    @property
+    def estopped(self) -> bool:
+        """One flag, never two that drift: the interlocks' for the real gripper (e-stops and
+        re-arms racing each other end where the interlocks end), the server's for the stand-in."""
+        return self._safety.estopped if self._safety is not None else self._estopped.is_set()
+
     def estop(self, reason: str) -> None:
         """Idempotent: the flag first, then the hardware's torque-off (which wins over a step)."""
-        self.estopped, self.estop_reason = True, reason
+        self.estop_reason = reason
         if self._safety is not None:
             self._safety.estop()
+        else:
+            self._estopped.set()
         self.log(f"e-stop: {reason}")
 
     def rearm(self) -> None:
+        """Clear the e-stop; the real gripper then recovers and homes (which takes a while)."""
+        self._release()
+        self._recover()
+
+    def _release(self) -> None:
         if self._safety is not None:
-            self._safety.rearm()
-        self.estopped, self.estop_reason = False, ""
+            self._safety.release()
+        else:
+            self._estopped.clear()
         self.log("re-armed")
+
+    def _recover(self) -> None:
+        if self._safety is not None:
+            self._safety.recover()
 
     # -- requests -------------------------------------------------------------------------------
     def handle_spec(self) -> wire.BridgeSpec:
@@ -144,7 +162,10 @@ class BridgeServer:
         if msg.engage:
             self.estop(msg.reason)
         else:
-            threading.Thread(target=self.rearm, name="rearm", daemon=True).start()  # homing takes time
+            # Released here, in the order the messages came (an e-stop sent after it wins); the
+            # homing takes time, so it runs on a thread of its own.
+            self._release()
+            threading.Thread(target=self._recover, name="rearm", daemon=True).start()
 
     def _answer(self, query: zenoh.Query, kind: str, payload: bytes) -> None:
         try:
