@@ -152,13 +152,16 @@ def test_a_failing_serial_port_is_a_bus_error(rig) -> None:
         def read(self, size: int = 1) -> bytes:
             raise serial.SerialException("device reports readiness to read but returned no data")
 
-    bus.port.ser = Unplugged()
     for call in (bus.read_state, lambda: bus.read(2, xl320.PRESENT_POSITION, 2),
                  lambda: bus.write_goals({1: 300}), lambda: bus.set_torque(False, [1]), lambda: bus.ping(1)):
+        if not bus.port.is_open:  # the bus closed the failed port; open it as its next transfer would
+            bus.port.openPort()
+            real = bus.port.ser
+        bus.port.ser = Unplugged()
         with pytest.raises(BusError, match="serial port"):
             call()
-    bus.port.ser = real
-    assert list(bus.read_state().position) == [300, 400, 500, 600]
+        assert not bus.port.is_open and not real.is_open
+    assert list(bus.read_state().position) == [300, 400, 500, 600]  # opened anew
 
 
 def status_reply(fd: int) -> protocol.Packet:
@@ -296,3 +299,24 @@ def test_a_late_answer_to_another_instruction_is_not_taken_for_the_reply(rig) ->
     assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400  # not the model number, 350
     emu.garble(2, protocol.status(2, 0))  # a write's bare status before the sync read's reply
     assert list(bus.read_state().position) == [300, 400, 500, 600]
+
+
+def test_an_adapter_unplugged_and_plugged_back_is_reopened(tmp_path) -> None:
+    link = tmp_path / "ttyDXL"  # the stable name udev gives the adapter, as /dev/serial/by-id does
+    first = BusEmulator(IDS, positions={1: 300, 2: 400, 3: 500, 4: 600}).__enter__()
+    link.symlink_to(first.port)
+    bus = ServoBus(str(link), 1000000, IDS, latency_ms=LATENCY_MS)
+    try:
+        assert list(bus.read_state().position) == [300, 400, 500, 600]
+        first.close()  # unplugged: the pty is gone, the bus's file is dead
+        with pytest.raises(BusError, match="serial port"):
+            bus.read_state()
+        with BusEmulator(IDS, positions={1: 310, 2: 410, 3: 510, 4: 610}) as second:  # plugged back
+            link.unlink()
+            link.symlink_to(second.port)
+            assert list(bus.read_state().position) == [310, 410, 510, 610]
+    finally:
+        bus.close()
+        first.close()
+    with pytest.raises(BusError, match="closed"):
+        bus.read_state()  # a bus closed on purpose stays closed

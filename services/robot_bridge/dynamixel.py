@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +32,12 @@ from dynamixel_sdk import (
 from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
 
 from services.robot_bridge import xl320
+
+try:
+    from termios import error as _TermiosError  # pyserial's input flush raises it on a dead device
+except ImportError:  # not a POSIX system
+    _TermiosError = OSError
+_PORT_FAILURES = (OSError, _TermiosError)
 
 
 class BusError(RuntimeError):
@@ -193,8 +199,10 @@ class ServoBus:
             raise BusError(f"cannot set {port} to {baud} baud", self.ids)
         self._goals = GroupSyncWrite(self.port, self.packet, xl320.GOAL_POSITION, 2)
         self._reads: dict[tuple[int, ...], GroupSyncRead] = {}
+        self._closed = False
 
     def close(self) -> None:
+        self._closed = True
         if self.port.is_open:
             self.port.closePort()
 
@@ -202,11 +210,20 @@ class ServoBus:
     def _port_errors(self, ids: Iterable[int]) -> Iterator[None]:
         """The SDK reads and writes the port directly: a port that fails (pyserial's
         SerialException is an OSError) is a bus error on the servos of the transfer, which every
-        caller handles. The SDK marks the port busy for the transfer: it is free again."""
+        caller handles (an unplugged adapter fails its input flush with termios.error, no OSError).
+        The SDK marks the port busy for the transfer: it is free again."""
         try:
+            if not self.port.is_open:
+                # An adapter unplugged and plugged back is a new device under the same name: the
+                # old file stays dead, so the port is opened anew (a reopen that fails is an OSError).
+                if self._closed:
+                    raise BusError(f"{self.port.port_name}: the bus is closed", list(ids))
+                self.port.openPort()
             yield
-        except OSError as err:
+        except _PORT_FAILURES as err:
             self.port.is_using = False
+            with suppress(*_PORT_FAILURES):
+                self.port.closePort()  # opened again at the next transfer
             raise BusError(f"serial port: {err}", list(ids)) from err
 
     # -- whole bus -----------------------------------------------------------------------------
