@@ -96,16 +96,22 @@ def test_router_refuses_a_wrong_or_missing_password(router: str, auth_dir: Path,
 
 
 @pytest.mark.timeout(180)
-def test_a_service_whose_login_is_refused_exits_with_its_own_code(router: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize(("argv", "prog", "role"), [
+    (["services.actor", "--actor-id", "0"], "python -m services.actor", "actor"),
+    (["services.robot_bridge", "--bridge-id", "b0"], "robot_bridge", "bridge"),  # a main of its own
+])
+def test_a_service_whose_login_is_refused_exits_with_its_own_code(
+    router: str, tmp_path: Path, argv: list[str], prog: str, role: str
+) -> None:
     # Not exit 1 (the router unreachable, worth retrying): `nasa up` does not restart it.
     other = zenoh_auth.init(tmp_path / "other", RUN)  # the same roles, other passwords
     env = {**os.environ, "NASA_ZENOH_CONNECT": router, "NASA_RUN_ID": RUN, "NASA_ZENOH_AUTH": str(other),
-           "PYTHONPATH": str(REPO)}
-    done = subprocess.run([sys.executable, "-m", "services.actor", "--actor-id", "0"], cwd=REPO, env=env,
+           "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    done = subprocess.run([sys.executable, "-m", *argv], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=150)
     assert done.returncode == EXIT_LOGIN_REFUSED == 3, done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith(
-        f"python -m services.actor: error: the Zenoh router at {router} is up but refused 'actor''s login")
+        f"{prog}: error: the Zenoh router at {router} is up but refused '{role}''s login")
 
 
 def into(q: queue.Queue):  # noqa: ANN201

@@ -20,7 +20,7 @@ from services.robot_bridge.config import GripperConfigError
 from shared import faults, wire
 from shared.gl import RenderQuality
 from shared.gripper.sim import UnknownGripperTask
-from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
+from shared.service import EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED, Log, StopFlag, die_with_parent
 from shared.zenoh_session import env_connect
 
 
@@ -68,7 +68,7 @@ def build_env(args: BridgeArgs):
 
 def main(argv: list[str] | None = None) -> None:
     from services.robot_bridge.server import BridgeServer
-    from shared.zenoh_session import RouterUnreachable, open_client
+    from shared.zenoh_session import RouterUnreachable, SessionRefused, open_client
 
     die_with_parent()
     args = tyro.cli(BridgeArgs, args=sys.argv[1:] if argv is None else argv, prog="robot_bridge")
@@ -97,6 +97,9 @@ def main(argv: list[str] | None = None) -> None:
     except faults.RoleTaken as err:
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
+    except SessionRefused as err:  # the same credentials would be refused again: not restarted
+        print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_LOGIN_REFUSED)
     except RouterUnreachable as err:  # exit 1: its supervisor retries
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(1)
