@@ -112,6 +112,26 @@ def test_a_late_reply_times_out(rig) -> None:
     assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
 
 
+def test_a_wall_clock_step_during_a_transfer_does_not_fail_it(rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    import dynamixel_sdk.port_handler as sdk_port
+
+    class Stepping:  # the time module, but each read of the wall clock finds it an hour later
+        def __init__(self) -> None:
+            self.steps = 0
+
+        def time(self) -> float:
+            self.steps += 1
+            return time.time() + 3600.0 * self.steps
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(time, name)
+
+    _, bus = rig
+    monkeypatch.setattr(sdk_port, "time", Stepping())
+    assert list(bus.read_state().position) == [300, 400, 500, 600]
+    assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
+
+
 def test_a_corrupt_crc_is_rejected(rig) -> None:
     emu, bus = rig
     emu.corrupt(1)

@@ -75,6 +75,11 @@ class _Port(PortHandler):
         super().__init__(port_name)
         self.latency_ms = latency_ms
 
+    def getCurrentTime(self) -> float:  # noqa: N802 (the SDK's name)
+        """Milliseconds on the monotonic clock. The SDK reads the wall clock, which a clock step (NTP,
+        a resumed VM) moves: a step forward failed a transfer whose reply was on its way."""
+        return time.monotonic() * 1000.0
+
     def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (the SDK's name)
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.latency_ms * 2.0 + 2.0
