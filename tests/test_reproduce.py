@@ -243,14 +243,22 @@ def test_two_reproduces_with_other_runs_share_a_results_folder(
     assert "all runs finished" in capsys.readouterr().out
 
 
-def finishes(run: Run, *args: object) -> list[str]:
-    """A fake `nasa train` that leaves a finished run of 300 steps in the run's folder."""
-    made = default_config(run.algo, "paper", run.task)
-    made.seed, made.steps, made.env.task = run.seed, 300, run.task
-    script = ("import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
-              "(out / 'config.json').write_text(sys.argv[2]); "
-              "(out / 'eval.csv').write_text('step,mean,std\\n0,1,0\\n300,2,0\\n')")
-    return [sys.executable, "-c", script, str(run.out), json.dumps(to_dict(made))]
+def evaluates_to(last: int):  # noqa: ANN201 -- a fake train_command
+    """A fake `nasa train` (exit 0) that leaves a run of 300 steps evaluated at 0 and `last`."""
+
+    def command(run: Run, *args: object) -> list[str]:
+        made = default_config(run.algo, "paper", run.task)
+        made.seed, made.steps, made.env.task = run.seed, 300, run.task
+        script = ("import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
+                  "(out / 'config.json').write_text(sys.argv[2]); "
+                  f"(out / 'eval.csv').write_text('step,mean,std\\n0,1,0\\n{last},2,0\\n')")
+        return [sys.executable, "-c", script, str(run.out), json.dumps(to_dict(made))]
+
+    return command
+
+
+finishes = evaluates_to(300)
+"""A fake `nasa train` that leaves a finished run of 300 steps in the run's folder."""
 
 
 def test_a_run_that_ends_without_its_last_evaluation_is_not_reported_finished(
@@ -258,15 +266,7 @@ def test_a_run_that_ends_without_its_last_evaluation_is_not_reported_finished(
 ) -> None:
     results = tmp_path / "results"
 
-    def ends_early(run: Run, *args: object) -> list[str]:  # exit 0, its final evaluation missing
-        made = default_config(run.algo, "paper", run.task)
-        made.seed, made.steps, made.env.task = run.seed, 300, run.task
-        script = ("import pathlib, sys; out = pathlib.Path(sys.argv[1]); "
-                  "(out / 'config.json').write_text(sys.argv[2]); "
-                  "(out / 'eval.csv').write_text('step,mean,std\\n0,1,0\\n200,2,0\\n')")
-        return [sys.executable, "-c", script, str(run.out), json.dumps(to_dict(made))]
-
-    monkeypatch.setattr(rep, "train_command", ends_early)
+    monkeypatch.setattr(rep, "train_command", evaluates_to(200))  # its final evaluation missing
     monkeypatch.setattr(rep.time, "sleep", lambda s: None)
     with pytest.raises(SystemExit) as exc:
         main(["reproduce", "--tasks", "cartpole-balance", "--algos", "td3_ae", "--seeds", "1",
