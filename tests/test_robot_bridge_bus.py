@@ -112,6 +112,29 @@ def test_a_late_reply_times_out(rig) -> None:
     assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
 
 
+def test_waiting_for_a_late_reply_sleeps_on_the_port_instead_of_spinning(rig) -> None:
+    emu, bus = rig
+    reads: list[int] = []
+    read_port = bus.port.readPort
+
+    def counted(length: int) -> bytes:
+        reads.append(length)
+        return read_port(length)
+
+    bus.port.readPort = counted
+    delay_s = 0.4  # well inside the reply window (twice LATENCY_MS)
+    emu.delay(2, delay_s)
+    emu.delay(3, delay_s)
+    cpu_start = time.thread_time()
+    assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
+    assert list(bus.read_state().position) == [300, 400, 500, 600]
+    cpu_s = time.thread_time() - cpu_start
+    # A polling loop reads the empty port thousands of times per delayed reply and burns the
+    # whole delay in CPU; a wait on the port reads a few times per reply.
+    assert len(reads) < 40, f"{len(reads)} reads of the port for 5 replies"
+    assert cpu_s < 0.5 * (3 * delay_s), f"the waiting thread used {cpu_s:.3f} s of CPU"
+
+
 def test_a_wall_clock_step_during_a_transfer_does_not_fail_it(rig, monkeypatch: pytest.MonkeyPatch) -> None:
     import dynamixel_sdk.port_handler as sdk_port
 

@@ -15,6 +15,7 @@ late answer to an earlier instruction for the reply (a ping's model number read 
 
 from __future__ import annotations
 
+import select
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager, suppress
@@ -84,6 +85,13 @@ class _Port(PortHandler):
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.latency_ms * 2.0 + 2.0
 
+    def wait_readable(self) -> None:
+        """Block until the port has bytes or the reply window closes. The SDK opens the port with
+        a zero read timeout and polls it, which spins a core for the whole wait."""
+        left_ms = self.packet_timeout - self.getTimeSinceStart()
+        if left_ms > 0:
+            select.select([self.ser.fileno()], [], [], left_ms / 1000.0)
+
 
 _HEADER = bytes((0xFF, 0xFF, 0xFD, 0x00))
 _STATUS = 0x55
@@ -100,7 +108,8 @@ class _Packets(Protocol2PacketHandler):
     byte and scans on after anything else; an unfinished packet is skipped when a whole valid
     one starts at a later header (a stuffed packet holds no header), so noise whose length field
     covers real replies does not hide them. It checks the timeout at every turn, so a bus that
-    never stops talking cannot hold it. A reply has the length its instruction asks for, or is an
+    never stops talking cannot hold it, and between reads it sleeps on the port until bytes come
+    or the reply window closes. A reply has the length its instruction asks for, or is an
     error status without data: a late answer to another instruction is skipped as noise. Bytes
     read past one reply (the next servo's, in a sync
     read) are kept for the next call, and dropped when a new instruction goes out.
@@ -185,6 +194,9 @@ class _Packets(Protocol2PacketHandler):
                 if port.isPacketTimeout():
                     return [], (COMM_RX_CORRUPT if self._pending or self._corrupt else COMM_RX_TIMEOUT)
                 waiting = port.getBytesAvailable()
+                if waiting <= 0:
+                    port.wait_readable()
+                    waiting = port.getBytesAvailable()
                 self._pending.extend(port.readPort(waiting if waiting > 0 else 1))
         finally:
             port.is_using = False
