@@ -1,6 +1,7 @@
 """Every interlock of the bridge, against the emulated bus through the real dynamixel-sdk."""
 
 import threading
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -204,4 +205,138 @@ def test_status_never_says_ready_while_a_rearm_has_not_homed(emu) -> None:
     rearming.join()
     stopping.join()
     assert f.status()["state"] == "estop" and torque(emu) == [0, 0, 0, 0]
+    f.bus.close()
+
+
+class SignallingLock:
+    """A lock that says when a thread finds it held and has to wait for it."""
+
+    def __init__(self, waiting: threading.Event) -> None:
+        self._lock = threading.Lock()
+        self._waiting = waiting
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        if self._lock.acquire(blocking=False):
+            return True
+        self._waiting.set()
+        return self._lock.acquire(blocking, timeout)
+
+    def release(self) -> None:
+        self._lock.release()
+
+    def __enter__(self) -> bool:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+class Gate:
+    """An injected sleep that parks the first call from a chosen thread until the test opens it;
+    every other call sleeps as asked (the homing loop's pace)."""
+
+    def __init__(self) -> None:
+        self.thread: threading.Thread | None = None
+        self.parked = threading.Event()
+        self.open = threading.Event()
+
+    def __call__(self, seconds: float) -> None:
+        if threading.current_thread() is self.thread and not self.parked.is_set():
+            self.parked.set()
+            self.open.wait()
+            return
+        time.sleep(seconds)
+
+
+def away_from_home(f: SafeFingers, emu: BusEmulator) -> None:
+    """A step that leaves every finger 50 steps from home, so a homing takes several rounds."""
+    goals = list(f.step(np.full(4, 0.3)).goals)
+    wait_until(lambda: [emu.snapshot(sid, xl320.PRESENT_POSITION) for sid in IDS] == goals)
+
+
+def test_a_rearm_waits_for_the_recovery_a_faulted_step_started(emu) -> None:
+    gates = {"step": Gate(), "rearm": Gate()}
+    f = fingers(emu, sleep=lambda s: gates[threading.current_thread().name](s)
+                if threading.current_thread().name in gates else time.sleep(s))
+    away_from_home(f, emu)
+    waiting = threading.Event()
+    f._recovery = SignallingLock(waiting)
+    touched: list[str] = []  # who rebooted or armed a servo, in order
+    reboot, set_limits = f.bus.reboot, f.bus.set_limits
+
+    def logged_reboot(servo_id: int, wait_s: float = 0.5) -> None:
+        touched.append(f"{threading.current_thread().name}: reboot {servo_id}")
+        waiting.set()  # the re-arm reached the bus: it did not wait
+        reboot(servo_id, wait_s)
+
+    def logged_limits(servo_id: int, moving_speed: int, torque_limit: int) -> None:
+        touched.append(f"{threading.current_thread().name}: arm {servo_id}")
+        waiting.set()
+        set_limits(servo_id, moving_speed, torque_limit)
+
+    f.bus.reboot, f.bus.set_limits = logged_reboot, logged_limits
+    emu.overload(3)
+    stepping = threading.Thread(target=f.step, args=(np.full(4, 0.3),), name="step", daemon=True)
+    gates["step"].thread = stepping
+    stepping.start()
+    try:
+        assert gates["step"].parked.wait(30)  # the step's recovery is homing
+        assert f.status()["state"] == "recovering"
+        step_work = list(touched)
+        assert step_work[0] == "step: reboot 3"
+        rearming = threading.Thread(target=f.rearm, name="rearm", daemon=True)
+        rearming.start()
+        assert waiting.wait(30)
+        assert touched == step_work, "the re-arm's recovery ran during the step's"
+    finally:
+        gates["step"].open.set()
+    stepping.join(30)
+    rearming.join(30)
+    assert not stepping.is_alive() and not rearming.is_alive()
+    rearm_work = touched[len(step_work):]
+    assert rearm_work and all(t.startswith("rearm: arm") for t in rearm_work)  # after, and nothing to reboot
+    status = f.status()
+    assert status["state"] == "ready" and status["recoveries"] == 2 and emu.servos[3].reboots == 1
+    assert torque(emu) == [1, 1, 1, 1]
+    assert not f.step(np.zeros(4)).truncated
+    f.bus.close()
+
+
+def test_a_step_that_faults_during_a_rearm_recovers_after_it_without_holding_the_bus(emu) -> None:
+    gates = {"step": Gate(), "rearm": Gate()}
+    f = fingers(emu, sleep=lambda s: gates[threading.current_thread().name](s)
+                if threading.current_thread().name in gates else time.sleep(s))
+    away_from_home(f, emu)
+    waiting = threading.Event()
+    f._recovery = SignallingLock(waiting)
+    read_state = f.bus.read_state
+
+    def failing_read(ids=None):  # noqa: ANN001, ANN202
+        if threading.current_thread().name == "step" and not getattr(failing_read, "done", False):
+            failing_read.done = True
+            raise BusError("sync read failed; servos not answering: [2]", [2])
+        return read_state(ids)
+
+    f.bus.read_state = failing_read
+    stepping = threading.Thread(target=f.step, args=(np.full(4, 0.3), 1.0), name="step", daemon=True)
+    gates["step"].thread = stepping
+    stepping.start()
+    try:
+        assert gates["step"].parked.wait(30)  # the step is in flight, its goals sent
+        rearming = threading.Thread(target=f.rearm, name="rearm", daemon=True)
+        gates["rearm"].thread = rearming
+        rearming.start()
+        assert gates["rearm"].parked.wait(30)  # the re-arm's recovery is homing
+        gates["step"].open.set()  # the step's read fails: its recovery must wait for the re-arm's
+        assert waiting.wait(30)
+        assert emu.servos[2].reboots == 0
+    finally:
+        gates["step"].open.set()
+        gates["rearm"].open.set()
+    rearming.join(30)
+    stepping.join(30)
+    assert not rearming.is_alive() and not stepping.is_alive(), "deadlocked: the bus held during the wait"
+    status = f.status()
+    assert status["state"] == "ready" and status["recoveries"] == 2 and emu.servos[2].reboots == 1
+    assert torque(emu) == [1, 1, 1, 1]
     f.bus.close()

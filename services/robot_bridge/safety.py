@@ -13,13 +13,17 @@
   are refused until `rearm()`;
 - a servo fault (no reply, error bits) runs the recovery sequence: reboot the faulty servos,
   restore their limits, torque on, home; if homing fails, torque off and wait for an operator
-  (`rearm()`). The state is in `status()` for the bridge to publish.
+  (`rearm()`). The state is in `status()` for the bridge to publish. One recovery runs at a time:
+  a faulted step's and a re-arm's (or two re-arms') would reboot, arm and home the same servos
+  at once, and whichever ended last would set the state over what the other did to the servos;
+  the second waits for the first, then runs its own.
 
 The e-stop flag is the one source of truth for `estop`: `state` reads it first, so no recovery
 that finishes, fails or starts around a racing e-stop can report anything else while it holds.
 The flag, the other states and the fault change together under one small lock that is never
 held across bus work (`_flags`), so `status()` is one consistent snapshot, and e-stops and
-re-arms take effect in the order they are made.
+re-arms take effect in the order they are made. Locks are taken in one order: the recovery's
+(`_recovery`), then the bus's (`_lock`), then `_flags`; the e-stop never waits for a recovery.
 """
 
 from __future__ import annotations
@@ -89,6 +93,7 @@ class SafeFingers:
         self._estop = threading.Event()
         self._torque_cut = threading.Event()  # set once an e-stop's torque-off has gone out
         self._flags = threading.Lock()  # the e-stop flag, state and fault change together under it
+        self._recovery = threading.Lock()  # held for a whole recovery: one at a time
         self._state = State.READY  # what holds when the e-stop flag is clear
         self.watchdog = Watchdog.ACTIVE
         self.fault = ""
@@ -152,24 +157,22 @@ class SafeFingers:
     def step(self, action: np.ndarray, settle_s: float = 0.0) -> StepReport:
         """Send clamped goals, let them act for `settle_s`, read the state and its error bits."""
         start = self._clock()
-        with self._lock:
-            self._refuse_if_stopped()
-            if self.state is not State.READY:
-                raise Refused(f"the bridge is {self.state.value}: {self.fault}")
-            if self.watchdog is Watchdog.TORQUE_OFF:
-                raise Refused("the watchdog turned torque off: reset first")
-            goals, clamped = self.clamp(self.action_to_goals(action))
-            try:
-                self._send(goals)
-            except BusError as e:
-                return self._faulted(goals, clamped, start, e.servo_ids, str(e))
-        self._wait(settle_s)
-        with self._lock:
-            self._refuse_if_stopped()
-            try:
+        try:
+            with self._lock:
+                self._refuse_if_stopped()
+                if self.state is not State.READY:
+                    raise Refused(f"the bridge is {self.state.value}: {self.fault}")
+                if self.watchdog is Watchdog.TORQUE_OFF:
+                    raise Refused("the watchdog turned torque off: reset first")
+                goals, clamped = self.clamp(self.action_to_goals(action))
+                self._send(goals)  # the first bus work: goals are set by any BusError below
+            self._wait(settle_s)
+            with self._lock:
+                self._refuse_if_stopped()
                 state = self.bus.read_state(self.ids)
-            except BusError as e:
-                return self._faulted(goals, clamped, start, e.servo_ids, str(e))
+        except BusError as e:
+            # Recovered with the bus lock released: a re-arm's recovery under way needs it to finish.
+            return self._faulted(goals, clamped, start, e.servo_ids, str(e))
         self.last_errors = state.faults(self.ids)
         if self.last_errors:
             faulty = tuple(self.last_errors)
@@ -226,8 +229,8 @@ class SafeFingers:
 
     def recover(self) -> None:
         """The re-arm's second half: reboot the faulty servos, arm, home (an e-stop made meanwhile
-        stops it, and stays)."""
-        self._recover(self.fault_servos)
+        stops it, and stays). A recovery under way (a faulted step's, another re-arm's) ends first."""
+        self._recover()
 
     # -- watchdog ------------------------------------------------------------------------------
     def touch(self) -> None:
@@ -303,12 +306,22 @@ class SafeFingers:
             self._sleep(min(left, 0.01))
 
     def _faulted(self, goals: np.ndarray, clamped: bool, start: float, servo_ids, reason: str) -> StepReport:
-        self._set(State.RECOVERING, reason, tuple(servo_ids))
-        self._recover(self.fault_servos)
+        self._recover((reason, tuple(servo_ids)))
         return StepReport(goals, clamped, None, self._clock() - start, True, reason)
 
-    def _recover(self, servo_ids: tuple[int, ...]) -> None:
-        """Reboot the faulty servos (if any), restore limits, torque on, home; else wait for an operator."""
+    def _recover(self, fault: tuple[str, tuple[int, ...]] | None = None) -> None:
+        """Reboot the faulty servos (if any), restore limits, torque on, home; else wait for an operator.
+
+        `fault` is a faulted step's reason and servos; without it (a re-arm) the standing fault's
+        servos are rebooted. Called without the bus lock: it waits for a recovery under way."""
+        with self._recovery:
+            if fault is None:
+                self._set(State.RECOVERING)  # a recovery that ended meanwhile may have said `ready`
+            else:
+                self._set(State.RECOVERING, *fault)
+            self._recover_now(self.fault_servos)
+
+    def _recover_now(self, servo_ids: tuple[int, ...]) -> None:
         self.recoveries += 1
         try:
             with self._lock:
