@@ -155,6 +155,13 @@ def test_a_wall_clock_step_during_a_transfer_does_not_fail_it(rig, monkeypatch: 
     assert bus.read(2, xl320.PRESENT_POSITION, 2) == 400
 
 
+def test_an_xl320_has_no_bus_watchdog_to_arm(rig) -> None:
+    # 98 is an X-series servo's bus watchdog; the XL-320's table ends at 52: outside it, refused.
+    _, bus = rig
+    with pytest.raises(BusError, match="servo 1: write 5 at 98"):
+        bus.write(1, 98, 5, 1)
+
+
 def test_a_corrupt_crc_is_rejected(rig) -> None:
     emu, bus = rig
     emu.corrupt(1)

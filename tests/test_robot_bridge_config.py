@@ -48,6 +48,7 @@ BAD = [
     ("servos", "settle_s", float("inf"), "servos.settle_s: must be a finite number"),
     ("servos", "settle_s", 10.0, "servos.settle_s: 10.0 must be below safety.step_timeout_s"),
     ("safety", "watchdog_off_s", 1.0, "safety.watchdog_off_s: 1.0 is below safety.watchdog_hold_s"),
+    ("safety", "bus_watchdog_ms", 100, "safety.bus_watchdog_ms: the XL-320 has no bus watchdog"),
 ]
 
 

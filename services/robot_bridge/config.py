@@ -114,6 +114,14 @@ class GripperConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
 
+# A setting copied from an X-series manual: refused with the reason, not as a typo.
+NO_BUS_WATCHDOG = (
+    "the XL-320 has no bus watchdog (the X-series' Bus Watchdog at address 98 is not in its control "
+    "table); the bridge's own watchdog (safety.watchdog_hold_s, safety.watchdog_off_s) and its "
+    "torque-off on SIGTERM are the stops, and nothing stops the servos if the bridge is killed"
+)
+
+
 def load(path: str | Path) -> GripperConfig:
     path = Path(path)
     try:
@@ -154,6 +162,9 @@ def _section(name: str, cls: type, table: Any, problems: list[str]) -> Any:
         return None
     values: dict[str, Any] = {}
     for key, value in table.items():
+        if name == "safety" and key.startswith("bus_watchdog"):
+            problems.append(f"{name}.{key}: {NO_BUS_WATCHDOG}")
+            continue
         if key not in fields:
             problems.append(f"{name}.{key}: unknown field (known: {', '.join(fields)})")
             continue

@@ -68,7 +68,7 @@ CONTROL_TABLE: tuple[tuple[str, int, int, bool, int], ...] = (
     ("hardware_error_status", HARDWARE_ERROR_STATUS, 1, False, 0),
     ("punch", 51, 2, True, 32),
 )
-TABLE_SIZE = 53
+TABLE_SIZE = 53  # it ends there: no bus watchdog (an X-series servo's, at 98), the host must stop it
 EEPROM_END = 24  # addresses below are EEPROM: writable only with torque off
 
 # Units.
