@@ -209,7 +209,11 @@ class ServoBus:
         self.ids = tuple(ids)
         self.port = _Port(port, latency_ms)
         self.packet = _Packets()
-        if not self.port.openPort():
+        try:
+            opened = self.port.openPort()
+        except _PORT_FAILURES as err:  # no such device, or no access to it
+            raise BusError(f"cannot open {port}: {err}", self.ids) from err
+        if not opened:
             raise BusError(f"cannot open {port}", self.ids)
         if not self.port.setBaudRate(baud):
             self.port.closePort()
