@@ -102,6 +102,8 @@ class SafetyConfig:
     """Steps within which homing counts as done (recovery's check)."""
     home_timeout_s: float = 5.0
     reboot_wait_s: float = 0.5
+    torque_guard: bool = True
+    """A process of its own (`guard.py`) turns torque off when the bridge dies without its clean stop."""
 
 
 @dataclass(frozen=True)
@@ -117,8 +119,9 @@ class GripperConfig:
 # A setting copied from an X-series manual: refused with the reason, not as a typo.
 NO_BUS_WATCHDOG = (
     "the XL-320 has no bus watchdog (the X-series' Bus Watchdog at address 98 is not in its control "
-    "table); the bridge's own watchdog (safety.watchdog_hold_s, safety.watchdog_off_s) and its "
-    "torque-off on SIGTERM are the stops, and nothing stops the servos if the bridge is killed"
+    "table); the bridge's own watchdog (safety.watchdog_hold_s, safety.watchdog_off_s), its "
+    "torque-off on SIGTERM and its torque guard (safety.torque_guard), which turns torque off when "
+    "the bridge is killed, are the stops"
 )
 
 
@@ -198,6 +201,8 @@ def _typed(name: str, value: Any, expected: str, problems: list[str]) -> Any:
         problems.append(f"{name}: must be a number, got {value!r}")
     elif expected == "str" and not isinstance(value, str):
         problems.append(f"{name}: must be a string, got {value!r}")
+    elif expected == "bool" and not isinstance(value, bool):
+        problems.append(f"{name}: must be true or false, got {value!r}")
     return float(value) if expected == "float" and isinstance(value, int | float) else value
 
 
