@@ -37,7 +37,8 @@ def emulated_config(port: str, image_size: int = 84) -> GripperConfig:
         "valve": {"id": VALVE_ID, "moving_speed": 1023},
         "camera": {"width": 160, "height": 120, "image_size": image_size, "drop_frames": 0},
         "angle": {"source": "servo", "zero_deg": 150.0},
-        "safety": {"home_tolerance": 3, "reboot_wait_s": 0.0},
+        # No guard: the emulated servos live in this process and die with it.
+        "safety": {"home_tolerance": 3, "reboot_wait_s": 0.0, "torque_guard": False},
     }, source="<emulated gripper>")
 
 

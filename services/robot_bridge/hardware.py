@@ -22,6 +22,7 @@ from services.robot_bridge import xl320
 from services.robot_bridge.camera import ArucoAngle, Camera, servo_angle, to_observation
 from services.robot_bridge.config import GripperConfig
 from services.robot_bridge.dynamixel import BusError, ServoBus
+from services.robot_bridge.guard import GuardUnavailable, TorqueGuard
 from services.robot_bridge.safety import Refused, SafeFingers
 from shared.gripper.sim import EPISODE_STEPS, TASKS, UnknownGripperTask, valve_reward
 
@@ -54,6 +55,15 @@ class GripperHardware:
         self.bus = bus or ServoBus(config.bus.port, config.bus.baud, ids, config.bus.latency_ms)
         self.fingers = SafeFingers(self.bus, config.servos, config.safety)
         self.camera = camera or Camera(config.camera)
+        self.guard: TorqueGuard | None = None
+        # Started before any torque goes on. A bus handed in is its owner's (tests): no guard.
+        if bus is None and config.safety.torque_guard:
+            try:
+                self.guard = TorqueGuard(config.bus.port, config.bus.baud, ids, config.bus.latency_ms)
+            except GuardUnavailable:
+                self.camera.close()
+                self.bus.close()
+                raise
         self._aruco = ArucoAngle(config.angle) if config.angle.source == "aruco" else None
         self._random = np.random.RandomState(seed)
         self.action_dim = 4
@@ -109,8 +119,15 @@ class GripperHardware:
         return dict(self._info)
 
     def close(self) -> None:
-        self.camera.close()
-        self.bus.close()
+        """Close the camera and the bus; with a guard, torque off first, then the guard stands
+        down, unless a servo missed the torque-off: the guard then tries too, once the bus is closed."""
+        reached = self.guard is None or not self.fingers.estop()
+        try:
+            self.camera.close()
+            self.bus.close()
+        finally:
+            if self.guard is not None:
+                self.guard.close(stand_down=reached)
 
     # -- internals -----------------------------------------------------------------------------
     def _observe(self) -> np.ndarray:

@@ -17,6 +17,7 @@ from typing import Literal
 import tyro
 
 from services.robot_bridge.config import GripperConfigError
+from services.robot_bridge.guard import GuardUnavailable
 from shared import faults, wire
 from shared.gl import RenderQuality
 from shared.gripper.sim import UnknownGripperTask
@@ -78,6 +79,9 @@ def main(argv: list[str] | None = None) -> None:
     except (GripperConfigError, UnknownGripperTask, ValueError) as err:
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
+    except GuardUnavailable as err:  # no torque without it; exit 1: its supervisor retries
+        print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(1)
     stop = StopFlag()
     stop.install_signal_handlers()
     try:

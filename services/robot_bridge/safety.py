@@ -183,8 +183,9 @@ class SafeFingers:
         return StepReport(goals, clamped, state, latency, late, reason)
 
     # -- e-stop --------------------------------------------------------------------------------
-    def estop(self) -> None:
-        """Torque off and refuse steps until `rearm()`; safe to call from any thread, any number of times."""
+    def estop(self) -> list[int]:
+        """Torque off and refuse steps until `rearm()`; safe to call from any thread, any number of times.
+        Returns the servos the torque-off did not reach."""
         with self._flags:
             self._estop.set()  # first: a step in flight sees it before its next bus write
         with self._lock:
@@ -193,6 +194,7 @@ class SafeFingers:
                 # A servo that cannot hear the torque-off is a fault an operator must see.
                 self._set(fault=f"e-stop could not reach servos {unreached}", servos=tuple(unreached))
         self._torque_cut.set()
+        return unreached
 
     def wait_torque_cut(self, timeout_s: float = TORQUE_CUT_WAIT_S) -> bool:
         """After a refusal: wait until the e-stop's torque-off has gone out (call without the bus lock),
