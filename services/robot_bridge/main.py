@@ -94,6 +94,9 @@ def main(argv: list[str] | None = None) -> None:
                 with server.serve():
                     kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
                     log(f"serving {args.task} ({kind}) on {server.keys.prefix}")
+                    guard = getattr(env, "guard", None)
+                    if guard is not None:
+                        log(f"torque guard running (pid {guard.process.pid})")
                     while not stop.wait(0.2):
                         pass
                     server.estop(f"{stop.reason}: bridge stopping")  # torque off before the process goes
