@@ -122,13 +122,14 @@ def test_a_clean_stop_turns_torque_off_and_stands_the_guard_down(bridge) -> None
     assert "e-stop: SIGTERM" in text and "[torque guard]" not in text, text
 
 
-def test_a_guard_stood_down_exits_without_writing(tmp_path: Path) -> None:
+def test_a_guard_ignores_sigterm_and_stood_down_exits_without_writing(tmp_path: Path) -> None:
     with BusEmulator(IDS) as emu:
         bus = ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS)
         bus.set_torque(True)
         bus.close()
         guard = TorqueGuard(emu.port, 1000000, IDS, LATENCY_MS)
         seen = emu.packets_seen
+        guard.process.send_signal(signal.SIGTERM)  # a stop meant for the bridge's group: ignored
         guard.close(stand_down=True)
         assert guard.process.wait(timeout=60) == 0
         assert emu.packets_seen == seen and torque(emu, IDS) == [1, 1, 1, 1]  # left to the bridge

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import select
+import signal
 import subprocess
 import sys
 import time
@@ -124,6 +125,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     ids = [int(sid) for sid in args.ids.split(",")]
     log = Log("torque guard")
+    # A stop signal meant for the bridge's whole group (systemd's stop, a hang-up) must not take the
+    # guard first: it ends on its own, once the bridge stands it down or dies and its tries end.
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     sys.stdout.buffer.write(READY)
     sys.stdout.flush()
     devnull = os.open(os.devnull, os.O_WRONLY)  # the bridge reads the ready line only
