@@ -17,6 +17,7 @@ def example() -> dict:
 def test_the_example_loads() -> None:
     c = config.load(EXAMPLE)
     assert c.servos.ids == (1, 2, 3, 4) and c.angle.source == "aruco" and c.valve.id == 5
+    assert c.safety.torque_guard is True
 
 
 BAD = [
@@ -49,6 +50,7 @@ BAD = [
     ("servos", "settle_s", 10.0, "servos.settle_s: 10.0 must be below safety.step_timeout_s"),
     ("safety", "watchdog_off_s", 1.0, "safety.watchdog_off_s: 1.0 is below safety.watchdog_hold_s"),
     ("safety", "bus_watchdog_ms", 100, "safety.bus_watchdog_ms: the XL-320 has no bus watchdog"),
+    ("safety", "torque_guard", 1, "safety.torque_guard: must be true or false, got 1"),
 ]
 
 
