@@ -150,3 +150,55 @@ def test_a_guard_that_cannot_open_the_port_gives_up_after_its_tries_with_one_lin
     assert len(lines) == 1, err
     assert f"could not turn torque off on servos [1, 2] at {missing} after 5 tries" in lines[0]
     assert "cannot open" in lines[0] and "cut the servos' power" in lines[0]
+
+
+def test_a_port_that_cannot_be_opened_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    config = tmp_path / "gripper.toml"
+    config.write_text(CONFIG.format(port=tmp_path / "ttyUSB9", latency_ms=LATENCY_MS))
+    argv = ["--bridge-id", "g1", "--task", "gripper-valve", "--config", str(config)]
+    proc = subprocess.run([sys.executable, "-c", BRIDGE, str(tmp_path / "cam.avi"), *argv],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("robot_bridge: error: "), proc.stderr
+    assert "ttyUSB9" in lines[0]
+
+
+def test_a_failed_start_closes_what_it_opened_and_stands_the_guard_down(tmp_path: Path, monkeypatch) -> None:
+    """The ArUco angle, built after the guard, fails: the bus and the camera are closed (the next try
+    must take them) and the guard stands down, instead of reporting a dead bridge and writing."""
+    from services.robot_bridge import config as config_module
+    from services.robot_bridge import hardware
+    from services.robot_bridge.camera import CameraUnavailable
+
+    closed: list[str] = []
+    guards: list[TorqueGuard] = []
+
+    def spy(name: str, cls: type, **fixed) -> type:
+        class Spied(cls):
+            def __init__(self, *args, **kwargs) -> None:
+                super().__init__(*args, **kwargs, **fixed)
+                guards.extend([self] if name == "guard" else [])
+
+            def close(self, *args, **kwargs) -> None:
+                closed.append(name)
+                super().close(*args, **kwargs)
+        return Spied
+
+    def no_aruco(*args, **kwargs):
+        raise CameraUnavailable("this OpenCV has no ArUco module")
+
+    monkeypatch.setattr(hardware, "ServoBus", spy("bus", ServoBus))
+    monkeypatch.setattr(hardware, "Camera", spy("camera", hardware.Camera, source=video(tmp_path / "c.avi")))
+    monkeypatch.setattr(hardware, "TorqueGuard", spy("guard", TorqueGuard))
+    monkeypatch.setattr(hardware, "ArucoAngle", no_aruco)
+    with BusEmulator(ALL) as emu:
+        path = tmp_path / "gripper.toml"
+        path.write_text(CONFIG.format(port=emu.port, latency_ms=LATENCY_MS).replace('"servo"', '"aruco"'))
+        with pytest.raises(CameraUnavailable):
+            hardware.GripperHardware(config_module.load(path), "gripper-valve", 0)
+        seen = emu.packets_seen
+        assert len(guards) == 1
+        assert guards[0].process.wait(timeout=60) == 0
+        assert emu.packets_seen == seen  # stood down: it wrote nothing
+        assert sorted(closed) == ["bus", "camera", "guard"]

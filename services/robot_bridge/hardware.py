@@ -22,7 +22,7 @@ from services.robot_bridge import xl320
 from services.robot_bridge.camera import ArucoAngle, Camera, servo_angle, to_observation
 from services.robot_bridge.config import GripperConfig
 from services.robot_bridge.dynamixel import BusError, ServoBus
-from services.robot_bridge.guard import GuardUnavailable, TorqueGuard
+from services.robot_bridge.guard import TorqueGuard
 from services.robot_bridge.safety import Refused, SafeFingers
 from shared.gripper.sim import EPISODE_STEPS, TASKS, UnknownGripperTask, valve_reward
 
@@ -53,18 +53,26 @@ class GripperHardware:
             raise ValueError(f"{task} turns the valve at reset: the config needs a valve servo (valve.id)")
         ids = tuple(config.servos.ids) + ((config.valve.id,) if config.valve.id else ())
         self.bus = bus or ServoBus(config.bus.port, config.bus.baud, ids, config.bus.latency_ms)
-        self.fingers = SafeFingers(self.bus, config.servos, config.safety)
-        self.camera = camera or Camera(config.camera)
+        self.camera = camera
         self.guard: TorqueGuard | None = None
-        # Started before any torque goes on. A bus handed in is its owner's (tests): no guard.
-        if bus is None and config.safety.torque_guard:
-            try:
+        try:
+            self.fingers = SafeFingers(self.bus, config.servos, config.safety)
+            if self.camera is None:
+                self.camera = Camera(config.camera)
+            # Started before any torque goes on. A bus handed in is its owner's (tests): no guard.
+            if bus is None and config.safety.torque_guard:
                 self.guard = TorqueGuard(config.bus.port, config.bus.baud, ids, config.bus.latency_ms)
-            except GuardUnavailable:
+            self._aruco = ArucoAngle(config.angle) if config.angle.source == "aruco" else None
+        except BaseException:
+            # What this opened is closed, so the next try can take the port and the camera; no
+            # torque is on yet, so the guard stands down. A bus or camera handed in is its owner's.
+            if self.guard is not None:
+                self.guard.close(stand_down=True)
+            if camera is None and self.camera is not None:
                 self.camera.close()
+            if bus is None:
                 self.bus.close()
-                raise
-        self._aruco = ArucoAngle(config.angle) if config.angle.source == "aruco" else None
+            raise
         self._random = np.random.RandomState(seed)
         self.action_dim = 4
         self.image_size = config.camera.image_size

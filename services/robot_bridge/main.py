@@ -16,7 +16,9 @@ from typing import Literal
 
 import tyro
 
+from services.robot_bridge.camera import CameraUnavailable
 from services.robot_bridge.config import GripperConfigError
+from services.robot_bridge.dynamixel import BusError
 from services.robot_bridge.guard import GuardUnavailable
 from shared import faults, wire
 from shared.gl import RenderQuality
@@ -79,7 +81,9 @@ def main(argv: list[str] | None = None) -> None:
     except (GripperConfigError, UnknownGripperTask, ValueError) as err:
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
-    except GuardUnavailable as err:  # no torque without it; exit 1: its supervisor retries
+    except (GuardUnavailable, BusError, CameraUnavailable) as err:
+        # No torque without the guard; an adapter or a camera not there yet may come (re-plugged):
+        # exit 1, its supervisor retries.
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(1)
     stop = StopFlag()
