@@ -174,13 +174,21 @@ def test_a_token_file_that_gives_no_token_is_refused_before_the_learner_connects
         check_args(LearnerArgs(api_token_file=path))
 
 
-def test_files_the_disk_refuses_at_the_end_are_logged_and_the_learner_still_ends(tmp_path, capsys):
+def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_still_ends(
+        tmp_path, capsys, monkeypatch):
+    import builtins
     from types import SimpleNamespace
 
-    from services.learner.health import LearnerArgs
+    from fastapi.testclient import TestClient
+
+    from services.learner.health import LearnerArgs, degraded_reasons
     from services.learner.history import History
-    from services.learner.learner import Learner
+    from services.learner.learner import FINAL_STATUS, Learner
+    from services.learner.metrics import LearnerMetrics
+    from services.learner.status_api import make_app
+    from shared import files
     from shared.service import Log, StopFlag
+    from tests.test_train import FullFile
 
     # A learner at its end, without Zenoh: what _finish uses.
     learner = Learner.__new__(Learner)
@@ -189,13 +197,26 @@ def test_files_the_disk_refuses_at_the_end_are_logged_and_the_learner_still_ends
     learner.keys = wire.Keys("r")
     learner.client = SimpleNamespace(invalid=0)
     learner.history, learner.log, learner.stop, learner.wall_s = History(), Log("learner"), StopFlag(), 1.0
-    for name in ("status.json.tmp", "history.json.tmp"):  # where each is written: the disk refuses it
-        (tmp_path / "learner" / name).mkdir(parents=True)
+    learner._scalars_at = 0.0
+    metrics = LearnerMetrics(learner.status)
+    app = make_app(learner.status, lambda: [], metrics=metrics.render,
+                   degraded=lambda: degraded_reasons(learner.core), render_every_s=0.0)
+    # The disk refuses the text of status.json and history.json (both go through shared.files).
+    monkeypatch.setattr(files, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
     learner._finish(finished=False)
+    monkeypatch.undo()
     err = capsys.readouterr().err
     assert learner.stop.reason == "done" and "stopping" in err
-    assert "the last status not written" in err and "the dashboard's series not written" in err
-    assert (tmp_path / CHECKPOINT).exists()
+    assert "status.json not written" in err and "history.json not written" in err
+    assert (tmp_path / CHECKPOINT).exists() and not (tmp_path / FINAL_STATUS).exists()
+    client = TestClient(app)
+    writes = client.get("/status").json()["writes"]
+    assert writes["failed"] == {"history.json": 1, "status.json": 1}
+    assert writes["failing"] == ["history.json", "status.json"]
+    assert writes["last_error"].startswith("history.json: OSError")
+    assert 'nasa_write_failures_total{file="status.json"} 1.0' in client.get("/metrics").text
+    health = client.get("/healthz")
+    assert health.status_code == 200 and health.text.startswith("degraded: writes failing: history.json")
 
 
 def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):

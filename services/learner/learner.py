@@ -319,11 +319,11 @@ class Learner:
             elif (target := self.between.due(core.env_steps)) is not None:
                 self._evaluate(target)
         core.save_checkpoint(self.wall_s)
-        self._leave("the last status", self.write_final_status)
+        self._leave("status.json", self.write_final_status)
         self.history.add(self.status())
-        self._leave("the dashboard's series", lambda: self.history.save(self.args.data))
-        core.scalars.status(self.status())
-        core.scalars.close()
+        self._leave("history.json", lambda: self.history.save(self.args.data))
+        self._write(None, lambda: core.scalars.status(self.status()))
+        self._leave("tensorboard", core.scalars.close)  # raises what its writing thread met, once
         if finished:
             self.log(f"run done: {core.env_steps} env steps, {core.agent.num_updates} updates")
             self.session.put(self.keys.stop, wire.encode(wire.Stop("run done")), congestion_control=BLOCK)
@@ -331,14 +331,19 @@ class Learner:
             self.log(f"stopping ({self.stop.reason}); checkpoint at {core.agent.num_updates} updates")
         self.stop.set("done")
 
-    def _leave(self, what: str, write: Callable[[], None]) -> None:
-        """Write a file the run leaves for `nasa status`; one the disk refuses (full) is logged, and
-        the run still ends: raising here would skip the Stop, and the restarted learner would meet
-        the same disk at the same end, over and over."""
+    def _leave(self, name: str, write: Callable[[], None]) -> None:
+        """Write a file the run leaves for `nasa status` (`name`, as /status `writes` counts it); one
+        the disk refuses (full) is logged and counted like every other refused write, and the run
+        still ends: raising here would skip the Stop, and the restarted learner would meet the same
+        disk at the same end, over and over."""
+        writes = self.core.board.writes
         try:
             write()
         except OSError as err:
-            self.log(f"{what} not written: {type(err).__name__}: {err}")
+            writes.failed(name, err)
+            self.log(f"{name} not written: {type(err).__name__}: {err}")
+        else:
+            writes.ok(name)
 
     def _evaluate(self, target: int) -> None:
         """Step `target`'s evaluation, here and now (--eval-between-updates)."""
