@@ -53,7 +53,10 @@ import zstandard as zstd
 from shared.envs import ACTION_BOUND
 
 # 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
-# key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read
+# key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read.
+# A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures)
+# keeps the version: a receiver fills in the default where a sender has not the field, and ignores
+# fields it does not know, so either side of a rolling upgrade reads the other's messages.
 SCHEMA_VERSION = 3
 PREFIX = "nasa"
 _EPOCH_2025 = 1_735_689_600.0
@@ -274,6 +277,7 @@ STEP_SECONDS_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
 """Upper bounds of the env step time histogram's buckets (seconds): a suite task's step to a real
 robot's (which the paper's budget puts under a second)."""
 MAX_FAULT_TEXT = 64
+MAX_WRITE_KINDS = 16
 
 
 @dataclass
@@ -282,6 +286,13 @@ class EvalResult(Message):
     step: int
     policy_version: int
     returns: list
+    write_failures: dict = field(default_factory=dict)
+    """The evaluator's writes the disk refused since it started (pictures, TensorBoard, its draws),
+    by kind; the learner shows them in /status `writes` (shared.writes.WriteFailures.report)."""
+    writes_failing: list = field(default_factory=list)
+    """The kinds of write_failures that fail still (none of theirs has succeeded since)."""
+    write_error: str = ""
+    """The last of those errors ("kind: error")."""
 
 
 @dataclass
@@ -618,6 +629,15 @@ def check_actor_status(m: ActorStatus, b: Bounds) -> None:
 def check_eval_result(m: EvalResult, b: Bounds) -> None:
     _need(1 <= len(m.returns) <= MAX_LIST, f"{len(m.returns)} returns")
     _need(all(_is_number(r) and abs(r) <= 1e12 for r in m.returns), "returns must be finite numbers")
+    # A few kinds of write, each a short name: they become /status keys and /metrics labels.
+    kinds = m.write_failures
+    _need(len(kinds) <= MAX_WRITE_KINDS, f"write_failures: {len(kinds)} kinds")
+    _need(all(isinstance(k, str) and 0 < len(k) <= MAX_FAULT_TEXT for k in kinds),
+          "write_failures: kinds must be short names")
+    _need(all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < MAX_INT for n in kinds.values()),
+          "write_failures: not counts")
+    _need(all(isinstance(k, str) and k in kinds for k in m.writes_failing),
+          "writes_failing: a kind without a count in write_failures")
 
 
 def _is_number(x: Any) -> bool:

@@ -463,3 +463,93 @@ def test_a_stop_after_the_result_is_out_makes_no_pictures(tmp_path):
         assert not list((tmp_path / "media").glob("*.mp4")) and ev.media.newest_video_step() is None
     finally:
         ev.media.close()
+
+
+def test_the_evaluators_refused_writes_reach_the_learners_status_metrics_and_healthz(tmp_path, monkeypatch):
+    """Over real Zenoh on loopback: pictures the disk refuses after a result went out are counted
+    by the evaluator, sent to the learner with the result again (recorded once), and shown by the
+    learner's /status `writes`, /metrics and /healthz; the next pictures that land clear `failing`."""
+    import queue
+    import time
+    from types import SimpleNamespace
+
+    from fastapi.testclient import TestClient
+
+    from nasa.up import free_port
+    from services.learner.health import degraded_reasons
+    from services.learner.learner import Learner
+    from services.learner.metrics import LearnerMetrics
+    from services.learner.status_api import make_app
+    from shared.service import Log
+    from shared.zenoh_session import open_client, open_router
+    from tests.test_learner import core_on
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run = tiny_run("nasa_td3", steps=200)
+    keys = wire.Keys(f"t{free_port()}")
+    with open_router(endpoint), open_client(endpoint) as evs, open_client(endpoint) as ls:
+        learner = Learner.__new__(Learner)  # what _on_eval, _drain and status use
+        learner.core = core_on(tmp_path / "learner")
+        learner.keys, learner.bounds, learner.log = keys, wire.Bounds(), Log("learner")
+        learner.client, learner.wall_s = SimpleNamespace(invalid=0), 1.0
+        learner._scalars_at = time.monotonic()
+        learner._evals, learner._episodes = queue.Queue(), queue.Queue()
+        app = make_app(learner.status, lambda: [], metrics=LearnerMetrics(learner.status).render,
+                       degraded=lambda: degraded_reasons(learner.core), render_every_s=0.0)
+        client = TestClient(app)
+        ev = EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, run_id=keys.run_id,
+                                            video_every=0), evs, StopFlag(), run)
+        try:
+            with ls.declare_subscriber(keys.eval_result, learner._on_eval):
+                time.sleep(0.5)  # the subscription reaches the router before the first put
+
+                def full(*_: object, **__: object) -> None:
+                    raise OSError(28, "No space left on device")
+
+                _weights(ev, version=0)
+                target = ev.due()
+                ev.tap.autoencoder = ev.agent  # as when the weights carry the decoder
+                with monkeypatch.context() as disk:
+                    disk.setattr("PIL.Image.Image.save", full)
+                    ev.evaluate_and_send(target)
+                deadline = time.monotonic() + 30.0
+                while learner._evals.qsize() < 2 and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert learner._evals.qsize() == 2  # the result, then again with its pictures' failure
+                learner._drain()
+                assert len(read_rows(tmp_path / "learner" / "eval.csv")) == 1  # recorded once
+                writes = client.get("/status").json()["writes"]
+                assert writes["failed"] == {"evaluator/media": 1}
+                assert writes["failing"] == ["evaluator/media"]
+                assert writes["last_error"].startswith("evaluator/media: OSError")
+                assert 'nasa_write_failures_total{file="evaluator/media"} 1.0' in client.get("/metrics").text
+                health = client.get("/healthz")
+                assert health.status_code == 200 and health.text.startswith(
+                    "degraded: writes failing: evaluator/media")
+
+                _weights(ev, version=2, env_steps=60)  # room again: step 50's pictures land
+                target = ev.due()
+                ev.tap.autoencoder = ev.agent
+                ev.evaluate_and_send(target)
+                deadline = time.monotonic() + 30.0
+                while learner._evals.qsize() < 1 and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                learner._drain()
+                writes = client.get("/status").json()["writes"]
+                assert writes["failed"] == {"evaluator/media": 1} and writes["failing"] == []
+                assert client.get("/healthz").text == "ok\n"
+        finally:
+            ev.media.close()
+
+
+def test_refused_write_counts_on_the_wire_are_checked():
+    ok = wire.EvalResult(0, 0, [1.0], {"media": 2}, ["media"], "media: OSError")
+    assert wire.decode(wire.encode(ok), wire.EvalResult) == ok
+    old = wire.encode(wire.EvalResult(0, 0, [1.0]))  # an evaluator without them: none
+    assert wire.decode(old, wire.EvalResult).write_failures == {}
+    too_many = {f"k{i}": 1 for i in range(wire.MAX_WRITE_KINDS + 1)}
+    for bad in ({"media": -1}, {"": 1}, {"media": True}, too_many):
+        with pytest.raises(wire.WireError, match="write_failures"):
+            wire.decode(wire.encode(wire.EvalResult(0, 0, [1.0], bad)), wire.EvalResult)
+    with pytest.raises(wire.WireError, match="writes_failing"):
+        wire.decode(wire.encode(wire.EvalResult(0, 0, [1.0], {}, ["media"])), wire.EvalResult)

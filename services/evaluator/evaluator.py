@@ -27,6 +27,7 @@ bridge abandons (gone, e-stop, fault) is played again when the bridge is back.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -47,6 +48,7 @@ from shared.evaluation import deterministic_policy, draws_restarter, eval_due, e
 from shared.service import Log, MessageGuard, StopFlag
 from shared.video import camera_frame
 from shared.weights import WeightsSubscriber
+from shared.writes import WriteFailures
 from shared.zenoh_session import ServiceArgs
 
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -128,6 +130,7 @@ class EvaluatorService(MessageGuard):
         self.tap = AutoencoderTap(self.agent)
         self.weights = WeightsSubscriber(self.tap, self._invalid, steps=c.steps)  # type: ignore[arg-type]
         self.media = EvalMedia(args.data, args.view_frames) if args.data is not None else None
+        self.writes = WriteFailures()  # refused writes, which each result carries to the learner
         self.evaluations = 0
         self.done = first_done(c)  # the newest step evaluated
         self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
@@ -199,7 +202,13 @@ class EvaluatorService(MessageGuard):
         self.done, self.evaluations = target, self.evaluations + 1
         self._save_draws()
         self._kept = (obs, cameras, first, video, version)
-        return wire.EvalResult(target, version, [float(r) for r in returns])
+        return self.with_writes(wire.EvalResult(target, version, [float(r) for r in returns]))
+
+    def with_writes(self, result: wire.EvalResult) -> wire.EvalResult:
+        """`result` carrying this evaluator's refused writes as they stand now."""
+        w = self.writes.snapshot()
+        return dataclasses.replace(result, write_failures=w["failed"], writes_failing=w["failing"],
+                                   write_error=w["last_error"])
 
     def video_due(self, target: int) -> bool:
         """Whether the evaluation of step `target` gets a video: the first one, then one every
@@ -227,6 +236,8 @@ class EvaluatorService(MessageGuard):
             return
         obs, cameras, first, video, version = self._kept
         self._kept = None
+        scalars = self.media.scalars
+        refused = scalars.refused
         try:
             autoencoder, frames = self.tap.autoencoder, np.stack(obs)
             if autoencoder is not None:
@@ -235,7 +246,12 @@ class EvaluatorService(MessageGuard):
                 path = self.media.video(autoencoder, frames, cameras, target, first)
                 self.log(f"step {target}: video {path}")
         except OSError as err:
+            self.writes.failed("tensorboard" if scalars.refused > refused else "media", err)
             self.log.every("media", 60.0, f"step {target}: pictures not written: {err}")
+            return
+        self.writes.ok("media")
+        if not scalars.refusing:
+            self.writes.ok("tensorboard")
 
     def _restore_draws(self) -> None:
         if self.env is None or self.draws_file is None or not self.draws_file.exists():
@@ -251,7 +267,10 @@ class EvaluatorService(MessageGuard):
         try:
             checkpoint.save(self.draws_file, {"draws": self.env.rng_state()})
         except (OSError, RuntimeError) as err:  # a full disk: only a restart's episodes would differ
+            self.writes.failed("draws", err)
             self.log.every("draws", 60.0, f"evaluation draws not saved: {err}")
+        else:
+            self.writes.ok("draws")
 
     def _first_episode(self, keep: bool, video: bool) -> tuple[float, list[np.ndarray], list]:
         """One deterministic episode (as shared.evaluation's), keeping its observations if asked:
@@ -268,6 +287,21 @@ class EvaluatorService(MessageGuard):
 
         return EnvLoop(self.env).run_episode(act), list(obs), cameras
 
+    def evaluate_and_send(self, target: int) -> None:
+        """Step `target`'s evaluation: its result out to the learner, then its pictures."""
+        if (msg := self.evaluate(target)) is None:
+            return
+        def put(m: wire.EvalResult) -> None:
+            self.session.put(self.keys.eval_result, wire.encode(m), congestion_control=BLOCK)
+
+        put(msg)
+        self.log(f"step {target} (policy {msg.policy_version}): mean {np.mean(msg.returns):.1f}")
+        self.pictures(target)
+        if (again := self.with_writes(msg)) != msg:
+            # The pictures come after the result: what they met goes out now, not with the next
+            # result. The learner records a step once, so only the counts are new to it.
+            put(again)
+
     def run(self) -> None:
         s, k, c = self.session, self.keys, self.config
         if not faults.claim_run_role(s, k, "evaluator", self.stop, self.log):
@@ -281,18 +315,14 @@ class EvaluatorService(MessageGuard):
             where = f" through bridge {self.args.bridge}" if self.args.bridge else ""
             self.log(f"evaluating every {c.eval_every} env steps, {c.eval_episodes} episodes{where}")
             while not self.stop.wait(0.1):
-                target = self.due()
-                if target is None:
-                    continue
-                msg = self.evaluate(target)
-                if msg is None:
-                    continue
-                s.put(k.eval_result, wire.encode(msg), congestion_control=BLOCK)
-                self.log(f"step {target} (policy {msg.policy_version}): mean {np.mean(msg.returns):.1f}")
-                self.pictures(target)
+                if (target := self.due()) is not None:
+                    self.evaluate_and_send(target)
             self.log(f"stopping ({self.stop.reason})")
         if self.media is not None:
-            self.media.close()
+            try:
+                self.media.close()
+            except OSError as err:  # TensorBoard's last points, refused at the end: nothing to retry
+                self.log(f"TensorBoard's last points not written: {err}")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -135,6 +135,8 @@ class Learner:
             return
         if (why := self.core.eval_problem(r)) is not None:
             return self._invalid("eval result", why)
+        # Its writes the disk refused: /status, /metrics and /healthz show them beside the learner's.
+        self.core.board.writes.report("evaluator", r.write_failures, r.writes_failing, r.write_error)
         self._evals.put(r)
 
     def _on_stop(self, sample: zenoh.Sample) -> None:

@@ -17,6 +17,7 @@ from collections import deque
 import numpy as np
 
 from shared import wire
+from shared.writes import WriteFailures
 
 RATE_SAMPLE_S = 0.5
 RATE_WINDOW_S = 10.0
@@ -45,45 +46,6 @@ def step_histogram(counts: list[int], total_s: float) -> dict | None:
     cumulative = list(itertools.accumulate(counts))
     le = dict(zip(bounds, cumulative, strict=True))
     return {"count": int(cumulative[-1]), "sum": round(total_s, 6), "le": le}
-
-
-class WriteFailures:
-    """Writes of the run folder the disk refused (a full or read-only disk), which the learner logs
-    and goes on past: how many of each kind, the last error and when it came, and which kinds fail
-    still (no write of theirs has succeeded since). /status shows them; /healthz answers degraded
-    while one kind fails."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._counts: dict[str, int] = {}
-        self._failing: set[str] = set()
-        self.last_error = ""
-        self.last_error_at: float | None = None
-
-    def failed(self, what: str, err: BaseException | str) -> None:
-        text = err if isinstance(err, str) else f"{type(err).__name__}: {err}"
-        with self._lock:
-            self._counts[what] = self._counts.get(what, 0) + 1
-            self._failing.add(what)
-            self.last_error, self.last_error_at = f"{what}: {text}", time.time()
-
-    def ok(self, what: str) -> None:
-        """A write of `what` succeeded: it no longer fails."""
-        if what in self._failing:
-            with self._lock:
-                self._failing.discard(what)
-
-    def failing(self) -> list[str]:
-        with self._lock:
-            return sorted(self._failing)
-
-    def snapshot(self) -> dict:
-        with self._lock:
-            at = self.last_error_at
-            return {"failed": dict(sorted(self._counts.items())), "failing": sorted(self._failing),
-                    "last_error": self.last_error,
-                    "last_error_at": (time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(at))
-                                      if at is not None else None)}
 
 
 class StatusBoard:
