@@ -12,12 +12,15 @@ lost to a replay restart) is scored before the update uses it, so an update
 never sees NaN. A small cache keeps the first score of a row whose write-back
 has not landed yet, so no row is scored twice with different networks. A score
 is stored finite and within the replay's reward bound: one that is not finite
-(diverged networks) scores 0, and a larger one is clipped, as the replay refuses
-a write-back with either and the row would stay unscored.
+(diverged networks) scores 0 (and is counted, `zeroed`), and a larger one is
+clipped, as the replay refuses a write-back with either and the row would stay
+unscored. The running means and counts go into the learner's checkpoint
+(`state`), so a resumed run's /status goes on with the whole run's.
 """
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 
 import numpy as np
@@ -45,6 +48,7 @@ class IntrinsicScorer:
         self.max_abs_score = max_abs_score  # the replay refuses scores beyond its reward bound
         self.scored = 0  # transitions whose score was computed
         self.scored_at_first_sample = 0  # of those, rows a training batch brought first
+        self.zeroed = 0  # of those, rows whose score came out non-finite and was stored as 0
         self.means: dict[str, float | None] = {"novelty": None, "surprise": None}
         self._after = 0  # every row below this index was scored (or seen scored)
         self._cache: OrderedDict[int, float] = OrderedDict()
@@ -118,6 +122,7 @@ class IntrinsicScorer:
             )
         finally:
             torch.set_num_threads(threads)
+        self.zeroed += int((~torch.isfinite(scores["intrinsic"])).sum())  # /status shows how many
         scores = {k: self._bounded(v) for k, v in scores.items()}
         values = scores["intrinsic"].float().cpu().numpy()
         batch["intrinsic"][rows] = values[inverse]
@@ -160,4 +165,21 @@ class IntrinsicScorer:
             "surprise_mean": self.means["surprise"],
             "scored": self.scored,
             "scored_at_first_sample": self.scored_at_first_sample,
+            "zeroed": self.zeroed,
         }
+
+    def state(self) -> dict:
+        """The running means and counts, for the checkpoint: a resumed run's /status goes on with
+        the whole run's, not those of the scores since the restart."""
+        return {"means": dict(self.means), "scored": self.scored,
+                "scored_at_first_sample": self.scored_at_first_sample, "zeroed": self.zeroed}
+
+    def load_state(self, state: dict) -> None:
+        """`state()` of a checkpoint; a part it lacks (an older checkpoint) stays as it is."""
+        means = state.get("means", {})
+        for name in self.means:
+            if isinstance(value := means.get(name), float | int) and math.isfinite(value):
+                self.means[name] = float(value)
+        for name in ("scored", "scored_at_first_sample", "zeroed"):
+            if isinstance(value := state.get(name), int) and value >= 0:
+                setattr(self, name, value)

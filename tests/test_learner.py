@@ -341,3 +341,56 @@ def test_a_tensorboard_point_the_disk_refuses_is_told_apart_from_its_csv_row(tmp
     writes = learner.core.board.snapshot()["writes"]
     assert writes["failed"] == {"tensorboard": 1} and writes["failing"] == ["tensorboard"]
     assert [r["return"] for r in read_rows(tmp_path / "train.csv")] == ["10"]  # its row went in
+
+
+def test_the_intrinsic_means_and_counts_go_on_after_a_resume_and_an_older_checkpoint_still_loads(tmp_path):
+    from shared import checkpoint
+
+    core = core_on(tmp_path)
+    for _ in range(2):
+        core.train_on(core.scorer.client.sample(16))
+    core.board.seen_env_steps(60)
+    before = core.status("r", 1.0)["intrinsic"]
+    assert before["scored"] > 0 and before["novelty_mean"] is not None and before["zeroed"] == 0
+    assert core.save_checkpoint(wall_s=2.0)
+    again = core_on(tmp_path)
+    assert again.resumed and again.status("r", 2.0)["intrinsic"] == before
+
+    state = checkpoint.load(tmp_path / CHECKPOINT)  # as a checkpoint from before they were kept
+    del state["intrinsic"], state["format"]
+    checkpoint.save(tmp_path / CHECKPOINT, state)
+    older = core_on(tmp_path)
+    assert older.resumed and older.agent.num_updates == 2
+    assert older.status("r", 2.0)["intrinsic"] == {"novelty_mean": None, "surprise_mean": None, "scored": 0,
+                                                   "scored_at_first_sample": 0, "zeroed": 0}
+
+
+def test_scores_that_come_out_non_finite_are_stored_as_0_and_counted_in_status_and_metrics(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from services.learner.metrics import LearnerMetrics
+    from services.learner.status_api import make_app
+
+    core = core_on(tmp_path)
+    score, nans = core.agent.score, []
+
+    def diverged(obs, action, next_obs):  # noqa: ANN001, ANN202 -- the first rows' scores are NaN
+        scores = score(obs, action, next_obs)
+        nans.append(min(2, len(obs)))
+        scores["intrinsic"][:2] = float("nan")
+        return scores
+
+    core.agent.score = diverged
+    batch = core.scorer.client.sample(16)
+    core.train_on(batch)
+    assert np.isfinite(batch["intrinsic"]).all()
+    zeroed = core.status("r", 1.0)["intrinsic"]["zeroed"]
+    assert zeroed == sum(nans) > 0
+    store = core.scorer.client.store
+    assert (store.get(np.arange(60))["intrinsic"] == 0).sum() >= zeroed  # warm-up rows and the zeroed
+    status = lambda: core.status("r", 1.0)  # noqa: E731
+    client = TestClient(make_app(status, lambda: [], metrics=LearnerMetrics(status).render,
+                                 render_every_s=0.0))
+    assert f"nasa_run_intrinsic_zeroed_transitions {float(zeroed)}" in client.get("/metrics").text
+    assert core.save_checkpoint(wall_s=2.0)
+    assert core_on(tmp_path).status("r", 2.0)["intrinsic"]["zeroed"] == zeroed

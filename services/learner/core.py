@@ -189,7 +189,8 @@ class LearnerCore:
             try:
                 self.recorder.checkpoint(self.out / CHECKPOINT, self.agent, self.rng, counters,
                                          policy_version=self.policy_version, epoch=self.epoch,
-                                         eval_env_rng=self.eval_draws())
+                                         eval_env_rng=self.eval_draws(),
+                                         intrinsic=self.scorer.state() if self.scorer else None)
             except (OSError, RuntimeError) as err:  # a full disk (torch.save raises RuntimeError): retry
                 self.checkpoint_error = f"{type(err).__name__}: {err}"
                 self.board.writes.failed("checkpoint", err)
@@ -212,6 +213,8 @@ class LearnerCore:
         self.policy_version = int(state["policy_version"])
         self.epoch = max(self.epoch, int(state.get("epoch", -1)) + 1)
         self.restored_eval_draws = state.get("eval_env_rng")
+        if self.scorer is not None and isinstance(scores := state.get("intrinsic"), dict):
+            self.scorer.load_state(scores)  # an older checkpoint has none: they start again here
         self.last_checkpoint_step = self.counters.env_steps
         self.board.seen_env_steps(self.counters.env_steps)
         self.resumed = True
@@ -237,7 +240,8 @@ class LearnerCore:
             "policy_version": self.policy_version,
             "eval": dict(self.eval),
             "intrinsic": self.scorer.status() if self.scorer else
-            {"novelty_mean": None, "surprise_mean": None, "scored": 0, "scored_at_first_sample": 0},
+            {"novelty_mean": None, "surprise_mean": None, "scored": 0, "scored_at_first_sample": 0,
+             "zeroed": 0},
             "resumed": self.resumed,
             "wall_s": round(wall_s, 3),
             **fleet,

@@ -48,6 +48,8 @@ SCALARS: tuple[tuple[str, str, str, str], ...] = (
      "Transitions given an intrinsic reward"),
     ("intrinsic.scored_at_first_sample", "nasa_intrinsic_scored_at_first_sample_transitions_total", "counter",
      "Transitions scored when a training batch first brought them, not on arrival"),
+    ("intrinsic.zeroed", "nasa_intrinsic_zeroed_transitions_total", "counter",
+     "Transitions whose intrinsic reward came out non-finite and was stored as 0"),
     ("resumed", "nasa_resumed", "gauge", "1 if the learner started from a checkpoint"),
     ("wall_s", "nasa_learner_wall_seconds", "gauge", "Seconds the learner has run (over restarts)"),
     ("replay.size", "nasa_replay_transitions", "gauge", "Transitions in the replay"),
