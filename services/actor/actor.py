@@ -63,9 +63,17 @@ def new_incarnation() -> int:
     return wire.restart_stamp(10, 31)
 
 
+MAX_ACTOR_ID = 2**31
+"""Actor ids are below this: the replay keeps them as 32-bit integers and refuses every episode of a
+larger one, which would leave its actor acting for nothing."""
+
+
 def _default_actor_id() -> int:
     env = os.environ.get("NASA_ACTOR_ID")
-    return int(env) if env else -1
+    try:
+        return int(env) if env else -1
+    except ValueError:
+        raise ConfigError(f"NASA_ACTOR_ID={env!r} is not an actor id (an integer)") from None
 
 
 @dataclass
@@ -73,7 +81,8 @@ class ActorArgs(ServiceArgs):
     """An actor: steps its environment with the latest policy and streams transitions to the replay."""
 
     actor_id: int = field(default_factory=_default_actor_id)
-    """This actor's id (env NASA_ACTOR_ID); -1: a random one (replicas of a scaled service)."""
+    """This actor's id, 0 to 2**31 - 1 (env NASA_ACTOR_ID); -1: a random one (replicas of a scaled
+    service)."""
     actor_device: str = "cpu"
     """Device the local policy runs on."""
     send_batch: int = SEND_BATCH
@@ -130,7 +139,8 @@ class ActorService(MessageGuard):
         c = self.config = run.config
         self.args, self.session, self.stop = args, session, stop
         self.keys = wire.Keys(args.run_id)
-        self.actor_id = args.actor_id if args.actor_id >= 0 else random.SystemRandom().randrange(1000, 2**31)
+        self.actor_id = (args.actor_id if args.actor_id >= 0
+                         else random.SystemRandom().randrange(1000, MAX_ACTOR_ID))
         self.incarnation = new_incarnation()
         self.log = Log(f"actor {self.actor_id}")
         seeds = np.random.SeedSequence([c.seed, self.actor_id, self.incarnation]).generate_state(2)
@@ -319,6 +329,9 @@ def check_args(args: ActorArgs) -> None:
     from shared.device import resolve_device
 
     resolve_device(args.actor_device)
+    if not -1 <= args.actor_id < MAX_ACTOR_ID:
+        raise ConfigError(f"--actor-id must be -1 (a random one) or in [0, {MAX_ACTOR_ID}), "
+                          f"got {args.actor_id}")
     for name in ("send_batch", "max_in_flight", "threads"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
