@@ -33,3 +33,65 @@ def test_an_actor_id_the_replay_cannot_take_exits_2_with_the_reason_before_it_co
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2, proc.stderr
         assert reason in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_a_bridge_reply_with_a_safety_state_it_cannot_read_neither_ends_the_actor_nor_loses_its_heartbeat():
+    """Over real Zenoh on loopback: a bridge refuses a reset with an info map of another layout (or a
+    state far longer than a state name). The actor reports `unreadable` (or the state cut short)
+    instead of raising out of its loop, and the learner takes the heartbeat with its episodes."""
+    import queue
+
+    import pytest
+
+    from nasa.up import free_port
+    from services.actor.actor import UNREADABLE_FAULT, ActorArgs, ActorService
+    from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
+    from services.robot_bridge.server import BridgeServer
+    from shared import wire
+    from shared.env_loop import EnvLoop
+    from shared.envs import FrameStack
+    from shared.gripper.sim import ValveSim
+    from shared.service import StopFlag
+    from shared.zenoh_session import open_client, open_router
+    from tests.tiny import tiny_run
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run = tiny_run("td3_ae", steps=500)
+    keys = wire.Keys(f"t{free_port()}")
+    sim = ValveSim("gripper-valve_reset", seed=7, render_quality="fast")
+    heartbeats: queue.Queue = queue.Queue()
+
+    def on_status(sample) -> None:  # noqa: ANN001 -- what the learner does with it
+        try:
+            heartbeats.put(wire.decode(sample.payload.to_bytes(), wire.ActorStatus, wire.Bounds(steps=500)))
+        except wire.WireError as err:
+            heartbeats.put(err)
+
+    with (open_router(endpoint), open_client(endpoint) as bridge_session,
+          open_client(endpoint) as actor_session, open_client(endpoint) as learner_session,
+          BridgeServer(bridge_session, "g7", sim, "gripper-valve_reset", log=lambda _: None).serve(),
+          learner_session.declare_subscriber(keys.actor_status(3), on_status)):
+        actor = ActorService(ActorArgs(config=run.config, run_id=keys.run_id, actor_id=3), actor_session,
+                             StopFlag(), run)
+        env = BridgeEnv(actor_session, "g7", client="actor-3", timeout_s=30.0)
+        actor.env = FrameStack(env, 3)
+        actor.loop = EnvLoop(actor.env)
+        for info, reported in (({"safety": "estop"}, UNREADABLE_FAULT),
+                               ({"safety": {"errors": {"1": 5}}}, UNREADABLE_FAULT),
+                               ({"safety": {"state": "x" * 500}}, "x" * wire.MAX_FAULT_TEXT)):
+            refusal = wire.BridgeReply(False, "estop", 0, 0, [3, 84, 84], b"", 0.0, 1.0, False, False, info)
+            key, payload = f"test/refusing_bridge/{len(str(info))}", wire.encode(refusal)
+            answer = bridge_session.declare_queryable(key, lambda q, p=payload: q.reply(q.key_expr, p))
+            try:
+                env.keys.reset = key
+                with pytest.raises(BridgeUnavailable, match="refused a reset"):
+                    actor.loop.reset()
+                actor._note_fault()  # what the actor's loop does with a refusal: no exception
+            finally:
+                answer.undeclare()
+            actor._finished.append([12.5, 25])
+            actor._publish_status()
+            status = heartbeats.get(timeout=30.0)
+            assert isinstance(status, wire.ActorStatus), status
+            assert status.fault == reported and status.episode_returns == [[12.5, 25]]
+    sim.close()

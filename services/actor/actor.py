@@ -98,6 +98,8 @@ class ActorArgs(ServiceArgs):
 
 
 PAUSE_S = 1.0
+UNREADABLE_FAULT = "unreadable"
+"""The fault state reported for an environment whose own cannot be read."""
 """How long an actor waits before it asks a bridge that refused (e-stop, fault) for a new episode."""
 
 
@@ -181,11 +183,22 @@ class ActorService(MessageGuard):
         return self.loop.steps if self.loop is not None else 0
 
     def fault(self) -> str | None:
-        """The environment's fault state now: a bridge that is gone is `bridge_lost`."""
+        """The environment's fault state now: a bridge that is gone is `bridge_lost`. A state that
+        cannot be read (a bridge reply of another layout) is `unreadable`, and one longer than a
+        state name is cut: the first ended the actor, the second had the learner refuse every
+        heartbeat carrying it, and the episodes each reported."""
         if self.bridge is not None and (self.env is None or not self.bridge.present):
             return BRIDGE_LOST
         fault = getattr(self.env, "fault", None)
-        return fault() if fault is not None else None
+        if fault is None:
+            return None
+        try:
+            state = fault()
+        except (AttributeError, TypeError, ValueError, KeyError) as err:
+            self.log.every("fault-state", 60.0, f"the environment's fault state cannot be read: "
+                                                f"{type(err).__name__}: {err}")
+            return UNREADABLE_FAULT
+        return None if state is None else str(state)[:wire.MAX_FAULT_TEXT]
 
     def _note_fault(self) -> None:
         """Keep a fault met between two heartbeats for the next one, however briefly it lasted."""
