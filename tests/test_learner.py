@@ -201,8 +201,15 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
     metrics = LearnerMetrics(learner.status)
     app = make_app(learner.status, lambda: [], metrics=metrics.render,
                    degraded=lambda: degraded_reasons(learner.core), render_every_s=0.0)
-    # The disk refuses the text of status.json and history.json (both go through shared.files).
+    # The disk refuses the text of status.json and history.json (both go through shared.files),
+    # and the last TensorBoard points.
     monkeypatch.setattr(files, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
+
+    def refused(*args, **kwargs):  # noqa: ANN202
+        raise OSError(28, "No space left on device")
+
+    learner.core.scalars.add({"x": 1.0}, 1)
+    monkeypatch.setattr(learner.core.scalars.writer, "add_scalar", refused)
     learner._finish(finished=False)
     monkeypatch.undo()
     err = capsys.readouterr().err
@@ -211,9 +218,9 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
     assert (tmp_path / CHECKPOINT).exists() and not (tmp_path / FINAL_STATUS).exists()
     client = TestClient(app)
     writes = client.get("/status").json()["writes"]
-    assert writes["failed"] == {"history.json": 1, "status.json": 1}
-    assert writes["failing"] == ["history.json", "status.json"]
-    assert writes["last_error"].startswith("history.json: OSError")
+    assert writes["failed"] == {"history.json": 1, "status.json": 1, "tensorboard": 1}
+    assert writes["failing"] == ["history.json", "status.json", "tensorboard"]
+    assert writes["last_error"].startswith("tensorboard: OSError")  # the last of them
     assert 'nasa_write_failures_total{file="status.json"} 1.0' in client.get("/metrics").text
     health = client.get("/healthz")
     assert health.status_code == 200 and health.text.startswith("degraded: writes failing: history.json")

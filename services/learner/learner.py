@@ -325,7 +325,7 @@ class Learner:
         self.history.add(self.status())
         self._leave("history.json", lambda: self.history.save(self.args.data))
         self._write(None, lambda: core.scalars.status(self.status()))
-        self._leave("tensorboard", core.scalars.close)  # raises what its writing thread met, once
+        self._write(None, core.scalars.close)  # raises what its writing thread met, once
         if finished:
             self.log(f"run done: {core.env_steps} env steps, {core.agent.num_updates} updates")
             self.session.put(self.keys.stop, wire.encode(wire.Stop("run done")), congestion_control=BLOCK)
