@@ -481,7 +481,7 @@ def test_the_evaluators_refused_writes_reach_the_learners_status_metrics_and_hea
     from services.learner.metrics import LearnerMetrics
     from services.learner.status_api import make_app
     from shared.service import Log
-    from shared.zenoh_session import open_client, open_router
+    from shared.zenoh_session import open_client, open_router, token_up
     from tests.test_learner import core_on
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -500,8 +500,14 @@ def test_the_evaluators_refused_writes_reach_the_learners_status_metrics_and_hea
         ev = EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, run_id=keys.run_id,
                                             video_every=0), evs, StopFlag(), run)
         try:
-            with ls.declare_subscriber(keys.eval_result, learner._on_eval):
-                time.sleep(0.5)  # the subscription reaches the router before the first put
+            with (ls.declare_subscriber(keys.eval_result, learner._on_eval),
+                  ls.liveliness().declare_token(keys.alive("learner", 0))):
+                # Declared after the subscription, as the learner does: once the evaluator sees the
+                # token, the router knows the subscription too.
+                deadline = time.monotonic() + 30.0
+                while not token_up(evs, keys.alive("learner", 0)):
+                    assert time.monotonic() < deadline, "the learner's token never reached the evaluator"
+                    time.sleep(0.05)
 
                 def full(*_: object, **__: object) -> None:
                     raise OSError(28, "No space left on device")
@@ -532,8 +538,9 @@ def test_the_evaluators_refused_writes_reach_the_learners_status_metrics_and_hea
                 ev.tap.autoencoder = ev.agent
                 ev.evaluate_and_send(target)
                 deadline = time.monotonic() + 30.0
-                while learner._evals.qsize() < 1 and time.monotonic() < deadline:
+                while learner._evals.qsize() < 2 and time.monotonic() < deadline:
                     time.sleep(0.05)
+                assert learner._evals.qsize() == 2  # the result, then again: its pictures landed
                 learner._drain()
                 writes = client.get("/status").json()["writes"]
                 assert writes["failed"] == {"evaluator/media": 1} and writes["failing"] == []

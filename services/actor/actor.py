@@ -98,9 +98,9 @@ class ActorArgs(ServiceArgs):
 
 
 PAUSE_S = 1.0
+"""How long an actor waits before it asks a bridge that refused (e-stop, fault) for a new episode."""
 UNREADABLE_FAULT = "unreadable"
 """The fault state reported for an environment whose own cannot be read."""
-"""How long an actor waits before it asks a bridge that refused (e-stop, fault) for a new episode."""
 
 
 class StepTimes:

@@ -291,6 +291,7 @@ class EvaluatorService(MessageGuard):
         """Step `target`'s evaluation: its result out to the learner, then its pictures."""
         if (msg := self.evaluate(target)) is None:
             return
+
         def put(m: wire.EvalResult) -> None:
             self.session.put(self.keys.eval_result, wire.encode(m), congestion_control=BLOCK)
 
