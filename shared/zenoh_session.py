@@ -38,6 +38,20 @@ def env_run_id() -> str:
     return os.environ.get("NASA_RUN_ID", "default")
 
 
+def env_int(name: str, default: int) -> int:
+    """An integer flag's default from environment variable `name` (unset or empty: `default`). One
+    that is no integer is a ConfigError (exit 2, one line), not a traceback its supervisor restarts."""
+    from shared.config import ConfigError
+
+    value = os.environ.get(name)
+    if not value:
+        return default
+    try:
+        return int(value)
+    except ValueError:
+        raise ConfigError(f"{name}={value!r} is not an integer") from None
+
+
 def _base_config(mode: str) -> zenoh.Config:
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))

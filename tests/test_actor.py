@@ -26,7 +26,7 @@ def test_an_actor_id_the_replay_cannot_take_exits_2_with_the_reason_before_it_co
     # No router listens there: the id, not the connection, must be the error.
     base = {**os.environ, "NASA_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}", "NASA_RUN_ID": "bad"}
     base.pop("NASA_ACTOR_ID", None)
-    for flags, env, reason in (([], {"NASA_ACTOR_ID": "abc"}, "NASA_ACTOR_ID='abc' is not an actor id"),
+    for flags, env, reason in (([], {"NASA_ACTOR_ID": "abc"}, "NASA_ACTOR_ID='abc' is not an integer"),
                                (["--actor-id", "-2"], {}, "--actor-id must be -1"),
                                (["--actor-id", str(2**31)], {}, "--actor-id must be -1")):
         proc = subprocess.run([sys.executable, "-m", "services.actor", *flags], env={**base, **env},

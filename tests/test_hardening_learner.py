@@ -176,3 +176,10 @@ def test_a_learner_with_a_bad_flag_exits_2_with_the_reason_before_it_connects(tm
         assert proc.returncode == 2, proc.stderr
         assert reason in proc.stderr and "Traceback" not in proc.stderr
         assert not list(tmp_path.iterdir())  # refused before it locked or wrote the run folder
+    # The port's environment variable, read as the flag's default, was a traceback (exit 1, restarted).
+    proc = subprocess.run([sys.executable, "-m", "services.learner", "--data", str(tmp_path)],
+                          env={**env, "NASA_STATUS_PORT": "80OO"}, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert "NASA_STATUS_PORT='80OO' is not an integer" in proc.stderr and "Traceback" not in proc.stderr
+    assert not list(tmp_path.iterdir())

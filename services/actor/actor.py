@@ -36,7 +36,6 @@ from __future__ import annotations
 import bisect
 import contextlib
 import math
-import os
 import random
 import threading
 import time
@@ -55,7 +54,7 @@ from shared.env_loop import EnvLoop
 from shared.replay.adder import SEND_BATCH, ZenohWriter
 from shared.service import Log, MessageGuard, StopFlag
 from shared.weights import WeightsSubscriber
-from shared.zenoh_session import ServiceArgs
+from shared.zenoh_session import ServiceArgs, env_int
 
 
 def new_incarnation() -> int:
@@ -69,11 +68,7 @@ larger one, which would leave its actor acting for nothing."""
 
 
 def _default_actor_id() -> int:
-    env = os.environ.get("NASA_ACTOR_ID")
-    try:
-        return int(env) if env else -1
-    except ValueError:
-        raise ConfigError(f"NASA_ACTOR_ID={env!r} is not an actor id (an integer)") from None
+    return env_int("NASA_ACTOR_ID", -1)
 
 
 @dataclass

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from shared.zenoh_session import ServiceArgs
+from shared.zenoh_session import ServiceArgs, env_int
 
 if TYPE_CHECKING:
     from services.learner.core import LearnerCore
@@ -23,7 +23,7 @@ class LearnerArgs(ServiceArgs):
     """Run folder: eval.csv, train.csv, learner/checkpoint.pt, learner/status.json (env NASA_DATA)."""
     host: str = field(default_factory=lambda: os.environ.get("NASA_STATUS_HOST", "127.0.0.1"))
     """Address of the status API (env NASA_STATUS_HOST; 0.0.0.0 in a container)."""
-    port: int = field(default_factory=lambda: int(os.environ.get("NASA_STATUS_PORT", "8000")))
+    port: int = field(default_factory=lambda: env_int("NASA_STATUS_PORT", 8000))
     """Port of the status API (env NASA_STATUS_PORT)."""
     api_token_file: Path | None = None
     """File whose first line is the bearer token of POST /control/* (env NASA_API_TOKEN wins).
