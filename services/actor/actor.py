@@ -164,7 +164,9 @@ class ActorService(MessageGuard):
                                   budget=self.config.steps)
         self.episodes = 0
         self.env_faults = 0  # episodes lost to a diverged simulation or a non-finite action
-        self._finished: list[list[float]] = []
+        # Never replaced, only drained: the status thread's swap of a list could drop an episode
+        # the main loop appended to the old one between reading it and appending.
+        self._finished: deque[list[float]] = deque()
         self._rate = StepRate(time.monotonic())
         self.superseded_by: int | None = None
         self._older_seen: set[int] = set()
@@ -204,7 +206,7 @@ class ActorService(MessageGuard):
     def _publish_status(self) -> None:
         env_steps = self.env_steps
         steps_per_s = self._rate.update(time.monotonic(), env_steps)
-        finished, self._finished = self._finished, []
+        finished = [self._finished.popleft() for _ in range(len(self._finished))]
         fault, self._fault_seen = self._fault_seen or self.fault(), None
         times = self.step_times
         status = wire.ActorStatus(self.actor_id, self.incarnation, env_steps, self.episodes,
