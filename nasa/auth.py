@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
+from typing import Annotated, NoReturn
 
 import tyro
 
@@ -34,9 +34,11 @@ class AuthTls:
     only clients holding a certificate from this CA, and clients check the router's."""
 
     folder: tyro.conf.Positional[Path]
-    host: tuple[str, ...] = ()
-    """Names and addresses clients reach the router by (repeat the flag); localhost and 127.0.0.1
-    are always included."""
+    # Appended: without it tyro keeps only the last of repeated flags, and a router named by an
+    # earlier --host would be missing from its certificate.
+    host: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """A name or address clients reach the router by (repeat the flag for each); localhost and
+    127.0.0.1 are always included."""
     force: bool = False
     """Issue every certificate anew (restart the router and every service afterwards)."""
 

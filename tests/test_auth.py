@@ -419,6 +419,20 @@ def test_nasa_auth_names_a_folder_it_cannot_write_in_one_line(
         assert len(err.strip().splitlines()) == 1
 
 
+def test_nasa_auth_tls_takes_every_host_of_a_repeated_flag(tmp_path: Path) -> None:
+    """`--host router --host lab-a` (as docs/deployment.md writes it): the router's certificate names
+    both, not only the last one given."""
+    from cryptography import x509
+
+    from nasa import cli
+
+    folder = tmp_path / "auth"
+    cli.main(["auth", "tls", str(folder), "--host", "router", "--host", "lab-a.example.org"])
+    cert = x509.load_pem_x509_certificate((folder / "tls" / "router.pem").read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert {"router", "lab-a.example.org"} <= set(names.get_values_for_type(x509.DNSName))
+
+
 @pytest.mark.system  # router processes
 @pytest.mark.parametrize("damage", ["users-binary", "users-folder", "users-empty", "users-no-replay",
                                     "acl-folder", "acl-not-json"])
