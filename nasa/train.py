@@ -115,7 +115,12 @@ class Trainer:
         trainer = cls(config, out, state)
         if state is not None:
             trainer._restore(state)
-        else:  # killed before its first checkpoint: start over
+        else:  # stopped before its first checkpoint (or a budget that ended first): start over
+            # Said, as the rows of eval.csv and train.csv go: a user who asked to continue a
+            # finished run expects them kept.
+            print(f"nasa train: {out} has no {CHECKPOINT_FILE} (one is written at the first episode end "
+                  f"at or past step {config.checkpoint_every}): the run starts over from step 0",
+                  flush=True)
             trainer.store.truncate(0)
             trainer.recorder.clear()
             trainer.scalars.purge_step = 0  # and hide the events of the attempt before

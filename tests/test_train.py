@@ -259,6 +259,19 @@ def test_resume_refuses_a_run_whose_checkpoint_is_gone_and_leaves_its_rows(tmp_p
     assert {n: d for n, d in after.items() if n.name != ".lock"} == before
 
 
+def test_resume_of_a_run_without_a_checkpoint_says_that_it_starts_over(tmp_path, capsys):
+    """A budget that ends within the first episode past checkpoint_every leaves no checkpoint
+    (they are taken at episode ends): resumed to a larger budget, the run starts again from step 0,
+    and the user is told so rather than finding eval.csv emptied."""
+    run = tmp_path / "run"
+    Trainer.create(tiny_config(steps=20), run).run()  # 40-step episodes: no episode end, no checkpoint
+    assert not (run / CHECKPOINT_FILE).exists() and read_rows(run / "eval.csv")
+    capsys.readouterr()
+    Trainer.resume(run, steps=40).close()
+    said = capsys.readouterr().out
+    assert f"{run} has no {CHECKPOINT_FILE}" in said and "starts over from step 0" in said, said
+
+
 @pytest.mark.parametrize("damage", [b"\xff\xfe\x00 not text", b"a,b,c\n0,1,2\n"])
 @pytest.mark.system  # a `nasa train` process
 def test_resume_refuses_a_damaged_eval_csv_and_leaves_the_run_as_it_was(tmp_path, damage):
