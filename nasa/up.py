@@ -726,26 +726,28 @@ def up_auth(cmd: UpCommand, data: Path, run_id: str, env: dict[str, str]) -> Pat
     return folder
 
 
+@dataclass
+class StatusCommand:
+    """Print the status of a running system (the learner's GET /status); with --data, a
+    stopped run's last status (<data>/learner/status.json) when that run's learner is not
+    the one answering."""
+
+    url: str = "http://127.0.0.1:8000/status"
+    """The learner's status API: its /status, or just its address (http://HOST:PORT)."""
+    data: Path | None = None
+    """A run folder: its last status when its learner is not the one answering at --url."""
+    serve: bool = False
+    """With --data: serve the stopped run's dashboard (http://HOST:PORT/) until interrupted."""
+    host: str = "127.0.0.1"
+    """With --serve: the address to serve the dashboard on."""
+    port: int = 8000
+    """With --serve: the port to serve the dashboard on."""
+
+
 def status(argv: list[str]) -> None:
     """`nasa status [--url URL] [--data DIR] [--serve]`: print the learner's /status, or the last one
     it left in DIR when it is not running; with --data DIR --serve, serve a stopped run's dashboard."""
     import json
-
-    import tyro
-
-    @dataclass
-    class StatusCommand:
-        """Print the status of a running system (the learner's GET /status); with --data, a
-        stopped run's last status (<data>/learner/status.json) when that run's learner is not
-        the one answering."""
-
-        url: str = "http://127.0.0.1:8000/status"
-        """The learner's status API: its /status, or just its address (http://HOST:PORT)."""
-        data: Path | None = None
-        serve: bool = False
-        """With --data: serve the stopped run's dashboard (http://HOST:PORT/) until interrupted."""
-        host: str = "127.0.0.1"
-        port: int = 8000
 
     cmd = tyro.cli(StatusCommand, args=argv, prog="nasa status")
     if cmd.serve:
