@@ -617,9 +617,9 @@ def up(argv: list[str]) -> None:
     # stopping (its learner holds the status port until it exits); a new folder only after the
     # ports, so a refusal leaves none.
     lock = lock_run(data, what, say=say) if data.exists() else None
-    check_port_free("127.0.0.1", cmd.port, "the status")
+    check_port_free("127.0.0.1", cmd.port, "the status", "--port")
     if cmd.router_port:
-        check_port_free("127.0.0.1", cmd.router_port, "the router")
+        check_port_free("127.0.0.1", cmd.router_port, "the router", "--router-port")
     lock = lock or lock_run(data, what, say=say)  # held until this process ends
     prepare(cmd, data)
     how = f"auto: {'GPU' if device.type == 'cuda' else 'no GPU'}, device {device}" if cmd.preset == "auto" \
@@ -849,7 +849,7 @@ def serve_stopped(data: Path, host: str, port: int) -> None:
     except StoppedRunError as err:
         print(f"nasa status: {err}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
-    check_port_free(host, port, "the dashboard's")
+    check_port_free(host, port, "the dashboard's", "--port")
     print(f"nasa status: the dashboard of {data} on http://{host}:{port}/ (Ctrl-C ends it)", flush=True)
     # The learner's limits on connections and slow request heads, so idle clients cannot take it.
     uvicorn.run(app, host=host, port=port, log_level="warning", access_log=False, http=GuardedH11Protocol)

@@ -246,9 +246,9 @@ def _writable(data: Path, what: str) -> None:
         raise RunFolderError(f"{data} cannot be written ({err.strerror or err}): {what}") from err
 
 
-def check_port_free(host: str, port: int, what: str) -> None:
+def check_port_free(host: str, port: int, what: str, flag: str) -> None:
     """RunFolderError if `port` on `host` cannot be listened on (another process has it, or it is
-    not a TCP port)."""
+    not a TCP port); the message names `flag`, the option that chooses another."""
     if not 1 <= port <= 65535:
         raise RunFolderError(f"{what} port must be a TCP port, 1-65535, got {port}")
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -258,4 +258,4 @@ def check_port_free(host: str, port: int, what: str) -> None:
         except OSError as err:
             busy = err.errno == errno.EADDRINUSE
             why = "is in use by another process" if busy else f"cannot be used ({err.strerror})"
-            raise RunFolderError(f"{what} port {port} on {host} {why}; choose another") from err
+            raise RunFolderError(f"{what} port {port} on {host} {why}; choose another with {flag}") from err

@@ -168,11 +168,12 @@ def test_a_busy_port_is_one_line_and_exit_2(tmp_path):
         busy.listen()
         port = busy.getsockname()[1]
         with pytest.raises(faults.RunFolderError, match=f"port {port} .* in use"):
-            faults.check_port_free("127.0.0.1", port, "the status")
+            faults.check_port_free("127.0.0.1", port, "the status", "--port")
         for flag in ("--port", "--router-port"):
             done = _nasa("up", "--preset", "cpu-small", "--data", str(tmp_path / flag), flag, str(port))
             assert done.returncode == 2, done.stderr
             assert f"port {port}" in done.stderr and "Traceback" not in done.stderr
+            assert f"choose another with {flag}" in done.stderr, done.stderr  # the flag that sets it
             assert not (tmp_path / flag).exists()  # refused before the run folder is made
     free = str(free_port())
     same = _nasa("up", "--preset", "cpu-small", "--data", str(tmp_path / "same"), "--port", free,

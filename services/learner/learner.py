@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> None:
 
     def run(args: LearnerArgs, session: zenoh.Session, stop: StopFlag) -> None:
         with faults.lock_service(Path(args.data), "learner"):
-            faults.check_port_free(args.host, args.port, "the status API's")
+            faults.check_port_free(args.host, args.port, "the status API's", "--port")
             run = run_config.join(args.config, session, wire.Keys(args.run_id), stop)
             Learner(args, session, stop, run).run()
 
