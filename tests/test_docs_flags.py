@@ -58,13 +58,14 @@ def flags_of(command: str) -> frozenset[str]:
 
 def snippets(text: str) -> list[str]:
     """The code a Markdown text shows: each line of a fenced or indented block (a line ending in
-    a backslash joined to the next) and each inline code span of a paragraph."""
+    a backslash joined to the next) and each inline code span of a paragraph (a list item's
+    indented lines included)."""
     out, fenced, paragraph, joined = [], False, [], ""
     for line in [*text.splitlines(), ""]:
         if FENCE.match(line.lstrip()):
             fenced = not fenced
             continue
-        if fenced or line.startswith("    "):
+        if fenced or (line.startswith("    ") and "`" not in line):  # not a list's indented text
             joined += " " + line.strip().removesuffix("\\")
             if not line.rstrip().endswith("\\"):
                 out.append(joined)
