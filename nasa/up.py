@@ -640,11 +640,9 @@ def up(argv: list[str]) -> None:
     ended: Child | None = None
     with open_router(endpoint, auth=auth):
         try:
-            for name, args in with_bridges(cmd, service_argv(cmd, data, lay), run_id).items():
-                role = name.split("-")[0]
-                sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0,
-                        env=omp_env(cmd, lay, role))
-            say(f"run {run_id} in {data}; router {endpoint}; status http://127.0.0.1:{cmd.port}/status")
+            start_all(sup, stop, cmd, lay, with_bridges(cmd, service_argv(cmd, data, lay), run_id))
+            if not stop.reason:
+                say(f"run {run_id} in {data}; router {endpoint}; status http://127.0.0.1:{cmd.port}/status")
             while not stop.reason:
                 sup.poll(say)
                 if end := run_ends(sup, auth):
@@ -661,6 +659,28 @@ def up(argv: list[str]) -> None:
         sys.exit(EXIT_BAD_INPUT if ended.exited in (EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED) else 1)
     if stop.signum:  # 130, 143, 129 (as `nasa train`): a run stopped from outside is not a finished one
         sys.exit(128 + stop.signum)
+
+
+TEST_START_PAUSE = "NASA_TEST_UP_START_PAUSE_S"
+"""Tests only: seconds `nasa up` holds its start-up after each service it starts (a stop signal ends
+the hold), so a test can signal it while services are still being started."""
+
+
+def start_all(sup: Supervisor, stop: StopSignals, cmd: UpCommand, lay: layout.Layout,
+              argv: dict[str, list[str]]) -> None:
+    """Start each service of `argv` in turn; a stop signal meanwhile starts no more of them (the
+    caller stops those already started, in order)."""
+    pause = float(os.environ.get(TEST_START_PAUSE) or 0)
+    for i, (name, args) in enumerate(argv.items()):
+        if stop.reason:
+            say(f"{stop.reason} while starting the services: {', '.join(list(argv)[i:])} not started")
+            return
+        role = name.split("-")[0]
+        sup.add(name, role, args, nice=lay.evaluator_nice if role == "evaluator" else 0,
+                env=omp_env(cmd, lay, role))
+        held_until = time.monotonic() + pause
+        while not stop.reason and time.monotonic() < held_until:
+            time.sleep(0.05)
 
 
 def run_ends(sup: Supervisor, auth: Path | None) -> tuple[Child, str] | None:

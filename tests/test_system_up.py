@@ -21,7 +21,7 @@ from system_harness import REPO, TINY, WARMUP
 
 from bench.up_profile import service_pids
 from nasa import layout
-from nasa.up import free_port
+from nasa.up import TEST_START_PAUSE, free_port
 
 
 def children_of(pid: int) -> list[int]:
@@ -39,14 +39,15 @@ def environ_of(pid: int) -> dict[str, str]:
 
 
 @contextlib.contextmanager
-def nasa_up(data: Path) -> Iterator[tuple[subprocess.Popen, int]]:
-    """`nasa up` on `data` as a user starts it; killed if still running, and nothing left after."""
+def nasa_up(data: Path, env: dict[str, str] | None = None) -> Iterator[tuple[subprocess.Popen, int]]:
+    """`nasa up` on `data` as a user starts it (`env` over this process's); killed if still running,
+    and nothing left after."""
     port = free_port()
     cmd = [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--actors", "1",
            "--steps", "100000", "--device", "cpu", "--data", str(data), "--port", str(port),
            "--router-port", "0", "--learner-threads", "1", "--logs", "--", *TINY]
     up = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
+                          env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
     try:
         yield up, port
     finally:
@@ -163,6 +164,31 @@ def test_a_second_ctrl_c_kills_the_services_left_and_the_same_command_resumes_th
         again.send_signal(signal.SIGINT)
         out, _ = again.communicate(timeout=90)
     assert again.returncode == 130 and "nasa up: stopped" in out, out
+
+
+@pytest.mark.timeout(240)
+def test_a_ctrl_c_while_nasa_up_starts_its_services_starts_no_more_and_stops_those_started(tmp_path):
+    # Start-up held after each service (a test-only hook): the Ctrl-C lands after the replay started
+    # and before the learner did.
+    data = tmp_path / "run"
+    with nasa_up(data, env={TEST_START_PAUSE: "600"}) as (up, _port):
+        deadline = time.monotonic() + 150
+        while "replay" not in service_pids(up.pid):
+            assert time.monotonic() < deadline and up.poll() is None, up.stdout.read() if up.poll() else ""
+            time.sleep(0.1)
+        replay = service_pids(up.pid)["replay"]
+        up.send_signal(signal.SIGINT)
+        out, _ = up.communicate(timeout=120)
+    assert up.returncode == 130, out
+    lines = out.strip().splitlines()
+    assert lines[-3:] == [
+        "nasa up: SIGINT while starting the services: learner, evaluator, actor-0 not started",
+        "nasa up: stopping in order (SIGINT); Ctrl-C again kills what is left",
+        "nasa up: stopped",
+    ], out
+    assert "/status" not in out and "Traceback" not in out, out
+    assert sorted(p.name for p in (data / "logs").iterdir()) == ["replay.log"]
+    assert not Path(f"/proc/{replay}").exists()
 
 
 @pytest.mark.timeout(180)
