@@ -269,3 +269,63 @@ def test_a_ctrl_c_after_a_first_signal_ends_a_slow_service_stop_at_once(first):
         service.kill()
     assert service.returncode == 130, err
     assert err.strip() == "python -m services.slow: forced to stop (SIGINT)", err
+
+
+# Rows in the log of the replay test below: far more than a stop signal takes to arrive.
+LONG_LOG_ROWS = 200_000
+
+
+@pytest.mark.timeout(600)
+def test_a_replay_reopening_a_long_log_stops_on_a_signal_before_serving_and_loses_nothing(tmp_path):
+    # A replay restarted on a long log reads all of it before it serves; a SIGTERM meanwhile (a
+    # launcher stopping the run) ends it there, and the log stays whole for the next start.
+    import hashlib
+
+    import numpy as np
+
+    from nasa.up import free_port
+    from shared import run_config
+    from shared.config import default_config
+    from shared.replay.store import open_store
+    from shared.zenoh_session import open_router
+
+    config = default_config("nasa_td3", "cpu-small", "cartpole-balance")
+    config.env.task, config.env.image_size = "cartpole-balance", 16
+    config.replay_capacity, config.steps = LONG_LOG_ROWS, 2 * LONG_LOG_ROWS
+    data = tmp_path / "run"
+    run = run_config.open_folder(config, data)
+    frame = np.zeros(run.spec.frame_shape, np.uint8)
+    action = np.zeros(run.spec.action_dim, np.float32)
+    with open_store(run, data / "replay") as store:
+        for i in range(LONG_LOG_ROWS):
+            if i % 1000 == 0:
+                episode = store.begin_episode(frame)
+            store.add(episode, action, 1.0, 1.0, frame, last=i % 1000 == 999)
+
+    def log_digest() -> dict[str, str]:
+        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (data / "replay").iterdir()}
+
+    before = log_digest()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {k: v for k, v in ENV.items() if k != "NASA_ZENOH_AUTH"}
+    with open_router(endpoint):
+        replay = subprocess.Popen(
+            [sys.executable, "-m", "services.replay", "--run-config", str(data / "config.json"), "--data",
+             str(data), "--camera-checked", "--connect", endpoint],
+            stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
+        try:
+            said = ""
+            while ": reading its log" not in said and "serving run" not in said:
+                line = replay.stderr.readline()
+                assert line, said  # it ended before it read its log
+                said += line
+            replay.send_signal(signal.SIGTERM)
+            _, err = replay.communicate(timeout=300)
+        finally:
+            replay.kill()
+    assert replay.returncode == 143, said + err
+    assert "serving run" not in said + err and "reopened" not in said + err, said + err
+    assert "stopped (SIGTERM) before serving" in err and "Traceback" not in err, err
+    assert log_digest() == before
+    with open_store(run, data / "replay") as store:
+        assert store.num_inserted == LONG_LOG_ROWS

@@ -49,8 +49,9 @@ import zenoh
 from shared import envs, faults, run_config, wire
 from shared.config import ConfigError
 from shared.replay.client import LocalReplay, encode_reply
+from shared.replay.log import MANIFEST
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
-from shared.replay.store import SNAPSHOT_EVERY, open_store
+from shared.replay.store import SNAPSHOT_EVERY, OpenStopped, open_store
 from shared.run_config import RunConfig
 from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
@@ -122,7 +123,11 @@ class ReplayService(MessageGuard):
         # --max-abs-reward, a batch of them was refused, its rows stayed unscored, and every batch
         # that drew them sent the refused scores again (each counted invalid).
         self.score_bounds = wire.Bounds.of(run.spec)
-        self.store = open_store(run, Path(args.data) / "replay")
+        folder = Path(args.data) / "replay"
+        if (folder / MANIFEST).exists():
+            self.log(f"reopening {folder}: reading its log (a stop signal ends the reading, losing nothing)")
+        # A long log takes a while to read: a stop signal meanwhile ends it (OpenStopped).
+        self.store = open_store(run, folder, stop=stop.event.is_set)
         self.limiter: SampleToInsertRatio | None = None
         if not args.no_rate_limit:
             g = c.updates_per_step
@@ -407,6 +412,12 @@ def main(argv: list[str] | None = None) -> None:
         with faults.lock_service(Path(args.data), "replay"):  # before the folder is touched
             may_change = run_config.RESUME_MAY_CHANGE
             run = run_config.open_folder(args.config, Path(args.data), may_change=may_change)
-            ReplayService(args, session, stop, run).run()
+            try:
+                service = ReplayService(args, session, stop, run)
+            except OpenStopped as err:  # run_service then exits 128 + the signal
+                Log("replay")(f"stopped ({stop.reason}) before serving: {err}; nothing was lost, the next "
+                              "start reads the whole log")
+                return
+            service.run()
 
     run_service(ReplayArgs, argv, "python -m services.replay", run, check_args)

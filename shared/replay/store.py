@@ -28,6 +28,7 @@ import os
 import struct
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,9 +50,16 @@ _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+STOP_CHECK_EVERY = 256
+"""Records (or snapshot chunks) read between two looks at a reopening's `stop`."""
 SNAPSHOT_EVERY = 50_000
 """Transitions added between two compactions of a store's log (snapshot_if_due): the replay
 service's default and nasa train's."""
+
+
+class OpenStopped(Exception):
+    """A store's reopening ended by its `stop` (a stop signal) before all of its log was read; its
+    folder is as it was, and the next opening reads it all."""
 
 
 @dataclass
@@ -87,7 +95,10 @@ class ReplayStore:
         chunk_len: int = 8,
         compression: str = "lz4",
         fsync_interval_s: float = 1.0,
+        stop: Callable[[], bool] | None = None,
     ) -> None:
+        """`stop`, asked between the records read while reopening `data_dir`: once it says True,
+        the opening ends with OpenStopped, having written nothing."""
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if frame_stack < 1 or chunk_len < frame_stack:
@@ -119,7 +130,12 @@ class ReplayStore:
         self.snapshot_error = ""  # why the last background snapshot failed ("" when it did not)
         self._closed = False
         if self._dir is not None:
-            self._open_dir()
+            try:
+                self._open_dir(stop or (lambda: False))
+            except OpenStopped:
+                if self._pool is not None:
+                    self._pool.shutdown()
+                raise
         self._snapshot_at = self._num_inserted  # num_inserted at the last snapshot or at opening
 
     def _allocate(self) -> None:
@@ -668,7 +684,7 @@ class ReplayStore:
                 self._log.sync()
                 self._last_sync = time.monotonic()
 
-    def _open_dir(self) -> None:
+    def _open_dir(self, stop: Callable[[], bool]) -> None:
         assert self._dir is not None
         self._dir.mkdir(parents=True, exist_ok=True)
         existed = rlog.check_manifest(self._dir, self._config())
@@ -680,13 +696,17 @@ class ReplayStore:
         start = 1
         if snaps:
             start = snaps[-1]
-            self._load_snapshot(rlog.read_snapshot(rlog.snapshot_path(self._dir, start)))
+            self._load_snapshot(rlog.read_snapshot(rlog.snapshot_path(self._dir, start)), stop)
         todo = [s for s in segs if s >= start]
         if todo and todo != list(range(start, todo[-1] + 1)):
             raise rlog.StoreFormatError(f"{self._dir}: log segments {todo} are not contiguous")
+        # A stop here leaves the log as it was (a torn tail is cut only where it is met, at the end
+        # of the last segment): the next opening reads it all.
         for s in todo:
             path = rlog.segment_path(self._dir, s)
-            for rtype, payload in rlog.read_segment(path, is_last=(s == todo[-1])):
+            for i, (rtype, payload) in enumerate(rlog.read_segment(path, is_last=(s == todo[-1]))):
+                if i % STOP_CHECK_EVERY == 0 and stop():
+                    raise OpenStopped(f"{self._dir}: stopped while reading {path.name}")
                 self._replay(rtype, payload)
         self._segment = (todo[-1] + 1) if todo else start
         self._log = rlog.LogWriter(rlog.segment_path(self._dir, self._segment))
@@ -815,7 +835,7 @@ class ReplayStore:
                 os.remove(rlog.snapshot_path(self._dir, s))
         rlog.fsync_dir(self._dir)
 
-    def _load_snapshot(self, sec: dict[str, memoryview]) -> None:
+    def _load_snapshot(self, sec: dict[str, memoryview], stop: Callable[[], bool]) -> None:
         import json
 
         meta = json.loads(bytes(sec["meta"]))
@@ -832,7 +852,9 @@ class ReplayStore:
         ends = np.cumsum(lengths)
         blob_data = sec["blobs"]
         i = 0
-        for cid, ep_id, refcount, is_open, nb in chunk_meta.tolist():
+        for n, (cid, ep_id, refcount, is_open, nb) in enumerate(chunk_meta.tolist()):
+            if n % STOP_CHECK_EVERY == 0 and stop():
+                raise OpenStopped(f"{self._dir}: stopped while reading its snapshot")
             blobs = [bytes(blob_data[ends[j] - lengths[j] : ends[j]]) for j in range(i, i + nb)]
             i += nb
             self._chunks[cid] = _Chunk(ep_id, blobs, refcount, bool(is_open))
@@ -868,8 +890,10 @@ class ReplayStore:
         self.close()
 
 
-def open_store(run: RunConfig, data_dir: str | Path | None) -> ReplayStore:
-    """The store of a run, shaped by its EnvSpec and config (in `data_dir`; None: in memory)."""
+def open_store(run: RunConfig, data_dir: str | Path | None,
+               stop: Callable[[], bool] | None = None) -> ReplayStore:
+    """The store of a run, shaped by its EnvSpec and config (in `data_dir`; None: in memory);
+    `stop` ends a long reopening (OpenStopped)."""
     c, spec = run.config, run.spec
     return ReplayStore(
         capacity=c.replay_capacity,
@@ -878,4 +902,5 @@ def open_store(run: RunConfig, data_dir: str | Path | None) -> ReplayStore:
         action_dim=spec.action_dim,
         data_dir=data_dir,
         compression=c.replay_compression,
+        stop=stop,
     )
