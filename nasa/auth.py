@@ -12,6 +12,7 @@ from typing import Annotated, NoReturn
 import tyro
 
 from shared import zenoh_auth, zenoh_tls
+from shared.service import read_flags
 from shared.wire import ANY
 
 
@@ -54,7 +55,7 @@ def auth(argv: list[str]) -> None:
     if argv[0] == "tls":
         tls(argv[1:])
         return
-    cmd = tyro.cli(AuthInit, args=argv[1:], prog="nasa auth init")
+    cmd = read_flags(AuthInit, argv[1:], "nasa auth init")
     folder = write(cmd.folder, lambda: zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force))
     roles = ", ".join(zenoh_auth.AUTH_ROLES)
     print(f"nasa auth: credentials for {roles} in {folder / zenoh_auth.USERS_FILE} (0600); "
@@ -62,7 +63,7 @@ def auth(argv: list[str]) -> None:
 
 
 def tls(argv: list[str]) -> None:
-    cmd = tyro.cli(AuthTls, args=argv, prog="nasa auth tls")
+    cmd = read_flags(AuthTls, argv, "nasa auth tls")
     out = write(cmd.folder, lambda: zenoh_tls.init(cmd.folder, list(cmd.host), cmd.force))
     hosts = ", ".join((out / "hosts.txt").read_text().split())
     print(f"nasa auth: a CA, the router's certificate (for {hosts}) and one client certificate per role "

@@ -35,6 +35,7 @@ with interrupted("nasa", "while starting"):
         bad_input_errors,
         die_with_parent,
         given_flags,
+        known_flags,
         parse_with_preset,
     )
 
@@ -59,9 +60,9 @@ class TrainCommand:
 def resume_folder(argv: list[str]) -> Path | None:
     """The --resume folder of a `nasa train` command line, if any (read before the full parse,
     because the run's config.json supplies the defaults)."""
-    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False, exit_on_error=False)
     pre.add_argument("--resume", type=Path, default=None)
-    return pre.parse_known_args(argv)[0].resume
+    return known_flags(pre, argv).resume
 
 
 def parse_train(argv: list[str]) -> tuple[TrainCommand, str, int | None]:

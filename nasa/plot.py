@@ -37,6 +37,7 @@ from shared.config import ALGOS, ConfigError
 from shared.envs import PAPER_TASKS
 from shared.run_config import read_json_object
 from shared.runlog import eval_walls, read_rows
+from shared.service import read_flags
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -278,7 +279,7 @@ class PlotCommand:
 
 
 def plot(argv: list[str]) -> None:
-    cmd = tyro.cli(PlotCommand, args=argv, prog="nasa plot")
+    cmd = read_flags(PlotCommand, argv, "nasa plot")
     if not cmd.results.is_dir():
         _fail(f"{cmd.results} is not a folder")
     runs = find_runs(cmd.results, walls=cmd.x == "minutes")

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import io
 import os
 import shlex
 import signal
@@ -26,14 +25,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Literal
 
-import tyro
-
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo, check_types
 from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.files import last_line
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import checkpointed_step, read_rows
-from shared.service import EXIT_BAD_INPUT, given_flags
+from shared.service import EXIT_BAD_INPUT, FlagError, given_flags, read_flags
 
 if TYPE_CHECKING:
     import torch
@@ -341,21 +338,13 @@ def check_extra(extra: list[str], tasks: list[str], probe: Run, preset: str, dev
 
 def parse_quietly(argv: list[str]) -> TrainCommand:
     """`nasa train`'s parse of `argv`; what its parser refuses (an unknown flag, a value of the
-    wrong type) is a ConfigError of one line, not the parser's box of help."""
+    wrong type) is one line naming what comes after --."""
     from nasa.cli import parse_train
 
-    said = io.StringIO()
     try:
-        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
-            return parse_train(argv)[0]
-    except SystemExit as err:
-        if not err.code:
-            raise
-        # The box's first line is its title, the next with words the reason; its borders are
-        # drawn in ASCII or not, as the output allows.
-        lines = [line.strip(" │╭╮╰╯─|+-") for line in said.getvalue().splitlines()]
-        why = next((line for line in lines[1:] if any(c.isalpha() for c in line)), "refused")
-        raise ConfigError(f"after --: {why} (`nasa train --help` lists nasa train's flags)") from None
+        return parse_train(argv)[0]
+    except FlagError as err:
+        raise ConfigError(f"after --: {err}") from None
 
 
 def parse_list(text: str) -> list[str]:
@@ -376,7 +365,7 @@ def reproduce(argv: list[str]) -> None:
 
 def checked_and_run(argv: list[str]) -> None:
     argv, extra = (argv[: argv.index("--")], argv[argv.index("--") + 1 :]) if "--" in argv else (argv, [])
-    cmd = tyro.cli(ReproduceCommand, args=argv, prog="nasa reproduce")
+    cmd = read_flags(ReproduceCommand, argv, "nasa reproduce")
     tasks = list(PAPER_TASKS) if cmd.tasks == "paper" else parse_list(cmd.tasks)
     algos = parse_list(cmd.algos)
     if not tasks or not algos:

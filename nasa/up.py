@@ -56,7 +56,7 @@ from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.files import last_line
 from shared.run_config import RunConfig
-from shared.service import EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED, given_flags, parse_with_preset
+from shared.service import EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED, given_flags, parse_with_preset, read_flags
 from shared.zenoh_auth import USERS_FILE
 
 RUN_AUTH = "run"
@@ -769,7 +769,7 @@ def status(argv: list[str]) -> None:
     it left in DIR when it is not running; with --data DIR --serve, serve a stopped run's dashboard."""
     import json
 
-    cmd = tyro.cli(StatusCommand, args=argv, prog="nasa status")
+    cmd = read_flags(StatusCommand, argv, "nasa status")
     if cmd.serve:
         if cmd.data is None:
             print("nasa status: --serve needs --data DIR (a stopped run's folder)", file=sys.stderr)

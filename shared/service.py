@@ -20,6 +20,7 @@ import argparse
 import contextlib
 import ctypes
 import dataclasses
+import io
 import json
 import os
 import signal
@@ -73,6 +74,59 @@ def bad_input_errors() -> tuple[type[Exception], ...]:
     return (ConfigError, DeviceError, UnknownTaskError, CheckpointError, StoreFormatError, AuthError)
 
 
+class FlagError(ConfigError):
+    """A command line its parser refuses (an unknown flag, a value of the wrong type, a flag
+    without its value), said in one line."""
+
+
+def read_flags(cls: type[T], argv: list[str], prog: str, default: T | None = None) -> T:
+    """tyro.cli of `cls` on `argv`. What tyro refuses is a FlagError of one line (its reason, and
+    the flag it takes to be meant where it offers one), not its box of help text; --help and
+    warnings are printed as tyro prints them."""
+    said = io.StringIO()
+    refused = False
+    try:
+        with contextlib.redirect_stderr(said):
+            return tyro.cli(cls, args=argv, default=default, prog=prog)
+    except SystemExit as err:
+        refused = bool(err.code)
+        if refused:
+            raise FlagError(_one_line(said.getvalue(), prog)) from None
+        raise
+    finally:
+        if not refused:
+            sys.stderr.write(said.getvalue())
+
+
+def _one_line(box: str, prog: str) -> str:
+    """tyro's box of an error in one line: its first section (the reason), and the first flag under
+    "Perhaps you meant:" where it has one. The box's first line is its title; its borders and the
+    rules between its sections are drawn or not, in Unicode or ASCII, as the output allows."""
+    lines = [line.strip() for line in box.splitlines()]
+    title = next((i for i, line in enumerate(lines) if line), len(lines))
+    sections: list[list[str]] = [[]]
+    for line in lines[title + 1 :]:
+        text = line.strip("│|").strip()
+        if text.strip("─-╭╮╰╯+"):
+            sections[-1].append(text)
+        elif sections[-1]:  # a border, or a rule between two sections
+            sections.append([])
+    sections = [section for section in sections if section]
+    why = " ".join(sections[0]) if sections else "refused"
+    meant = next((section for section in sections if section[0].startswith("Perhaps you meant")), [])
+    flag = next((text.split()[0].rstrip(",") for text in meant[1:] if text.startswith("-")), None)
+    return f"{why}{f'; did you mean {flag}?' if flag else ''} (`{prog} --help` lists its flags)"
+
+
+def known_flags(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """The flags of `parser` (made with exit_on_error=False) that `argv` gives, read before its full
+    parse; one given without its value is a FlagError of one line, not argparse's usage."""
+    try:
+        return parser.parse_known_args(argv)[0]
+    except argparse.ArgumentError as err:
+        raise FlagError(str(err)) from None
+
+
 def given_flags(argv: list[str]) -> set[str]:
     """The flags on a command line as tyro reads them: `--flag=VALUE` and `--flag_name` are
     `--flag` and `--flag-name`."""
@@ -96,13 +150,13 @@ def parse_with_preset(
     is the default instead, and the preset returned is "run".
     """
     defaults = TrainConfig()
-    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False, exit_on_error=False)
     pre.add_argument("--preset", default=DEFAULT_PRESET)
     pre.add_argument("--algo", default=defaults.algo)
     pre.add_argument("--device", default=defaults.device)
     pre.add_argument("--run-config", type=Path, default=None)
     pre.add_argument("--task", default=None)  # a preset may have a variant for it
-    known, _ = pre.parse_known_args(argv)
+    known = known_flags(pre, argv)
     if known.preset not in PRESET_NAMES:
         raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
     run_file = known.run_config if _has_field(cls, "run_config") else None
@@ -121,7 +175,7 @@ def parse_with_preset(
             preset = auto_preset(_device_type(known.device))
         config = default_config(known.algo, preset, known.task)
     default = cls(config=config, preset=known.preset)  # type: ignore[call-arg]
-    args = tyro.cli(cls, args=argv, default=default, prog=prog)
+    args = read_flags(cls, argv, prog, default)
     validate(args.config)  # type: ignore[attr-defined]
     if run_file is not None:
         from shared.run_config import check_same

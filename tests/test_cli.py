@@ -332,3 +332,41 @@ def test_nasa_train_under_a_launcher_that_is_gone_does_not_start(tmp_path):
     done = subprocess.run([sys.executable, "-m", "nasa.cli", "train", "--task", "cartpole-nope", "--out",
                            str(tmp_path / "run")], env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 1 and "unknown task" not in done.stderr  # it stopped before reading its flags
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["train", "--stepz", "3"], "Unrecognized options: --stepz, 3; did you mean --steps?"),
+    (["train", "--steps", "x"], "Error parsing --steps: invalid literal for int()"),
+    (["train", "--resume"], "argument --resume: expected one argument"),
+    (["up", "--actorz", "1"], "Unrecognized options: --actorz, 1; did you mean --actors?"),
+    (["up", "--bridge", "foo"], "invalid choice 'foo' for argument '--bridge'. Expected one of ('off',"),
+    (["up", "--preset"], "argument --preset: expected one argument"),
+    (["plot", "DIR", "--bogus"], "Unrecognized options: --bogus"),
+    (["auth", "init", "DIR", "--forse"], "Unrecognized options: --forse; did you mean --force?"),
+    (["auth", "tls", "DIR", "--hots", "h"], "Unrecognized options: --hots, h; did you mean --host?"),
+    (["status", "--prot", "1"], "Unrecognized options: --prot, 1; did you mean --port?"),
+    (["reproduce", "--seeds", "x"], "Error parsing --seeds"),
+])
+def test_a_flag_a_command_refuses_is_one_line_naming_it_and_exit_2(tmp_path, capsys, argv, says):
+    argv = [str(tmp_path / "dir") if a == "DIR" else a for a in argv]
+    with pytest.raises(SystemExit) as done:
+        cli.main(argv)
+    out, err = capsys.readouterr()
+    assert done.value.code == 2 and not out, err
+    assert err.startswith(f"nasa {argv[0]}: error: {says}") and err.count("\n") == 1, err
+    prog = " ".join(argv[:2] if argv[0] == "auth" else argv[:1])
+    assert err.endswith(f"(`nasa {prog} --help` lists its flags)\n") or "expected one argument" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [["train"], ["up"], ["plot"], ["auth", "init"], ["auth", "tls"],
+                                  ["status"], ["reproduce"], ["reproduce", "--"]])
+def test_help_is_the_parsers_own_on_stdout(capsys, argv):
+    # After `nasa reproduce --`, the flags are nasa train's: so is its help.
+    with pytest.raises(SystemExit) as done:
+        cli.main([*argv, "--help"])
+    out, err = capsys.readouterr()
+    prog = "train" if argv[-1] == "--" else " ".join(argv)
+    assert done.value.code == 0 and not err, err
+    assert out.startswith(f"usage: nasa {prog} [-h]") and "--help" in out, out
+

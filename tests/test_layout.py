@@ -7,6 +7,7 @@ import pytest
 from nasa.layout import LOW_PRIORITY, choose
 from nasa.up import layout_of, omp_env, parse_up, service_argv
 from shared.config import ConfigError
+from shared.service import FlagError
 
 
 def test_a_small_cpu_machine_gives_the_learner_every_core_and_one_actor():
@@ -97,7 +98,7 @@ def test_an_openmp_wait_policy_the_user_set_wins_except_over_the_learners_flag(m
     # An explicit `default` means the runtime's own policy, on any machine: the user's variable unset.
     explicit, _ = parse_up(["--learner-omp-wait", "default"])
     assert omp_env(explicit, layout_of(explicit, gpu=False, cores=16), "learner") == {"OMP_WAIT_POLICY": None}
-    with pytest.raises(SystemExit):
+    with pytest.raises(FlagError, match="invalid choice 'spin' for argument '--learner-omp-wait'"):
         parse_up(["--learner-omp-wait", "spin"])
 
 
@@ -113,7 +114,7 @@ def test_evaluations_run_in_their_own_process_or_between_the_learners_updates():
     cmd, _ = parse_up([])
     argv = service_argv(cmd, Path("run"), layout_of(cmd, gpu=False, cores=2))
     assert "evaluator" in argv and "--eval-between-updates" not in argv["learner"]
-    with pytest.raises(SystemExit):  # not a choice
+    with pytest.raises(FlagError, match="invalid choice 'elsewhere'"):
         parse_up(["--evaluate-in", "elsewhere"])
     # A gripper behind a bridge is evaluated through a bridge of its own, by the evaluator process.
     with pytest.raises(ConfigError, match="--evaluate-in process"):
