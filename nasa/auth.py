@@ -50,8 +50,11 @@ USAGE = ("usage: nasa auth init DIR [--run-id ID] [--force]\n"
 
 def auth(argv: list[str]) -> None:
     if not argv or argv[0] not in ("init", "tls"):
-        print(USAGE, file=sys.stderr)
-        sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
+        asked = bool(argv) and argv[0] in ("-h", "--help")
+        if argv and not asked:
+            print(f"nasa auth: unknown command {argv[0]!r}", file=sys.stderr)
+        print(USAGE, file=sys.stdout if asked else sys.stderr)  # as `nasa --help` and `nasa trian`
+        sys.exit(0 if asked else 2)
     if argv[0] == "tls":
         tls(argv[1:])
         return

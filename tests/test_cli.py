@@ -370,3 +370,15 @@ def test_help_is_the_parsers_own_on_stdout(capsys, argv):
     assert done.value.code == 0 and not err, err
     assert out.startswith(f"usage: nasa {prog} [-h]") and "--help" in out, out
 
+
+def test_nasa_auth_names_an_unknown_command_and_prints_its_help_on_stdout(capsys) -> None:
+    # As `nasa trian` and `nasa --help` do.
+    with pytest.raises(SystemExit) as done:
+        cli.main(["auth", "int", "DIR"])
+    out, err = capsys.readouterr()
+    assert done.value.code == 2 and not out
+    assert err.startswith("nasa auth: unknown command 'int'\nusage: nasa auth init DIR"), err
+    with pytest.raises(SystemExit) as done:
+        cli.main(["auth", "--help"])
+    out, err = capsys.readouterr()
+    assert done.value.code == 0 and not err and out.startswith("usage: nasa auth init DIR"), out
