@@ -385,3 +385,37 @@ def test_a_snapshot_is_due_every_so_many_inserts_counted_from_the_last_one_or_th
     with ReplayStore(50_000, SHAPE, 3, 2) as memory:  # nothing to compact
         fill(memory, range(2))
         assert not memory.snapshot_if_due(1)
+
+
+@pytest.mark.parametrize("snapshot", [False, True])
+def test_a_reopening_stopped_part_way_changes_nothing_and_the_next_reads_it_all(tmp_path, snapshot):
+    # A stop signal while a replay reopens its store (its `stop` says True from some record on):
+    # it ends with OpenStopped, and the next opening finds every row, in the snapshot or the log.
+    from shared.replay.store import STOP_CHECK_EVERY, OpenStopped
+
+    rows = 4 * STOP_CHECK_EVERY
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        for e in range(rows // EP_LEN + 1):
+            ep = store.begin_episode(frame(e, 0))  # noqa: F821
+            for t in range(EP_LEN):
+                store.add(ep, np.zeros(2), 1.0, 1.0, frame(e, t + 1), t == EP_LEN - 1)  # noqa: F821
+        if snapshot:
+            store.snapshot()
+        written = store.num_inserted
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    asked = []
+    looks = 1 if snapshot else 3  # the log: part way through it
+
+    def stop() -> bool:
+        asked.append(True)
+        return len(asked) == looks
+
+    with pytest.raises(OpenStopped, match="read in part"):
+        ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path, stop=stop)
+    assert len(asked) == looks
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    with ReplayStore(10_000, SHAPE, 3, 2, data_dir=tmp_path) as store:
+        assert store.num_inserted == written
+        index = np.arange(written - 5, written)
+        newest = np.stack([expected(g)[1][-3:] for g in index])
+        assert np.array_equal(store.get(index)["next_obs"][:, -3:], newest)

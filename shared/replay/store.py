@@ -98,7 +98,7 @@ class ReplayStore:
         stop: Callable[[], bool] | None = None,
     ) -> None:
         """`stop`, asked between the records read while reopening `data_dir`: once it says True,
-        the opening ends with OpenStopped, having written nothing."""
+        the opening ends with OpenStopped, its log and snapshot left as they were."""
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if frame_stack < 1 or chunk_len < frame_stack:
@@ -706,7 +706,7 @@ class ReplayStore:
             path = rlog.segment_path(self._dir, s)
             for i, (rtype, payload) in enumerate(rlog.read_segment(path, is_last=(s == todo[-1]))):
                 if i % STOP_CHECK_EVERY == 0 and stop():
-                    raise OpenStopped(f"{self._dir}: stopped while reading {path.name}")
+                    raise OpenStopped(f"{path} read in part")
                 self._replay(rtype, payload)
         self._segment = (todo[-1] + 1) if todo else start
         self._log = rlog.LogWriter(rlog.segment_path(self._dir, self._segment))
@@ -854,7 +854,7 @@ class ReplayStore:
         i = 0
         for n, (cid, ep_id, refcount, is_open, nb) in enumerate(chunk_meta.tolist()):
             if n % STOP_CHECK_EVERY == 0 and stop():
-                raise OpenStopped(f"{self._dir}: stopped while reading its snapshot")
+                raise OpenStopped(f"{self._dir}: its snapshot read in part")
             blobs = [bytes(blob_data[ends[j] - lengths[j] : ends[j]]) for j in range(i, i + nb)]
             i += nb
             self._chunks[cid] = _Chunk(ep_id, blobs, refcount, bool(is_open))
