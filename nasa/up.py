@@ -872,4 +872,8 @@ def serve_stopped(data: Path, host: str, port: int) -> None:
     check_port_free(host, port, "the dashboard's", "--port")
     print(f"nasa status: the dashboard of {data} on http://{host}:{port}/ (Ctrl-C ends it)", flush=True)
     # The learner's limits on connections and slow request heads, so idle clients cannot take it.
-    uvicorn.run(app, host=host, port=port, log_level="warning", access_log=False, http=GuardedH11Protocol)
+    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False,
+                            http=GuardedH11Protocol)
+    # Server.run, not uvicorn.run, which swallows the Ctrl-C the server raises again once it has
+    # shut down: `nasa` then says it was interrupted and exits 130, as it exits 143 on SIGTERM.
+    uvicorn.Server(config).run()

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -329,3 +330,33 @@ def test_a_replay_reopening_a_long_log_stops_on_a_signal_before_serving_and_lose
     assert log_digest() == before
     with open_store(run, data / "replay") as store:
         assert store.num_inserted == LONG_LOG_ROWS
+
+
+@pytest.mark.parametrize(("signum", "said"), [(signal.SIGINT, "interrupted"),
+                                              (signal.SIGTERM, "stopped (SIGTERM)")])
+def test_a_stopped_runs_dashboard_ends_on_a_signal_with_one_line_and_its_code(tmp_path, signum, said):
+    import httpx
+
+    from nasa.up import free_port
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text('{"run_id": "r"}')
+    port = free_port()
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "nasa", "status", "--data", str(tmp_path), "--serve", "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=ENV)
+    try:
+        assert "(Ctrl-C ends it)" in serve.stdout.readline()
+        while True:  # serving: the server's own signal handlers are in place
+            assert serve.poll() is None
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/status", timeout=10).json() == {"run_id": "r"}:
+                    break
+            except httpx.TransportError:
+                time.sleep(0.1)
+        serve.send_signal(signum)
+        _, err = serve.communicate(timeout=120)
+    finally:
+        serve.kill()
+    assert serve.returncode == 128 + signum, err
+    assert err.strip() == f"nasa status: {said}", err
