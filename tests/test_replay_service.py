@@ -168,6 +168,18 @@ def test_a_flag_it_cannot_serve_with_is_refused_before_it_connects(tmp_path, fla
     assert not (tmp_path / "run").exists()
 
 
+def test_a_flag_the_parser_refuses_is_one_line_and_exit_2_so_nasa_up_shows_it(tmp_path):
+    # `nasa up` names a service that refused its input by its log's last line: the reason, not a border.
+    done = subprocess.run([sys.executable, "-m", "services.replay", "--data", str(tmp_path / "run"),
+                           "--connect", "tcp/127.0.0.1:9", "--snapshot-evry", "5"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == ("python -m services.replay: error: Unrecognized options: --snapshot-evry, 5; "
+                           "did you mean --snapshot-every? (`python -m services.replay --help` lists its "
+                           "flags)\n")
+    assert not (tmp_path / "run").exists()
+
+
 def test_the_camera_is_checked_unless_nasa_up_has_checked_it(tmp_path):
     argv = ["--data", str(tmp_path), "--task", "cartpole-balance", "--camera-id", "99"]
     with pytest.raises(ConfigError, match="env.camera_id 99 is not a camera of cartpole-balance"):
