@@ -1,4 +1,5 @@
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -6,6 +7,11 @@ import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 torch.set_num_threads(2)
+# A suite started in the background of a script (`cmd &`) inherits SIGINT ignored, and so would every
+# process a test starts: the tests that press Ctrl-C on one would wait for it for ever. A handler of
+# our own is reset to the default in each child, as a user's terminal gives it.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
