@@ -193,6 +193,19 @@ def test_a_router_that_cannot_listen_is_one_line_and_exit_2(tmp_path):
             assert f"cannot listen on {listen}" in done.stderr and "Traceback" not in done.stderr
 
 
+@pytest.mark.parametrize("module, prog, flag, meant", [
+    ("services.router", "router", "--listn", "--listen"),
+    ("services.robot_bridge", "robot_bridge", "--tsk", "--task"),
+])
+def test_a_flag_the_router_or_a_bridge_refuses_is_one_line_and_exit_2(module, prog, flag, meant):
+    # They start outside `shared.service` (no learner config to read): the same one line as the rest.
+    done = subprocess.run([sys.executable, "-m", module, flag, "x"], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == (f"{prog}: error: Unrecognized options: {flag}, x; did you mean {meant}? "
+                           f"(`python -m {module} --help` lists its flags)\n")
+
+
 def _serving(proc: subprocess.Popen, says: str) -> None:
     """Read the process's stderr until a line holds `says`."""
     for line in proc.stderr:

@@ -14,8 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import tyro
-
 from services.robot_bridge.camera import CameraUnavailable
 from services.robot_bridge.config import GripperConfigError
 from services.robot_bridge.dynamixel import BusError
@@ -23,7 +21,15 @@ from services.robot_bridge.guard import GuardUnavailable
 from shared import faults, wire
 from shared.gl import RenderQuality
 from shared.gripper.sim import UnknownGripperTask
-from shared.service import EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED, Log, StopFlag, die_with_parent
+from shared.service import (
+    EXIT_BAD_INPUT,
+    EXIT_LOGIN_REFUSED,
+    FlagError,
+    Log,
+    StopFlag,
+    die_with_parent,
+    read_flags,
+)
 from shared.zenoh_session import env_connect
 
 
@@ -74,7 +80,11 @@ def main(argv: list[str] | None = None) -> None:
     from shared.zenoh_session import RouterUnreachable, SessionRefused, open_client
 
     die_with_parent()
-    args = tyro.cli(BridgeArgs, args=sys.argv[1:] if argv is None else argv, prog="robot_bridge")
+    try:
+        args = read_flags(BridgeArgs, sys.argv[1:] if argv is None else argv, "python -m services.robot_bridge")
+    except FlagError as err:
+        print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
     log = Log(f"bridge {args.bridge_id}")
     try:
         env = build_env(args)

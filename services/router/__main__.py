@@ -11,10 +11,9 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import tyro
 import zenoh
 
-from shared.service import EXIT_BAD_INPUT, Log, StopFlag, die_with_parent
+from shared.service import EXIT_BAD_INPUT, FlagError, Log, StopFlag, die_with_parent, read_flags
 from shared.zenoh_auth import USERS_FILE, AuthError, env_auth
 from shared.zenoh_session import open_router
 
@@ -36,7 +35,11 @@ class RouterArgs:
 
 def main(argv: list[str] | None = None) -> None:
     die_with_parent()
-    args = tyro.cli(RouterArgs, args=argv, prog="python -m services.router")
+    try:
+        args = read_flags(RouterArgs, sys.argv[1:] if argv is None else argv, "python -m services.router")
+    except FlagError as err:
+        print(f"router: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
     stop = StopFlag()
     stop.install_signal_handlers()
     log = Log("router")
