@@ -62,7 +62,7 @@ def resume_folder(argv: list[str]) -> Path | None:
     because the run's config.json supplies the defaults)."""
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False, exit_on_error=False)
     pre.add_argument("--resume", type=Path, default=None)
-    return known_flags(pre, argv).resume
+    return known_flags(pre, argv, "nasa train").resume
 
 
 def parse_train(argv: list[str]) -> tuple[TrainCommand, str, int | None]:

@@ -118,13 +118,13 @@ def _one_line(box: str, prog: str) -> str:
     return f"{why}{f'; did you mean {flag}?' if flag else ''} (`{prog} --help` lists its flags)"
 
 
-def known_flags(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+def known_flags(parser: argparse.ArgumentParser, argv: list[str], prog: str) -> argparse.Namespace:
     """The flags of `parser` (made with exit_on_error=False) that `argv` gives, read before its full
     parse; one given without its value is a FlagError of one line, not argparse's usage."""
     try:
         return parser.parse_known_args(argv)[0]
     except argparse.ArgumentError as err:
-        raise FlagError(str(err)) from None
+        raise FlagError(f"{err} (`{prog} --help` lists its flags)") from None
 
 
 def given_flags(argv: list[str]) -> set[str]:
@@ -156,7 +156,7 @@ def parse_with_preset(
     pre.add_argument("--device", default=defaults.device)
     pre.add_argument("--run-config", type=Path, default=None)
     pre.add_argument("--task", default=None)  # a preset may have a variant for it
-    known = known_flags(pre, argv)
+    known = known_flags(pre, argv, prog)
     if known.preset not in PRESET_NAMES:
         raise ConfigError(f"unknown preset {known.preset!r}; choose one of {', '.join(PRESET_NAMES)}")
     run_file = known.run_config if _has_field(cls, "run_config") else None

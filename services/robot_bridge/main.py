@@ -81,7 +81,8 @@ def main(argv: list[str] | None = None) -> None:
 
     die_with_parent()
     try:
-        args = read_flags(BridgeArgs, sys.argv[1:] if argv is None else argv, "python -m services.robot_bridge")
+        args = read_flags(BridgeArgs, sys.argv[1:] if argv is None else argv,
+                          "python -m services.robot_bridge")
     except FlagError as err:
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
