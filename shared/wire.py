@@ -54,7 +54,8 @@ from shared.envs import ACTION_BOUND
 
 # 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
 # key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read.
-# A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures)
+# A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures,
+# InsertAck.refused, ActorStatus.refused)
 # keeps the version: a receiver fills in the default where a sender has not the field, and ignores
 # fields it does not know, so either side of a rolling upgrade reads the other's messages.
 SCHEMA_VERSION = 3
@@ -170,6 +171,11 @@ class InsertAck(Message):
     actor_id: int
     incarnation: int
     num_inserted: int
+    refused: str = ""
+    """Why the batch was not stored; "": stored (an older replay never says otherwise)."""
+    lasting: bool = False
+    """The refusal holds for every later batch of this incarnation (an older incarnation of its id
+    was superseded, an id the store cannot keep): its actor can only stop."""
 
 
 @dataclass
@@ -271,6 +277,8 @@ class ActorStatus(Message):
     all (empty: not measured); with step_seconds, a Prometheus histogram's figures."""
     step_seconds: float = 0.0
     """This incarnation's total env step time."""
+    refused: int = 0
+    """This incarnation's batches the replay acknowledged without storing them (InsertAck.refused)."""
 
 
 STEP_SECONDS_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)

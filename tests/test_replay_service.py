@@ -209,3 +209,15 @@ def test_a_refused_batch_is_acknowledged_so_its_actor_does_not_wait_on_it(tmp_pa
     loop.join(5)
     assert [(a.incarnation, a.num_inserted) for a in session.acks] == [(4, 3), (5, 5)]
     assert svc.invalid == 1
+    # The ack says the older incarnation's batch was refused, and for good; the newer one's was stored.
+    stale, stored = session.acks
+    assert "older than incarnation 5" in stale.refused and stale.lasting
+    assert stored.refused == "" and not stored.lasting
+
+
+def test_a_batch_that_continues_no_episode_is_acknowledged_as_refused_but_not_for_good(tmp_path):
+    svc = make_service(tmp_path, no_rate_limit=True)
+    assert svc._take(batch(inc=5, start=3, n=2)[0]) == (
+        "not the continuation of an episode begun here", False)
+    assert svc._take(batch(inc=5, n=2, seed=1)[0]) == ("", False)
+    assert svc.store.num_inserted == 2

@@ -6,8 +6,11 @@
   service of the run checks its own settings against it.
 - Inserts: actors publish `TransitionBatch`es (BLOCK). The subscriber callback
   only queues the bytes; one insert thread decodes, waits on the rate limiter,
-  adds to the store, and acknowledges each batch (`InsertAck`). Actors keep a
-  bounded number of unacknowledged batches (shared.replay.adder.ZenohWriter),
+  adds to the store, and acknowledges each batch (`InsertAck`), a refused one
+  with the reason and whether it holds for the actor's every later batch (an
+  incarnation older than one seen, an id the store cannot keep: that actor
+  stops). Actors keep a bounded number of unacknowledged batches
+  (shared.replay.adder.ZenohWriter),
   so when the limiter holds inserts back the actors wait: that is the
   backpressure.
 - Episodes are stitched by (actor_id, incarnation, episode, step): a batch that
@@ -51,7 +54,7 @@ from shared.config import ConfigError
 from shared.replay.client import LocalReplay, encode_reply
 from shared.replay.log import MANIFEST
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
-from shared.replay.store import SNAPSHOT_EVERY, OpenStopped, open_store
+from shared.replay.store import SNAPSHOT_EVERY, ActorRefused, OpenStopped, open_store
 from shared.run_config import RunConfig
 from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
@@ -205,14 +208,33 @@ class ReplayService(MessageGuard):
             except queue.Empty:
                 continue
             try:
-                self.insert_batch(msg)
+                refused, lasting = self._take(msg)
             except RateLimiterClosed:
                 return
-            except Exception as err:  # noqa: BLE001 -- ValueError from the store, and the unforeseen
-                # Refused, and acknowledged all the same: its actor must not wait on it.
-                self._invalid(f"transitions: {err}")
-            ack = wire.InsertAck(msg.actor_id, msg.incarnation, self.store.num_inserted)
+            # Refused batches are acknowledged too, saying why: the actor must not wait on them, and
+            # one whose every batch is refused stops instead of acting for nothing.
+            ack = wire.InsertAck(msg.actor_id, msg.incarnation, self.store.num_inserted,
+                                 refused[:wire.MAX_TEXT], lasting)
             self.session.put(self.keys.ack(msg.actor_id), wire.encode(ack), congestion_control=BLOCK)
+
+    def _take(self, msg: wire.TransitionBatch) -> tuple[str, bool]:
+        """Insert a batch: (why it was refused, "" if it was stored; whether every later batch of its
+        incarnation will be refused for the same reason)."""
+        try:
+            if self.insert_batch(msg):
+                return "", False
+        except ActorRefused as err:
+            self._invalid(f"transitions: {err}")
+            return str(err), True
+        except RateLimiterClosed:
+            raise
+        except Exception as err:  # noqa: BLE001 -- ValueError from the store, and the unforeseen
+            self._invalid(f"transitions: {err}")
+            return str(err), False
+        if self.store.num_inserted >= self.config.steps:
+            return "the run's step budget is reached", False
+        # One reason for all of them: the actor logs each reason once.
+        return "not the continuation of an episode begun here", False
 
     def insert_batch(self, msg: wire.TransitionBatch) -> int:
         """Add a batch's transitions, unscored; returns how many were stored. The batch was decoded

@@ -62,6 +62,11 @@ class OpenStopped(Exception):
     folder is as it was, and the next opening reads it all."""
 
 
+class ActorRefused(ValueError):
+    """Every episode of this actor incarnation is refused, now and later: it is older than one
+    already seen for its id, or its id or incarnation does not fit the store's 32 bits."""
+
+
 @dataclass
 class _Chunk:
     episode_id: int
@@ -187,9 +192,9 @@ class ReplayStore:
     @staticmethod
     def _check_int(value: object, what: str) -> int:
         if isinstance(value, bool) or not isinstance(value, int | np.integer):
-            raise ValueError(f"{what} must be an int, got {value!r}")
+            raise ActorRefused(f"{what} must be an int, got {value!r}")
         if value < 0 or value >= 2**31:
-            raise ValueError(f"{what} must be in [0, 2**31), got {value}")
+            raise ActorRefused(f"{what} must be in [0, 2**31), got {value}")
         return int(value)
 
     # ----------------------------------------------------------------- writes
@@ -207,7 +212,7 @@ class ReplayStore:
             self._check_open()
             newest = self._incarnations.get(actor_id, -1)
             if incarnation < newest:
-                raise ValueError(
+                raise ActorRefused(
                     f"actor {actor_id} incarnation {incarnation} is older than incarnation "
                     f"{newest} already seen: a stale actor may not start episodes"
                 )
