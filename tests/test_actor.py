@@ -95,3 +95,63 @@ def test_a_bridge_reply_with_a_safety_state_it_cannot_read_neither_ends_the_acto
             assert isinstance(status, wire.ActorStatus), status
             assert status.fault == reported and status.episode_returns == [[12.5, 25]]
     sim.close()
+
+
+def test_an_actor_whose_every_batch_the_replay_refuses_stops_with_the_reason_and_its_count(tmp_path):
+    """Over real Zenoh on loopback, with the real replay service: the replay has seen a newer
+    incarnation of actor 3 than this one (the older one was superseded while cut off), so it refuses
+    every episode this one begins. The actor used to act on for ever; it stops with the reason
+    (ConfigError: exit 2, like being superseded), and its last heartbeat counts the refused batches."""
+    import queue
+    import threading
+    import time
+
+    import numpy as np
+    import pytest
+
+    from nasa.up import free_port
+    from services.actor.actor import ActorArgs, ActorService
+    from services.replay.service import ReplayArgs, ReplayService
+    from shared import wire
+    from shared.config import ConfigError
+    from shared.service import StopFlag
+    from shared.zenoh_session import open_client, open_router, token_up
+    from tests.tiny import tiny_run
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run = tiny_run("td3_ae", steps=5000)
+    run.config.env.time_limit = 10
+    keys = wire.Keys(f"t{free_port()}")
+    heartbeats: queue.Queue = queue.Queue()
+    replay_stop = StopFlag()
+    with (open_router(endpoint), open_client(endpoint) as replay_session,
+          open_client(endpoint) as actor_session, open_client(endpoint) as learner_session,
+          learner_session.declare_subscriber(
+              keys.actor_status(3),
+              lambda s: heartbeats.put(wire.decode(s.payload.to_bytes(), wire.ActorStatus)))):
+        replay = ReplayService(ReplayArgs(config=run.config, run_id=keys.run_id, data=tmp_path,
+                                          camera_checked=True), replay_session, replay_stop, run)
+        replay.store.begin_episode(np.zeros(run.spec.frame_shape, np.uint8), 3, 2**31 - 1)
+        serving = threading.Thread(target=replay.run)
+        serving.start()
+        try:
+            deadline = time.monotonic() + 30
+            while not token_up(learner_session, keys.alive("replay", 0), timeout_s=1.0):
+                assert time.monotonic() < deadline, "the replay never came up"
+            actor = ActorService(ActorArgs(config=run.config, run_id=keys.run_id, actor_id=3, send_batch=4),
+                                 actor_session, StopFlag(), run)
+            # Only so that an actor that never gives up fails the test instead of hanging it.
+            watchdog = threading.Timer(120.0, actor.stop.set, ["test watchdog"])
+            watchdog.start()
+            with pytest.raises(ConfigError, match="refuses every batch of actor id 3") as err:
+                actor.run()
+            watchdog.cancel()
+            assert f"older than incarnation {2**31 - 1}" in str(err.value)
+            assert replay.store.num_inserted == 0
+            assert actor.writer.refused >= 3
+            # The last heartbeat, sent as it stopped, carries them all (each arrives in order).
+            while heartbeats.get(timeout=30).refused != actor.writer.refused:
+                pass
+        finally:
+            replay_stop.set("test done")
+            serving.join(15)

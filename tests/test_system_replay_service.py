@@ -152,3 +152,40 @@ def test_a_replay_started_with_other_settings_than_its_run_folder_exits_2(tmp_pa
     assert proc.returncode == 2, proc.stderr
     assert "batch_size" in proc.stderr
     assert not (tmp_path / "replay").exists()  # refused before opening a store
+
+
+def test_a_writer_whose_every_batch_the_replay_refuses_stops_its_actor_with_the_reason(tmp_path):
+    """Over real Zenoh: the replay has seen a newer incarnation of actor 3, so it refuses every episode
+    of incarnation 4 and says so in its acks; the writer counts them and stops its actor, instead
+    of acting for ever. The newer incarnation's batches are stored, and acknowledged as such."""
+    from shared.replay.adder import REFUSALS_TO_STOP
+
+    with Serving(tmp_path, warmup=100) as srv:
+        svc = srv.svc
+        svc.insert_batch(batch(actor=3, inc=5, n=2)[0])
+        srv.start()
+        frames = np.random.default_rng(0).integers(0, 256, (3, *SPEC.frame_shape), dtype=np.uint8)
+        stop = StopFlag()
+        writer = ZenohWriter(srv.session, svc.keys, actor_id=3, incarnation=4, frame_shape=SPEC.frame_shape,
+                             send_batch=1, max_in_flight=1, stop=stop, log=Log("test"))
+        with writer:
+            assert writer.wait_for_replay()
+            episodes = 0
+            while not stop:  # each episode: its start is refused for good, its next step as an orphan
+                assert episodes < 10 * REFUSALS_TO_STOP, "the writer never gave up"
+                writer.add_first(frames[0])
+                for t in (1, 2):
+                    writer.add(np.zeros(2, np.float32), 0.0, 1.0, frames[t], t == 2, policy_version=0)
+                episodes += 1
+            assert "older than incarnation 5" in writer.refused_for_good
+            assert "older than incarnation 5" in stop.reason
+            assert episodes == REFUSALS_TO_STOP and writer.refused == 2 * REFUSALS_TO_STOP - 1
+        assert svc.store.num_inserted == 2  # nothing of the older incarnation
+        newer = ZenohWriter(srv.session, svc.keys, actor_id=3, incarnation=5, frame_shape=SPEC.frame_shape,
+                            send_batch=2, max_in_flight=1, stop=StopFlag(), log=Log("test"))
+        with newer:
+            assert newer.wait_for_replay()
+            newer.add_first(frames[0])
+            newer.add(np.zeros(2, np.float32), 0.0, 1.0, frames[1], True, policy_version=0)
+            wait_for(lambda: newer.global_steps == 3, "the newer incarnation's ack never came")
+            assert newer.refused == 0 and not newer.stop

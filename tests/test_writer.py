@@ -8,11 +8,12 @@ import threading
 import time
 from types import SimpleNamespace
 
+import msgpack
 import numpy as np
 import pytest
 
 from shared import wire
-from shared.replay.adder import SendWindow, StoreAdder, ZenohWriter
+from shared.replay.adder import REFUSALS_TO_STOP, SendWindow, StoreAdder, ZenohWriter
 from shared.replay.store import ReplayStore
 from shared.service import Log, StopFlag
 
@@ -205,6 +206,38 @@ def test_a_count_past_the_step_budget_is_refused_and_does_not_end_the_acting():
     assert writer.invalid == 2 and writer.global_steps == 0 and not writer.replay_done
     writer._on_ack(ack(4, 9, 200))
     assert writer.invalid == 2 and writer.replay_done
+
+
+def refusal(reason: str, lasting: bool) -> SimpleNamespace:
+    data = wire.encode(wire.InsertAck(4, 9, 0, reason, lasting))
+    return SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data))
+
+
+def test_refused_batches_are_counted_logged_once_and_lasting_ones_stop_the_actor():
+    writer, _ = make_writer()
+    logged: list[str] = []
+    writer.log = logged.append
+    for _ in range(REFUSALS_TO_STOP - 1):  # an episode start refused for good, then its orphans
+        writer._on_ack(refusal("stale", True))
+        writer._on_ack(refusal("orphan", False))
+        writer._on_ack(refusal("orphan", False))
+    assert writer.refused == 3 * (REFUSALS_TO_STOP - 1) and not writer.stop
+    assert len(logged) == 2 and "for good" in logged[0] and "this once" in logged[1]
+    writer._on_ack(ack(4, 9, 5))  # a batch stored: the run of lasting refusals starts again
+    for _ in range(REFUSALS_TO_STOP - 1):
+        writer._on_ack(refusal("stale", True))
+    assert not writer.stop and writer.refused_for_good is None
+    writer._on_ack(refusal("stale", True))
+    assert writer.stop and writer.refused_for_good == "stale" and "stale" in writer.stop.reason
+    assert len(logged) == 2
+
+
+def test_an_ack_of_an_older_replay_without_the_refusal_fields_reads_as_stored():
+    old = wire.encode(wire.InsertAck(4, 9, 7))
+    body = msgpack.unpackb(old)
+    del body["refused"], body["lasting"]
+    ack = wire.decode(msgpack.packb(body), wire.InsertAck)
+    assert ack.refused == "" and not ack.lasting and ack.num_inserted == 7
 
 
 def test_acks_of_another_incarnation_are_ignored():

@@ -18,6 +18,10 @@
   replacement started while this one was cut off) it stops with exit code 2,
   so no supervisor restarts it. The replay takes only the newest incarnation's
   episodes, so the older one would otherwise wait on acknowledgements for ever.
+- Refusals: the replay acknowledges a batch it does not store with the reason;
+  the heartbeat counts them, and when the replay says it will refuse every batch
+  of this incarnation (an older incarnation of its id is all it has seen go, an
+  id it cannot keep) the actor stops with exit code 2 and the reason.
 - Replay loss: while the replay is gone the actor does not act; the episode
   under way is abandoned (the writer marks it broken), so the first batch
   after the replay's return starts a new episode.
@@ -211,7 +215,7 @@ class ActorService(MessageGuard):
         times = self.step_times
         status = wire.ActorStatus(self.actor_id, self.incarnation, env_steps, self.episodes,
                                   self.policy_version, steps_per_s, finished, fault, list(times.counts),
-                                  times.total_s)
+                                  times.total_s, self.writer.refused)
         self.session.put(self.keys.actor_status(self.actor_id), wire.encode(status))
 
     def run(self) -> None:
@@ -239,6 +243,10 @@ class ActorService(MessageGuard):
             raise ConfigError(
                 f"actor id {self.actor_id} was started again (incarnation {self.superseded_by}); this "
                 f"incarnation ({self.incarnation}) stops: give each actor its own --actor-id")
+        if self.writer.refused_for_good is not None:
+            raise ConfigError(
+                f"the replay refuses every batch of actor id {self.actor_id} incarnation "
+                f"{self.incarnation} ({self.writer.refused} refused): {self.writer.refused_for_good}")
 
     def _on_same_id(self, sample: zenoh.Sample) -> None:
         """Another process's token for this actor id: the newer incarnation keeps the id."""

@@ -9,6 +9,9 @@
   (backpressure). The writer watches the replay's liveliness token: when it
   goes, the unacknowledged batches count as lost and the episode under way is
   `broken` (the loop abandons it; the replay never stitches across a gap).
+  A batch the replay refuses is acknowledged with the reason: the writer counts
+  it, logs each reason once, and stops its actor (`refused_for_good`) when the
+  replay says it will refuse every batch of this incarnation.
 
 Both store every row unscored (intrinsic NaN): scoring is the scorer's business.
 The in-flight accounting is `SendWindow`, plain Python with no Zenoh.
@@ -33,6 +36,10 @@ SEND_BATCH = 8
 """An actor's transitions per message, unless told otherwise."""
 ACK_TIMEOUT_S = 60.0
 """No acknowledgement for this long while the window is full: the replay restarted and lost them."""
+REFUSALS_TO_STOP = 3
+"""Refusals the replay calls lasting, with nothing stored between them, before a writer stops its actor."""
+MAX_REASONS_LOGGED = 32
+"""Distinct refusal reasons a writer logs (each once)."""
 
 
 class Adder(Protocol):
@@ -210,6 +217,10 @@ class ZenohWriter:
         self.send_batch = max(1, send_batch)
         self.window = SendWindow(max_in_flight, log)
         self.invalid = 0
+        self.refused = 0  # batches the replay acknowledged without storing them
+        self.refused_for_good: str | None = None  # why, once the replay will never take this incarnation's
+        self._lasting_run = 0  # lasting refusals since the last batch stored
+        self._reasons_logged: set[str] = set()
         self._episode = -1
         self._start = 0
         self._first: np.ndarray | None = None
@@ -278,7 +289,25 @@ class ZenohWriter:
         except wire.WireError as err:
             return self._invalid(f"ack: {err}")
         if ack.actor_id == self.actor_id and ack.incarnation == self.incarnation:
+            self._on_refusal(ack.refused, ack.lasting)  # first: a writer waiting on this ack sees the stop
             self.window.on_ack(ack.num_inserted)
+
+    def _on_refusal(self, reason: str, lasting: bool) -> None:
+        """Count a refused batch and log each reason once; after REFUSALS_TO_STOP lasting refusals
+        with nothing stored between them, give up: set `refused_for_good` and stop."""
+        if not reason:
+            self._lasting_run = 0
+            return
+        self.refused += 1
+        if reason not in self._reasons_logged and len(self._reasons_logged) < MAX_REASONS_LOGGED:
+            self._reasons_logged.add(reason)
+            self.log(f"the replay refused a batch ({'for good' if lasting else 'this once'}): {reason}")
+        if not lasting:  # the batches after a refused episode start are refused as its orphans
+            return
+        self._lasting_run += 1
+        if self._lasting_run >= REFUSALS_TO_STOP and self.refused_for_good is None:
+            self.refused_for_good = reason
+            self.stop.set(f"the replay refuses every batch of this incarnation: {reason}")
 
     def _on_stats(self, sample) -> None:
         try:
