@@ -155,3 +155,46 @@ def test_an_actor_whose_every_batch_the_replay_refuses_stops_with_the_reason_and
         finally:
             replay_stop.set("test done")
             serving.join(15)
+
+
+def test_two_launches_of_an_id_in_the_same_tenth_get_distinct_incarnations_the_later_one_newer(
+        tmp_path, monkeypatch):
+    """The incarnation was the time in tenths of a second alone: two launches of one id in the same
+    tenth got the same one, neither stopped, and the replay took their two streams for one."""
+    from types import SimpleNamespace
+
+    import zenoh
+
+    from services.actor.actor import ActorService, new_incarnation
+    from shared import wire
+    from shared.service import StopFlag
+
+    monkeypatch.setattr(wire, "restart_stamp", lambda per_s, bits: 7000)  # one instant
+    first, second = new_incarnation(3, tmp_path), new_incarnation(3, tmp_path)
+    assert (first, second) == (7000, 7001)
+    assert new_incarnation(4, tmp_path) == 7000  # another id: the time
+    monkeypatch.setattr(wire, "restart_stamp", lambda per_s, bits: 9000)  # later: the time again
+    assert new_incarnation(3, tmp_path) == 9000
+    # The later launch is the newer: the earlier one, seeing its token, stops as superseded.
+    keys = wire.Keys("t")
+    older = SimpleNamespace(keys=keys, incarnation=first, actor_id=3, stop=StopFlag(), superseded_by=None,
+                            _older_seen=set(), log=lambda _: None, _invalid=lambda _: None)
+    token = SimpleNamespace(kind=zenoh.SampleKind.PUT, key_expr=keys.alive("actor", 3, second))
+    ActorService._on_same_id(older, token)
+    assert older.stop and older.superseded_by == second
+
+
+def test_incarnations_made_at_once_by_several_processes_on_a_host_all_differ(tmp_path):
+    """Real processes, each making incarnations of one id as fast as it can in one frozen instant."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from pathlib import Path; from shared import wire; "
+            "wire.restart_stamp = lambda per_s, bits: 7000; "
+            "from services.actor.actor import new_incarnation; "
+            "print(*(new_incarnation(3, Path(sys.argv[1])) for _ in range(50)))")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+             for _ in range(3)]
+    made = [int(n) for p in procs for n in p.communicate(timeout=120)[0].split()]
+    assert all(p.returncode == 0 for p in procs)
+    assert len(made) == 150 and len(set(made)) == 150 and min(made) == 7000

@@ -9,7 +9,8 @@
   `max_in_flight` unacknowledged batches (backpressure from the replay's rate
   limiter), and the replay's liveliness.
 - Identity: `actor_id` (stable for a slot) and a new incarnation at each start
-  (tenths of a second since 2025, so it grows across restarts). The env and
+  (tenths of a second since 2025, so it grows across restarts; past the last
+  one made for the id on this host, so two launches in one tenth differ). The env and
   exploration seeds derive from (config.seed, actor_id, incarnation). A
   liveliness token alive/actor/<id>/<incarnation> announces it; a status
   heartbeat every second carries the episodes finished since the last.
@@ -39,12 +40,16 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import fcntl
 import math
+import os
 import random
+import tempfile
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -60,10 +65,34 @@ from shared.service import Log, MessageGuard, StopFlag
 from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs, env_int
 
+INCARNATIONS = Path(tempfile.gettempdir()) / "nasa-incarnations"
+"""One file per actor id holding the last incarnation made for it on this host."""
 
-def new_incarnation() -> int:
-    """Tenths of a second since 2025-01-01: grows across restarts (fits 31 bits until 2031)."""
-    return wire.restart_stamp(10, 31)
+
+def new_incarnation(actor_id: int, folder: Path = INCARNATIONS) -> int:
+    """Tenths of a second since 2025-01-01: grows across restarts (fits 31 bits until 2031), and
+    past the last one made for this id on this host (`folder`, under a lock). Two launches of an id
+    in the same tenth got the same one: neither stopped, and the replay took the two streams for one.
+    The later of the two is the newer, so the older stops as when superseded. Not random low bits:
+    31 bits hold the time alone, and a store keeps the newest incarnation it saw of each id, which
+    a new one must pass. Another host's launch in the same tenth is not seen (the time alone)."""
+    stamp = wire.restart_stamp(10, 31)
+    try:
+        folder.mkdir(exist_ok=True)
+        fd = os.open(folder / str(actor_id), os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:  # no folder to share (read-only, another user's): the time alone
+        return stamp
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # released when fd closes
+        text = os.read(fd, 32).decode(errors="replace").strip()
+        last = int(text) if text.isdigit() else -1
+        incarnation = last + 1 if stamp <= last < 2**31 - 1 else stamp
+        os.pwrite(fd, f"{incarnation:<12d}".encode(), 0)  # fixed width: no stale digits after it
+        return incarnation
+    except OSError:
+        return stamp
+    finally:
+        os.close(fd)
 
 
 MAX_ACTOR_ID = 2**31
@@ -142,7 +171,7 @@ class ActorService(MessageGuard):
         self.keys = wire.Keys(args.run_id)
         self.actor_id = (args.actor_id if args.actor_id >= 0
                          else random.SystemRandom().randrange(1000, MAX_ACTOR_ID))
-        self.incarnation = new_incarnation()
+        self.incarnation = new_incarnation(self.actor_id)
         self.log = Log(f"actor {self.actor_id}")
         seeds = np.random.SeedSequence([c.seed, self.actor_id, self.incarnation]).generate_state(2)
         self.bridge: BridgePresence | None = None
