@@ -189,3 +189,28 @@ def test_a_writer_whose_every_batch_the_replay_refuses_stops_its_actor_with_the_
             newer.add(np.zeros(2, np.float32), 0.0, 1.0, frames[1], True, policy_version=0)
             wait_for(lambda: newer.global_steps == 3, "the newer incarnation's ack never came")
             assert newer.refused == 0 and not newer.stop
+
+
+def test_a_batch_of_another_frame_shape_is_acknowledged_as_refused_for_good_and_its_writer_stops(tmp_path):
+    """Over real Zenoh: frames of a shape not the run's fail the batch's decode. The replay used to
+    count it and answer nothing, so its actor waited on the acknowledgement for ever; now it answers
+    with the reason, and the writer stops its actor. Nothing is stored."""
+    with Serving(tmp_path, warmup=100) as srv:
+        svc = srv.svc
+        srv.start()
+        shape = (3, 8, 8)
+        frames = np.random.default_rng(0).integers(0, 256, (2, *shape), dtype=np.uint8)
+        stop = StopFlag()
+        writer = ZenohWriter(srv.session, svc.keys, actor_id=6, incarnation=2, frame_shape=shape,
+                             send_batch=1, max_in_flight=1, stop=stop, log=Log("test"))
+        # Only so that a writer never answered fails the test instead of hanging it.
+        watchdog = threading.Timer(60.0, stop.set, ["test watchdog"])
+        watchdog.start()
+        with writer:
+            assert writer.wait_for_replay()
+            while not stop:
+                writer.add_first(frames[0])
+                writer.add(np.zeros(2, np.float32), 0.0, 1.0, frames[1], True, policy_version=0)
+        watchdog.cancel()
+        assert writer.refused_for_good is not None and "shape" in writer.refused_for_good
+        assert svc.store.num_inserted == 0 and svc.invalid == writer.refused

@@ -8,8 +8,9 @@
   only queues the bytes; one insert thread decodes, waits on the rate limiter,
   adds to the store, and acknowledges each batch (`InsertAck`), a refused one
   with the reason and whether it holds for the actor's every later batch (an
-  incarnation older than one seen, an id the store cannot keep: that actor
-  stops). Actors keep a bounded number of unacknowledged batches
+  incarnation older than one seen, an id the store cannot keep, frames not of
+  the run's shape: that actor stops); a batch that does not decode is
+  answered from the callback, where it names its actor and incarnation. Actors keep a bounded number of unacknowledged batches
   (shared.replay.adder.ZenohWriter),
   so when the limiter holds inserts back the actors wait: that is the
   backpressure.
@@ -46,6 +47,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import zenoh
 
@@ -161,6 +163,26 @@ class ReplayService(MessageGuard):
             self._inserts.put(wire.decode(sample.payload.to_bytes(), wire.TransitionBatch, self.bounds))
         except Exception as err:  # noqa: BLE001 -- a message never kills a callback
             self._invalid(f"transitions: {err}")
+            self._refuse_undecoded(sample, err)
+
+    def _refuse_undecoded(self, sample: zenoh.Sample, err: Exception) -> None:
+        """Acknowledge a batch that does not decode, where it names its actor (as its key does) and
+        incarnation: else that actor waited on it. Lasting where its frames are not of the run's
+        shape, which no later batch of that actor's will be either. Not BLOCK: a callback must not
+        wait on the network (a refusal dropped there is one the actor counts lost after a while)."""
+        try:
+            body = msgpack.unpackb(sample.payload.to_bytes(), raw=False, strict_map_key=False)
+            actor_id, incarnation, shape = body["actor_id"], body["incarnation"], body.get("frame_shape")
+            named = all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < wire.MAX_INT
+                        for v in (actor_id, incarnation))
+            if not named or str(sample.key_expr) != self.keys.insert(actor_id):
+                return
+            lasting = isinstance(shape, list) and shape != list(self.frame_shape)
+            ack = wire.InsertAck(actor_id, incarnation, self.store.num_inserted, str(err)[:wire.MAX_TEXT],
+                                 lasting)
+            self.session.put(self.keys.ack(actor_id), wire.encode(ack))
+        except Exception:  # noqa: BLE001 -- not msgpack, not a map, no such fields: nobody to answer
+            return
 
     def _on_sample_query(self, query: zenoh.Query) -> None:
         self._queue_query(query, wire.SampleRequest, self._queries)
