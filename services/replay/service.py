@@ -10,10 +10,10 @@
   with the reason and whether it holds for the actor's every later batch (an
   incarnation older than one seen, an id the store cannot keep, frames not of
   the run's shape: that actor stops); a batch that does not decode is
-  answered from the callback, where it names its actor and incarnation. Actors keep a bounded number of unacknowledged batches
-  (shared.replay.adder.ZenohWriter),
-  so when the limiter holds inserts back the actors wait: that is the
-  backpressure.
+  answered from the callback, where it names its actor and incarnation.
+  Actors keep a bounded number of unacknowledged batches
+  (shared.replay.adder.ZenohWriter), so when the limiter holds inserts back
+  the actors wait: that is the backpressure.
 - Episodes are stitched by (actor_id, incarnation, episode, step): a batch that
   does not continue its episode exactly (an actor restarted, a batch was lost,
   this service restarted) is dropped, counted, and its episode ignored until
