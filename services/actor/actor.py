@@ -21,8 +21,9 @@
   episodes, so the older one would otherwise wait on acknowledgements for ever.
 - Refusals: the replay acknowledges a batch it does not store with the reason;
   the heartbeat counts them, and when the replay says it will refuse every batch
-  of this incarnation (an older incarnation of its id is all it has seen go, an
-  id it cannot keep) the actor stops with exit code 2 and the reason.
+  of this incarnation (it has taken a newer incarnation of this id, the id does
+  not fit its store, frames of another shape) the actor stops with exit code 2
+  and the reason.
 - Replay loss: while the replay is gone the actor does not act; the episode
   under way is abandoned (the writer marks it broken), so the first batch
   after the replay's return starts a new episode.
