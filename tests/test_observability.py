@@ -42,10 +42,10 @@ STATUS = {
     "a_field_added_later": {"count": 7},
     "actors": [
         {"id": 0, "incarnation": 1111, "alive": True, "env_steps": 170, "episodes": 4, "policy_version": 300,
-         "steps_per_s": 6.5, "last_seen_s": 0.25, "fault": "estop",
+         "steps_per_s": 6.5, "last_seen_s": 0.25, "refused": 2, "fault": "estop",
          "env_step_seconds": {"count": 170, "sum": 0.85, "le": {"0.001": 0, "0.005": 150, "+Inf": 170}}},
         {"id": 1, "incarnation": 2222, "alive": False, "env_steps": 175, "episodes": 4, "policy_version": 280,
-         "steps_per_s": 6.0, "last_seen_s": 3.5, "fault": None, "env_step_seconds": None},
+         "steps_per_s": 6.0, "last_seen_s": 3.5, "refused": 0, "fault": None, "env_step_seconds": None},
     ],
     "policy_lag": {"mean": 14.5, "max": 41},
     "losses": {"critic_loss": 0.5, "actor_loss": -1.25, "ae_loss": 0.03, "ensemble_loss": 0.001},
@@ -517,10 +517,10 @@ def test_a_stopped_runs_dashboard_has_the_same_connection_limits(tmp_path, monke
 
     (tmp_path / "learner").mkdir()
     (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
-    served: dict = {}
-    monkeypatch.setattr(uvicorn, "run", lambda app, **kwargs: served.update(kwargs))
+    served: list[uvicorn.Config] = []
+    monkeypatch.setattr(uvicorn.Server, "run", lambda self, *args, **kwargs: served.append(self.config))
     serve_stopped(tmp_path, "127.0.0.1", free_port())
-    assert served["http"] is status_api.GuardedH11Protocol
+    assert [config.http for config in served] == [status_api.GuardedH11Protocol]
 
 
 def test_step_counts_the_wire_allows_make_a_valid_histogram():
