@@ -414,3 +414,15 @@ def test_an_actor_is_alive_only_with_its_token_and_restarts_count_once_each(tmp_
         board.actor_alive(5, inc, True)
         board.actor_alive(5, inc, True)
     assert board.crash_looping(1, 60.0) == [5] and board.crash_looping(2, 60.0) == []
+
+
+def test_the_status_board_shows_the_batches_the_replay_refused_each_actor() -> None:
+    # An actor whose batches the replay refuses acts on until it stops: /status shows the count.
+    from services.learner.status import StatusBoard
+
+    board = StatusBoard()
+    board.actor_alive(5, 1, True)
+    board.actor_status(wire.ActorStatus(5, 1, 10, 0, 0, 1.0, [], refused=4))
+    assert board.snapshot()["actors"][0]["refused"] == 4
+    board.actor_status(wire.ActorStatus(5, 2, 10, 0, 0, 1.0, []))  # a new incarnation counts afresh
+    assert board.snapshot()["actors"][0]["refused"] == 0

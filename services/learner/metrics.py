@@ -76,6 +76,8 @@ ACTOR_FIGURES: tuple[tuple[str, str, str, str], ...] = (
     ("policy_version", "nasa_actor_policy_version", "gauge", "Policy version the actor acts with"),
     ("steps_per_s", "nasa_actor_env_steps_per_second", "gauge", "Env steps per second of the actor"),
     ("last_seen_s", "nasa_actor_last_seen_seconds", "gauge", "Seconds since the actor's last heartbeat"),
+    ("refused", "nasa_actor_refused_batches_total", "counter",
+     "Batches of the actor's current incarnation the replay acknowledged without storing them"),
 )
 # Dicts of /status whose entries become one labelled gauge: (path, metric, label, help).
 LABELLED: tuple[tuple[str, str, str, str], ...] = (

@@ -31,8 +31,8 @@ must not grow /status, and the lock and encoding that every read of it costs, wi
 
 def _new_actor(actor_id: int, incarnation: int) -> dict:
     return {"id": actor_id, "incarnation": incarnation, "alive": True, "env_steps": 0, "episodes": 0,
-            "last_seen": time.monotonic(), "policy_version": 0, "steps_per_s": 0.0, "fault": None,
-            "env_step_seconds": None}
+            "last_seen": time.monotonic(), "policy_version": 0, "steps_per_s": 0.0, "refused": 0,
+            "fault": None, "env_step_seconds": None}
 
 
 def step_histogram(counts: list[int], total_s: float) -> dict | None:
@@ -95,7 +95,8 @@ class StatusBoard:
                 a = self._new_incarnation(a, s.actor_id, s.incarnation, token=False)
             if s.incarnation == a["incarnation"]:
                 a.update(env_steps=s.env_steps, policy_version=s.policy_version,
-                         steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, last_seen=time.monotonic(),
+                         steps_per_s=round(s.steps_per_s, 2), episodes=s.episodes, refused=s.refused,
+                         last_seen=time.monotonic(),
                          fault=s.fault, env_step_seconds=step_histogram(s.step_counts, s.step_seconds))
 
     def actor_alive(self, actor_id: int, incarnation: int, alive: bool) -> None:

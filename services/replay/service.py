@@ -5,8 +5,8 @@
   environment. It serves that RunConfig on `replay/config`, so every other
   service of the run checks its own settings against it.
 - Inserts: actors publish `TransitionBatch`es (BLOCK). The subscriber callback
-  only queues the bytes; one insert thread decodes, waits on the rate limiter,
-  adds to the store, and acknowledges each batch (`InsertAck`), a refused one
+  decodes and checks each batch and queues it; one insert thread waits on the
+  rate limiter, adds to the store, and acknowledges each batch (`InsertAck`), a refused one
   with the reason and whether it holds for the actor's every later batch (an
   incarnation older than one seen, an id the store cannot keep, frames not of
   the run's shape: that actor stops); a batch that does not decode is
