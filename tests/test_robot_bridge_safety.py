@@ -254,13 +254,20 @@ def away_from_home(f: SafeFingers, emu: BusEmulator) -> None:
     wait_until(lambda: [emu.snapshot(sid, xl320.PRESENT_POSITION) for sid in IDS] == goals)
 
 
-def test_a_rearm_waits_for_the_recovery_a_faulted_step_started(emu) -> None:
+def gated_fingers(emu: BusEmulator) -> tuple[SafeFingers, dict[str, Gate], threading.Event]:
+    """Fingers away from home whose waits park at the gate of their thread ("step", "rearm"), and
+    whose recovery lock sets the event when a second recovery comes to wait on it."""
     gates = {"step": Gate(), "rearm": Gate()}
     f = fingers(emu, sleep=lambda s: gates[threading.current_thread().name](s)
                 if threading.current_thread().name in gates else time.sleep(s))
     away_from_home(f, emu)
     waiting = threading.Event()
     f._recovery = SignallingLock(waiting)
+    return f, gates, waiting
+
+
+def test_a_rearm_waits_for_the_recovery_a_faulted_step_started(emu) -> None:
+    f, gates, waiting = gated_fingers(emu)
     touched: list[str] = []  # who rebooted or armed a servo, in order
     reboot, set_limits = f.bus.reboot, f.bus.set_limits
 
@@ -303,12 +310,7 @@ def test_a_rearm_waits_for_the_recovery_a_faulted_step_started(emu) -> None:
 
 
 def test_a_step_that_faults_during_a_rearm_recovers_after_it_without_holding_the_bus(emu) -> None:
-    gates = {"step": Gate(), "rearm": Gate()}
-    f = fingers(emu, sleep=lambda s: gates[threading.current_thread().name](s)
-                if threading.current_thread().name in gates else time.sleep(s))
-    away_from_home(f, emu)
-    waiting = threading.Event()
-    f._recovery = SignallingLock(waiting)
+    f, gates, waiting = gated_fingers(emu)
     read_state = f.bus.read_state
 
     def failing_read(ids=None):  # noqa: ANN001, ANN202
