@@ -62,6 +62,7 @@ from shared.agents import collect_action, make_agent
 from shared.config import ConfigError
 from shared.env_loop import EnvLoop
 from shared.replay.adder import SEND_BATCH, ZenohWriter
+from shared.replay.store import ID_LIMIT
 from shared.service import Log, MessageGuard, StopFlag
 from shared.weights import WeightsSubscriber
 from shared.zenoh_session import ServiceArgs, env_int
@@ -87,7 +88,7 @@ def new_incarnation(actor_id: int, folder: Path = INCARNATIONS) -> int:
         fcntl.flock(fd, fcntl.LOCK_EX)  # released when fd closes
         text = os.read(fd, 32).decode(errors="replace").strip()
         last = int(text) if text.isdigit() else -1
-        incarnation = last + 1 if stamp <= last < 2**31 - 1 else stamp
+        incarnation = last + 1 if stamp <= last < ID_LIMIT - 1 else stamp
         os.pwrite(fd, f"{incarnation:<12d}".encode(), 0)  # fixed width: no stale digits after it
         return incarnation
     except OSError:
@@ -96,9 +97,9 @@ def new_incarnation(actor_id: int, folder: Path = INCARNATIONS) -> int:
         os.close(fd)
 
 
-MAX_ACTOR_ID = 2**31
-"""Actor ids are below this: the replay keeps them as 32-bit integers and refuses every episode of a
-larger one, which would leave its actor acting for nothing."""
+MAX_ACTOR_ID = ID_LIMIT
+"""Actor ids are below this: the replay refuses every episode of a larger one, which would leave
+its actor acting for nothing."""
 
 
 def _default_actor_id() -> int:

@@ -50,6 +50,8 @@ _BEGIN_S = struct.Struct("<qii")
 _STEP_HEAD = struct.Struct("<qq")
 _STEP_TAIL = struct.Struct("<fffBq")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+ID_LIMIT = 2**31
+"""Actor ids and incarnations are below this: the store keeps them as 32-bit integers."""
 STOP_CHECK_EVERY = 256
 """Records (or snapshot chunks) read between two looks at a reopening's `stop`."""
 SNAPSHOT_EVERY = 50_000
@@ -193,7 +195,7 @@ class ReplayStore:
     def _check_int(value: object, what: str) -> int:
         if isinstance(value, bool) or not isinstance(value, int | np.integer):
             raise ActorRefused(f"{what} must be an int, got {value!r}")
-        if value < 0 or value >= 2**31:
+        if value < 0 or value >= ID_LIMIT:
             raise ActorRefused(f"{what} must be in [0, 2**31), got {value}")
         return int(value)
 
