@@ -127,7 +127,8 @@ def test_defaults_are_the_reference_settings():
     assert (a.gamma, a.tau, a.policy_delay, a.target_noise, a.target_noise_clip) == (
         0.99, 0.005, 2, 0.2, 0.5,
     )
-    assert a.intrinsic_timing == "collect" and c.env.time_limit == "bootstrap"
+    assert a.intrinsic_timing == "collect"
+    assert c.env.time_limit == "terminal" and c.sample_without_replacement  # the reference's
     assert a.random_shift == 0  # the reference augments nothing
     sac = agent_defaults("sac_ae")
     assert (sac.latent_dim, sac.actor_lr, sac.tau, sac.encoder_tau, sac.init_temperature) == (
@@ -238,15 +239,33 @@ def test_unknown_task_lists_the_valid_ones():
         envs.check_task(task)
 
 
-def test_the_faithful_options_default_to_the_project_choice_and_reach_the_command_line():
+def test_the_faithful_options_default_to_the_reference_and_reach_the_command_line():
     from nasa.cli import parse_train
 
     c = TrainConfig()
-    assert c.sample_without_replacement is False and c.eval_at_start is True
+    assert c.sample_without_replacement is True and c.env.time_limit == "terminal"
+    assert c.eval_at_start is True  # the project's one addition: a step-0 evaluation
     assert c.agent.ensemble_every == 1  # the reference's current code: the ensemble at every update
-    cmd, _, _ = parse_train(["--sample-without-replacement", "--no-eval-at-start", "--ensemble-every", "5"])
-    assert cmd.config.sample_without_replacement and not cmd.config.eval_at_start
-    assert cmd.config.agent.ensemble_every == 5
+    cmd, _, _ = parse_train(["--preset", "paper", "--no-sample-without-replacement", "--time-limit",
+                             "bootstrap", "--no-eval-at-start", "--ensemble-every", "5"])
+    assert not cmd.config.sample_without_replacement and cmd.config.env.time_limit == "bootstrap"
+    assert not cmd.config.eval_at_start and cmd.config.agent.ensemble_every == 5
+    cmd, _, _ = parse_train(["--preset", "paper"])
+    assert cmd.config.sample_without_replacement and cmd.config.env.time_limit == "terminal"
+
+
+def test_each_algorithm_and_preset_draws_and_ends_episodes_as_its_own_reference_or_results():
+    """NaSA-TD3's reference cuts the return at the time limit and draws without replacement;
+    SAC-AE's bootstraps and draws with replacement; cpu-small keeps what its results were made with."""
+    ways = {}
+    for algo in ("nasa_td3", "td3_ae", "pixel_td3", "sac_ae"):
+        for preset in ("paper", "cpu-small"):
+            c = default_config(algo, preset)
+            ways[algo, preset] = (c.env.time_limit, c.sample_without_replacement)
+            validate(c)
+    assert ways.pop(("nasa_td3", "paper")) == ways.pop(("td3_ae", "paper")) == ("terminal", True)
+    assert ways.pop(("pixel_td3", "paper")) == ("terminal", True)
+    assert set(ways.values()) == {("bootstrap", False)}  # sac_ae anywhere, and every cpu-small run
 
 
 def test_service_defaults_are_shared_configs(monkeypatch):
