@@ -1,11 +1,12 @@
 """Typed configuration: one home for every default.
 
 The defaults are the settings of the NaSA-TD3 reference implementation;
-SAC-AE's own settings live in `SAC_AE_OVERRIDES`, the cheaper settings of a
-CPU run in `PRESETS`. `nasa train`, `nasa up` and every service read their
-flags through `shared.service.parse_with_preset`, so each default is declared
-here and nowhere else. `validate()` rejects bad values with a clear message
-before any work starts.
+SAC-AE's own settings live in `SAC_AE_OVERRIDES` (its training loop's in
+`SAC_AE_TRAIN_OVERRIDES`), the cheaper settings of a CPU run in `PRESETS`.
+`nasa train`, `nasa up` and every service read their flags through
+`shared.service.parse_with_preset`, so each default is declared here and
+nowhere else. `validate()` rejects bad values with a clear message before any
+work starts.
 """
 
 from __future__ import annotations
@@ -118,11 +119,10 @@ SAC_AE_OVERRIDES: dict[str, object] = {
     "decoder_lr": 1e-3,
     "tau": 0.01,
 }
-
-
-# SAC-AE's run settings where they differ from NaSA-TD3's reference: its buffer draws with
-# replacement and its training bootstraps through the time limit.
-SAC_AE_RUN_OVERRIDES: dict[str, object] = {
+# SAC-AE's training loop where it differs from NaSA-TD3's reference: one update per env step
+# (G = 5 is NaSA-TD3's), its buffer draws with replacement, and it bootstraps through the time limit.
+SAC_AE_TRAIN_OVERRIDES: dict[str, object] = {
+    "updates_per_step": 1,
     "env.time_limit": "bootstrap",
     "sample_without_replacement": False,
 }
@@ -410,5 +410,5 @@ def default_config(algo: str, preset: str, task: str | None = None) -> TrainConf
     """Reference settings of `algo` with a preset (and its variant for `task`) applied."""
     config = TrainConfig(algo=algo, agent=agent_defaults(algo))  # type: ignore[arg-type]
     if algo == "sac_ae":
-        set_fields(config, SAC_AE_RUN_OVERRIDES, "SAC-AE's settings")
+        set_fields(config, SAC_AE_TRAIN_OVERRIDES, "SAC-AE's settings")
     return apply_preset(config, preset, task)

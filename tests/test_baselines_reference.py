@@ -13,7 +13,6 @@ import copy
 import math
 
 import numpy as np
-import pytest
 import torch
 import torch.nn.functional as F
 
@@ -129,7 +128,8 @@ class SacAeReference:
 
         if step % 2 == 0:  # actor_update_freq
             pi, log_pi = sac_actor(self, obs, detach_encoder=True)
-            actor_q = torch.min(*self.critic_q(obs, pi, self.critic_encoder, self.critic, detach_encoder=True))
+            actor_q = torch.min(*self.critic_q(obs, pi, self.critic_encoder, self.critic,
+                                               detach_encoder=True))
             actor_loss = (self.alpha.detach() * log_pi - actor_q).mean()
             self.actor_opt.zero_grad()
             actor_loss.backward()

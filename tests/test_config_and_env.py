@@ -136,6 +136,17 @@ def test_defaults_are_the_reference_settings():
     )
 
 
+def test_sac_ae_makes_one_update_per_env_step_as_its_training_loop_does():
+    from nasa.cli import parse_train
+
+    assert default_config("sac_ae", "paper").updates_per_step == 1
+    assert default_config("td3_ae", "paper").updates_per_step == 5  # NaSA-TD3's G for its own family
+    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper"])
+    assert cmd.config.updates_per_step == 1
+    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", "--updates-per-step", "5"])
+    assert cmd.config.updates_per_step == 5
+
+
 def test_presets_touch_only_existing_fields_and_round_trip():
     for name in PRESETS:
         config = apply_preset(TrainConfig(), name)
