@@ -253,3 +253,28 @@ def test_td3_ae_updates_are_the_references():
         ref.update(b)
         assert_same_modules(agent, ref, ["encoder", "decoder", "actor", "critic", "actor_target",
                                          "critic_target"], step)
+
+
+def test_sac_ae_encoder_and_decoder_are_the_references_pixel_networks():
+    """PixelEncoder: obs / 255, convolutions with ReLU, (c, h, w) flatten, fc, LayerNorm, tanh;
+    PixelDecoder: fc, ReLU, transposed convolutions, no squashing at the end. The project's fc
+    layers read the conv features in (h, w, c) order (tests/test_agents.py), relabelled here."""
+    agent = make("sac_ae")
+    encoder, decoder = agent.critic_encoder, agent.decoder
+    c, h, w = encoder.conv_shape
+    ref_of_ours = torch.argsort(torch.arange(c * h * w).view(c, h, w).permute(1, 2, 0).flatten())
+    obs = batch(0)["obs"]
+    with torch.no_grad():
+        x = obs.float() / 255.0
+        for conv in [m for m in encoder.convs if isinstance(m, torch.nn.Conv2d)]:
+            x = torch.relu(conv(x))
+        fc = F.linear(x.flatten(1), encoder.fc.weight[:, ref_of_ours], encoder.fc.bias)
+        z = torch.tanh(encoder.ln(fc))
+        torch.testing.assert_close(encoder(obs), z, rtol=1e-5, atol=1e-5)
+
+        y = torch.relu(F.linear(z, decoder.fc.weight[ref_of_ours], decoder.fc.bias[ref_of_ours]))
+        y = y.view(-1, c, h, w)
+        deconvs = [m for m in decoder.deconvs if isinstance(m, torch.nn.ConvTranspose2d)]
+        for deconv in deconvs[:-1]:
+            y = torch.relu(deconv(y))
+        torch.testing.assert_close(decoder(z), deconvs[-1](y), rtol=1e-5, atol=1e-5)
