@@ -128,6 +128,33 @@ SAC_AE_TRAIN_OVERRIDES: dict[str, object] = {
 }
 
 
+_TD3 = ("nasa_td3", "td3_ae", "pixel_td3")
+_AE = ("nasa_td3", "td3_ae", "sac_ae")
+# The agent fields only some algorithms read; every other field applies to all of them.
+FIELD_ALGOS: dict[str, tuple[str, ...]] = {
+    **dict.fromkeys(("target_noise", "target_noise_clip", "exploration_noise"), _TD3),
+    **dict.fromkeys(("encoder_lr", "decoder_lr", "decoder_weight_decay", "decoder_latent_lambda"), _AE),
+    "shared_encoder_pass": ("nasa_td3", "td3_ae"),
+    **dict.fromkeys(("ensemble_size", "ensemble_hidden_dim", "ensemble_lr", "ensemble_weight_decay",
+                     "ensemble_every", "novelty_weight", "surprise_weight", "intrinsic_timing"),
+                    ("nasa_td3",)),
+    **dict.fromkeys(("encoder_tau", "init_temperature", "alpha_lr", "alpha_beta", "actor_beta",
+                     "critic_beta", "log_std_min", "log_std_max"), ("sac_ae",)),
+}
+
+
+def inert_flags(algo: str, flags: set[str]) -> list[str]:
+    """Lines naming each of `flags` (`--target-noise`, `--no-shared-encoder-pass`) that sets an
+    agent field `algo` does not read, so a user learns the flag changed nothing."""
+    lines = []
+    for name, algos in FIELD_ALGOS.items():
+        flag = "--" + name.replace("_", "-")
+        given = sorted(flags & {flag, "--no-" + flag[2:]})
+        if given and algo not in algos:
+            lines.append(f"{given[0]} does nothing under --algo {algo}: only {', '.join(algos)} read it")
+    return lines
+
+
 def agent_defaults(algo: str) -> AgentConfig:
     """The reference settings of one algorithm."""
     check_algo(algo)

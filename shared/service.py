@@ -43,6 +43,7 @@ from shared.config import (
     check_types,
     default_config,
     from_dict,
+    inert_flags,
     to_dict,
     validate,
 )
@@ -177,6 +178,8 @@ def parse_with_preset(
     default = cls(config=config, preset=known.preset)  # type: ignore[call-arg]
     args = read_flags(cls, argv, prog, default)
     validate(args.config)  # type: ignore[attr-defined]
+    for line in inert_flags(args.config.algo, given_flags(argv)):  # type: ignore[attr-defined]
+        print(f"{prog}: note: {line}", file=sys.stderr)
     if run_file is not None:
         from shared.run_config import check_same
 

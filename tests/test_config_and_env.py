@@ -358,3 +358,33 @@ def test_env_rng_state_round_trip_repeats_the_episode_start():
     first = env.reset().frame
     env.set_rng_state(state)
     np.testing.assert_array_equal(env.reset().frame, first)
+
+
+def test_a_flag_the_algorithm_does_not_read_is_named_once_on_stderr(capsys):
+    from nasa.cli import parse_train
+
+    parse_train(["--algo", "sac_ae", "--target-noise", "0.3", "--no-shared-encoder-pass", "--tau", "0.02"])
+    err = capsys.readouterr().err
+    assert "--target-noise does nothing under --algo sac_ae: only nasa_td3, td3_ae, pixel_td3 read it" in err
+    assert "--no-shared-encoder-pass does nothing under --algo sac_ae" in err
+    assert "--tau" not in err and err.count("\n") == 2  # tau applies to every algorithm
+    parse_train(["--algo", "nasa_td3", "--target-noise", "0.3", "--ensemble-every", "5"])
+    parse_train(["--algo", "pixel_td3", "--init-temperature=0.2"])
+    assert capsys.readouterr().err == "nasa train: note: --init-temperature does nothing under --algo " \
+        "pixel_td3: only sac_ae read it\n"
+
+
+
+def test_every_agent_field_some_algorithm_ignores_is_listed_where_the_agents_read_it():
+    """FIELD_ALGOS names an algorithm for a field exactly when that algorithm's agent classes read it."""
+    import inspect
+    import re
+
+    from shared.agents import AGENTS
+    from shared.config import FIELD_ALGOS
+
+    for algo, cls in AGENTS.items():
+        mine = [c for c in cls.__mro__ if c.__module__.startswith("shared.agents")]
+        source = "".join(inspect.getsource(c) for c in mine)
+        read = {name for name in FIELD_ALGOS if re.search(rf"\b{name}\b", source)}
+        assert read == {name for name, algos in FIELD_ALGOS.items() if algo in algos}, algo
