@@ -357,3 +357,36 @@ def test_real_rendered_frames() -> None:
         np.testing.assert_array_equal(b["next_obs"][i], stacks[g][1])
     st = store.stats()
     assert st["frame_bytes"] / st["frames"] < 21168 / 3  # compression is doing something
+
+
+def test_episodes_left_open_by_actors_gone_for_good_leave_with_their_transitions(tmp_path) -> None:
+    # Replicas of a scaled actor service take a new random id at each start: one that dies mid-episode
+    # never continues its episode, and the store must not keep its last chunks for the rest of the run.
+    capacity, chunk_len = 60, 8
+    f = [np.full(SHAPE, i, np.uint8) for i in range(8)]
+    with ReplayStore(capacity, SHAPE, K, A, data_dir=tmp_path, chunk_len=chunk_len) as store:
+        for gone in range(100, 150):  # each a replica that added a few steps and died
+            ep = store.begin_episode(f[0], actor_id=gone, incarnation=0)
+            for t in range(3):
+                store.add(ep, np.zeros(A), 0.0, 1.0, f[t + 1], False)
+            live = store.begin_episode(f[4], actor_id=1, incarnation=gone)  # the fleet goes on
+            for t in range(capacity):
+                store.add(live, np.zeros(A), 0.0, 1.0, f[5 + t % 3], t == capacity - 1)
+        stats = store.stats()
+        # Only what the live transitions need: nothing of the 50 gone actors' episodes.
+        assert stats["open_episodes"] == 0
+        assert stats["episodes"] <= 2 and stats["chunks"] <= 2 * (capacity // chunk_len + 2)
+        before = store.sample(16, np.random.default_rng(0))
+    with ReplayStore(capacity, SHAPE, K, A, data_dir=tmp_path, chunk_len=chunk_len) as store:
+        for key in ("episodes", "open_episodes", "chunks", "frames", "size"):
+            assert store.stats()[key] == stats[key], key
+        after = store.sample(16, np.random.default_rng(0))
+    np.testing.assert_array_equal(after["obs"], before["obs"])
+
+
+def test_an_open_episode_is_not_closed_by_its_own_inserts_in_a_small_replay() -> None:
+    store = ReplayStore(4, SHAPE, K, A)
+    ep = store.begin_episode(np.zeros(SHAPE, np.uint8), actor_id=0)
+    for t in range(20):  # each add evicts the episode's own newest-but-one transition
+        store.add(ep, np.zeros(A), 0.0, 1.0, np.full(SHAPE, t, np.uint8), False)
+    assert store.stats()["open_episodes"] == 1 and len(store) == 4

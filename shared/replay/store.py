@@ -366,7 +366,7 @@ class ReplayStore:
         self._append_frame(ep_id, ep, blob)
         t = ep.num_frames - 2  # step index: frame t + 1 was just appended
         if self._num_inserted - self._head >= self.capacity:
-            self._evict_oldest()
+            self._evict_oldest(adding=ep_id)
         frames = np.maximum(np.arange(t - self.k + 1, t + 2), 0)
         refs = np.array(ep.chunk_ids, np.int64)[frames // self.chunk_len] * self.chunk_len + (
             frames % self.chunk_len
@@ -420,10 +420,19 @@ class ReplayStore:
             self._chunks[cid].refcount -= 1
             self._maybe_free(cid)
 
-    def _evict_oldest(self) -> None:
+    def _evict_oldest(self, adding: int) -> None:
         pos = self._head % self.capacity
+        g, ep_id = self._head, int(self._episode[pos])
         self._head += 1
         self._release_window(pos)
+        # An open episode whose newest transition leaves has had nothing added for a whole capacity
+        # of other actors' inserts: its actor is gone (a replica that came back under a new id never
+        # continues it). Closed here, its last chunks and entry go with its transitions, rather than
+        # stay for the rest of the run; live and log replay both pass here, so a reopen agrees.
+        ep = self._episodes.get(ep_id)
+        newest = self._chunks[ep.chunk_ids[-1]].owned[-1:] if ep is not None else []
+        if ep is not None and ep.open and ep_id != adding and newest == [g]:
+            self._apply_close(ep_id)
 
     def _apply_intrinsic(self, index: np.ndarray, value: np.ndarray) -> None:
         live = (index >= self._head) & (index < self._num_inserted)
