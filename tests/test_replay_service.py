@@ -221,3 +221,18 @@ def test_a_batch_that_continues_no_episode_is_acknowledged_as_refused_but_not_fo
         "not the continuation of an episode begun here", False)
     assert svc._take(batch(inc=5, n=2, seed=1)[0]) == ("", False)
     assert svc.store.num_inserted == 2
+
+
+def test_restarts_in_the_middle_of_episodes_leave_one_entry_per_actor_id(tmp_path):
+    # `nasa up` restarts a dead actor under its id with a new incarnation: a week of restarts must
+    # not leave an entry behind for each incarnation that died mid-episode.
+    svc = make_service(tmp_path, steps=10_000, no_rate_limit=True)
+    for inc in range(1, 201):
+        assert svc.insert_batch(batch(actor=7, inc=inc, n=2, seed=inc)[0]) == 2
+    assert len(svc._episodes) == 1
+    # The incarnation before the newest (a zombie) continuing its episode is dropped, not stored
+    # into the episode the newer one's start closed.
+    assert svc.insert_batch(batch(actor=7, inc=199, start=2, n=2)[0]) == 0
+    assert svc.insert_batch(batch(actor=7, inc=200, start=2, n=2, last=True)[0]) == 2
+    assert svc._episodes == {}
+    svc.store.close()

@@ -147,7 +147,10 @@ class ReplayService(MessageGuard):
         self.write_error = ""  # why the log cannot be written now ("" when it can)
         self.samples_served = 0
         # (actor, incarnation) -> [episode, store episode id, next step]
-        self._episodes: dict[tuple[int, int], list[int]] = {}
+        # actor id -> [incarnation, episode, store episode id, next start] of its open episode. Keyed by
+        # the id alone: a restarted actor's new incarnation replaces the entry (the store closes the
+        # old episode too), so restarts in the middle of an episode leave nothing behind.
+        self._episodes: dict[int, list[int]] = {}
         self._inserts: queue.Queue[wire.TransitionBatch] = queue.Queue()
         self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
         self._unscored: queue.Queue[tuple[zenoh.Query, wire.UnscoredRequest]] = queue.Queue()
@@ -266,19 +269,20 @@ class ReplayService(MessageGuard):
             arrays = wire.decode(wire.encode(msg), wire.TransitionBatch, self.bounds).arrays
         frames, actions, rewards = arrays["frames"], arrays["action"], arrays["reward"]
         discounts, lasts, versions = arrays["discount"], arrays["last"], arrays["policy_version"]
-        key = (msg.actor_id, msg.incarnation)
+        key = msg.actor_id
         if self.store.num_inserted >= self.config.steps:
             self.dropped += n  # past the step budget: the actors stop once they hear of it
             return 0
         if msg.start == 0:
             first = arrays["first_frame"]
             store_id = self._durably(lambda: self.store.begin_episode(first, msg.actor_id, msg.incarnation))
-            self._episodes[key] = [msg.episode, store_id, 0]
+            self._episodes[key] = [msg.incarnation, msg.episode, store_id, 0]
         entry = self._episodes.get(key)
-        if entry is None or entry[0] != msg.episode or entry[2] != msg.start:
+        if entry is None or entry[:2] != [msg.incarnation, msg.episode] or entry[3] != msg.start:
             # Not a continuation of a known episode: never stitch, drop until the next episode.
             self.dropped += n
-            self.log.every("orphan", 5.0, f"dropped {n} transitions of actor {key} episode {msg.episode}")
+            self.log.every("orphan", 5.0, f"dropped {n} transitions of actor {(key, msg.incarnation)} "
+                                          f"episode {msg.episode}")
             return 0
         accepted = 0
         for i in range(n):
@@ -291,12 +295,12 @@ class ReplayService(MessageGuard):
                         raise RateLimiterClosed("stopping")
             last = bool(lasts[i])
             self._durably(lambda i=i, last=last: self.store.add(
-                entry[1], actions[i], float(rewards[i]), float(discounts[i]), frames[i], last,
+                entry[2], actions[i], float(rewards[i]), float(discounts[i]), frames[i], last,
                 policy_version=int(versions[i]),
             ))
             if self.limiter is not None:
                 self.limiter.insert()
-            entry[2] += 1
+            entry[3] += 1
             accepted += 1
             if last:
                 del self._episodes[key]
