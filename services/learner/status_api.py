@@ -3,9 +3,9 @@
 - `/` is a static page (services/learner/dashboard/: HTML, CSS, JavaScript and
   the vendored uPlot; no build step, nothing fetched from the internet) that
   polls /status and /history.
-- `/history`: the learner's bounded series of /status figures, every
-  evaluation in eval.csv, and the evaluator's media manifest (the
-  autoencoder's view, evaluation videos), whose files are under /media/.
+- `/history`: the learner's bounded series of /status figures, the
+  evaluations of eval.csv (at most eval_series.MAX_EVALS, evenly spaced), and
+  the evaluator's media manifest (the autoencoder's view, evaluation videos), whose files are under /media/.
 - `/healthz`: 200 "ok"; 200 "degraded: <reasons>" while the learner trains on past a fault (writes
   the disk refuses); or 503 "unhealthy: <reasons>".
 - `/metrics`: Prometheus' text format, from prometheus-client (metrics.py).
@@ -37,11 +37,11 @@ from fastapi.responses import FileResponse, PlainTextResponse, Response
 from uvicorn.protocols.http.h11_impl import H11Protocol, h11  # the h11 that uvicorn's protocol runs on
 
 from services.learner import history as run_history
+from services.learner.eval_series import EvalSeries
 from services.learner.metrics import status_metrics
 from shared.config import ConfigError
 from shared.files import finite_only
 from shared.run_config import read_json_object
-from shared.runlog import read_rows
 
 DASHBOARD = Path(__file__).resolve().parent / "dashboard"
 MEDIA_DIR = "media"
@@ -78,8 +78,9 @@ def make_app(status: Callable[[], dict], health: Callable[[], list[str] | bool],
     app = FastAPI(title="nasa-td3 learner", docs_url=None, redoc_url=None)
     every_s = RENDER_EVERY_S if render_every_s is None else render_every_s
     status_body = Rendered(lambda: _json_bytes(status()), every_s)
+    evals = EvalSeries(Path(data) / "eval.csv") if data is not None else list
     history_body = Rendered(lambda: _json_bytes({"points": history() if history else [],
-                                                 "evals": evaluations(data), "media": media(data)}), every_s)
+                                                 "evals": evals(), "media": media(data)}), every_s)
     metrics_body = Rendered(metrics if metrics is not None else lambda: status_metrics(status()), every_s)
     for name, action in (controls or {}).items():
         _add_control(app, name, action, token)
@@ -256,25 +257,6 @@ def _inside(folder: Path, name: str) -> Path:
     if not found:
         raise HTTPException(404)
     return path
-
-
-def evaluations(data: Path | None) -> list[dict]:
-    """Every evaluation in <data>/eval.csv: step, mean, std (a row being written is skipped)."""
-    if data is None or not (Path(data) / "eval.csv").exists():
-        return []
-    try:
-        rows = read_rows(Path(data) / "eval.csv")
-    except (OSError, ValueError):  # a damaged file (undecodable, not CSV): the page shows no curve
-        return []
-    out = []
-    for row in rows:
-        try:
-            e = {"step": int(row["step"]), "mean": float(row["mean"]), "std": float(row["std"])}
-        except (KeyError, TypeError, ValueError):
-            continue
-        if math.isfinite(e["mean"]):
-            out.append(e)
-    return out
 
 
 def media(data: Path | None) -> dict | None:

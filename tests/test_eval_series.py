@@ -1,0 +1,76 @@
+"""/history's evaluations over a long run: read as eval.csv grows, and bounded in what is served."""
+
+from __future__ import annotations
+
+import os
+
+from fastapi.testclient import TestClient
+
+from services.learner.eval_series import MAX_EVALS, EvalSeries, thin
+from services.learner.status_api import make_app
+from shared.recorder import Recorder
+
+
+def test_each_read_parses_only_the_rows_appended_since_the_last(tmp_path):
+    recorder = Recorder(tmp_path, eval_episodes=2)
+    for i in range(500):
+        recorder.eval_row(i * 10, [float(i), float(i + 1)])
+    series = EvalSeries(tmp_path / "eval.csv")
+    assert len(series()) == 500 and series.lines_read == 501  # the header and every row, once
+    recorder.eval_row(5000, [7.0, 9.0])
+    with open(tmp_path / "eval.csv", "a") as f:
+        f.write("5010,1")  # a row still being written: left for the next read
+    evals = series()
+    assert series.lines_read == 502 and evals[-1] == {"step": 5000, "mean": 8.0, "std": 1.0}
+    with open(tmp_path / "eval.csv", "a") as f:
+        f.write(",0,1,1\n")
+    assert series()[-1]["step"] == 5010 and series.lines_read == 503
+    assert series() and series.lines_read == 503  # nothing new: nothing parsed
+
+
+def test_a_file_cut_back_or_replaced_is_read_again(tmp_path):
+    recorder = Recorder(tmp_path, eval_episodes=1)
+    for i in range(5):
+        recorder.eval_row(i, [float(i)])
+    series = EvalSeries(tmp_path / "eval.csv")
+    assert [e["step"] for e in series()] == [0, 1, 2, 3, 4]
+    recorder.eval_log.truncate(2)  # a resume drops the rows after its checkpoint
+    assert [e["step"] for e in series()] == [0, 1]
+    (tmp_path / "new.csv").write_text("step,mean,std,return_0\n9,1,0,1\n")
+    os.replace(tmp_path / "new.csv", tmp_path / "eval.csv")
+    assert [e["step"] for e in series()] == [9]
+    (tmp_path / "eval.csv").unlink()
+    assert series() == []
+
+
+def test_history_serves_a_bounded_evenly_spaced_subset_of_a_long_runs_evaluations(tmp_path):
+    recorder = Recorder(tmp_path, eval_episodes=1)
+    n = 3 * MAX_EVALS + 7
+    for i in range(n):
+        recorder.eval_row(i * 1000, [float(i)])
+    app = make_app(lambda: {}, lambda: [], lambda: [], data=tmp_path, render_every_s=0.0)
+    evals = TestClient(app).get("/history").json()["evals"]
+    steps = [e["step"] for e in evals]
+    assert len(evals) == MAX_EVALS and steps[0] == 0 and steps[-1] == (n - 1) * 1000
+    assert steps == sorted(set(steps))
+    gaps = {b - a for a, b in zip(steps, steps[1:], strict=False)}
+    assert gaps <= {3000, 4000}  # evenly spaced
+    assert sum(1 for line in open(tmp_path / "eval.csv")) == n + 1  # the file keeps every row
+
+
+def test_thin_keeps_short_series_whole():
+    xs = [{"step": i} for i in range(10)]
+    assert thin(xs, 10) == xs and thin(xs, 1) == xs[-1:] and thin(xs, 0) == []
+    assert thin(xs, 3) == [xs[0], xs[4], xs[9]] or thin(xs, 3) == [xs[0], xs[5], xs[9]]
+
+
+def test_a_file_cut_and_grown_past_its_old_size_between_reads_is_read_again(tmp_path):
+    recorder = Recorder(tmp_path, eval_episodes=1)
+    for i in range(5):
+        recorder.eval_row(i, [float(i)])
+    series = EvalSeries(tmp_path / "eval.csv")
+    assert len(series()) == 5
+    recorder.eval_log.truncate(2)
+    for i in range(100, 110):
+        recorder.eval_row(i, [float(i)])
+    assert [e["step"] for e in series()] == [0, 1, *range(100, 110)]
