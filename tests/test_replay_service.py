@@ -236,3 +236,19 @@ def test_restarts_in_the_middle_of_episodes_leave_one_entry_per_actor_id(tmp_pat
     assert svc.insert_batch(batch(actor=7, inc=200, start=2, n=2, last=True)[0]) == 2
     assert svc._episodes == {}
     svc.store.close()
+
+
+def test_an_episode_the_store_closed_for_want_of_steps_is_dropped_not_refused_as_invalid(tmp_path):
+    svc = make_service(tmp_path, steps=10_000, no_rate_limit=True)
+    svc.store.close()
+    from shared.replay import ReplayStore
+
+    svc.store = ReplayStore(8, SHAPE, 3, 2)  # a small replay: one capacity of inserts passes quickly
+    assert svc.insert_batch(batch(actor=3, n=2)[0]) == 2  # its actor stalls mid-episode
+    for episode in range(3):  # while another fills the whole replay
+        assert svc.insert_batch(batch(actor=4, episode=episode, n=4, seed=episode, last=True)[0]) == 4
+    assert not svc.store.is_open(0)
+    assert svc._take(batch(actor=3, start=2, n=2, seed=9)[0]) == (
+        "not the continuation of an episode begun here", False)
+    assert svc.invalid == 0 and 3 not in svc._episodes
+    assert svc.insert_batch(batch(actor=3, episode=1, n=2, seed=10)[0]) == 2  # its next episode is stored

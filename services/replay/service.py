@@ -278,6 +278,10 @@ class ReplayService(MessageGuard):
             store_id = self._durably(lambda: self.store.begin_episode(first, msg.actor_id, msg.incarnation))
             self._episodes[key] = [msg.incarnation, msg.episode, store_id, 0]
         entry = self._episodes.get(key)
+        if entry is not None and not self.store.is_open(entry[2]):
+            # The store closed it: nothing came for a whole capacity of inserts (store.py).
+            del self._episodes[key]
+            entry = None
         if entry is None or entry[:2] != [msg.incarnation, msg.episode] or entry[3] != msg.start:
             # Not a continuation of a known episode: never stitch, drop until the next episode.
             self.dropped += n

@@ -468,6 +468,13 @@ class ReplayStore:
     def __len__(self) -> int:
         return self._num_inserted - self._head
 
+    def is_open(self, episode_id: int) -> bool:
+        """Whether the episode takes steps: begun and not closed (by its last step, by its actor's
+        next episode, or by the eviction of its newest transition)."""
+        with self._lock:
+            ep = self._episodes.get(episode_id)
+            return ep is not None and ep.open
+
     @property
     def num_inserted(self) -> int:
         return self._num_inserted
