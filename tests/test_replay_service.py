@@ -252,3 +252,19 @@ def test_an_episode_the_store_closed_for_want_of_steps_is_dropped_not_refused_as
         "not the continuation of an episode begun here", False)
     assert svc.invalid == 0 and 3 not in svc._episodes
     assert svc.insert_batch(batch(actor=3, episode=1, n=2, seed=10)[0]) == 2  # its next episode is stored
+
+
+def test_actor_ids_gone_for_good_are_forgotten_once_the_store_closes_their_episodes(tmp_path, monkeypatch):
+    # Replicas of a scaled actor service take a new random id at each start: a week of restarts
+    # must not leave an entry for each id that died mid-episode.
+    from services.replay import service
+    from shared.replay import ReplayStore
+
+    monkeypatch.setattr(service, "FORGET_EVERY", 32, raising=False)  # a small run shows the bound
+    svc = make_service(tmp_path, steps=10**6, no_rate_limit=True)
+    svc.store.close()
+    svc.store = ReplayStore(64, SHAPE, 3, 2)
+    for k in range(300):
+        assert svc.insert_batch(batch(actor=10_000 + k, n=2, seed=k)[0]) == 2  # then gone
+        assert svc.insert_batch(batch(actor=1, inc=k, n=2, seed=k, last=True)[0]) == 2  # the fleet goes on
+    assert len(svc._episodes) <= 2 * 32

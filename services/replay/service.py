@@ -18,7 +18,9 @@
   does not continue its episode exactly (an actor restarted, a batch was lost,
   this service restarted) is dropped, counted, and its episode ignored until
   the actor begins a new one. A restarted actor has a new incarnation, so its
-  half episode is never stitched to a new one.
+  half episode is never stitched to a new one. One open episode is held per
+  actor id, and those the store has closed are forgotten (an actor id gone for
+  good: shared/replay/README.md), so restarts leave nothing behind.
 - Sampling: a queryable on `replay/sample`; sampler threads wait on the limiter
   (up to the request's wait_s, else reply ok=False) and reply with the batch,
   with or without replacement (config.sample_without_replacement).
@@ -64,6 +66,8 @@ from shared.zenoh_session import ServiceArgs
 BLOCK = zenoh.CongestionControl.BLOCK
 MAX_BATCH = 4096
 WRITE_RETRY_S = 1.0
+FORGET_EVERY = 1024
+"""Actor ids with an open episode the service holds before it forgets those the store has closed."""
 
 
 @dataclass
@@ -151,6 +155,7 @@ class ReplayService(MessageGuard):
         # the id alone: a restarted actor's new incarnation replaces the entry (the store closes the
         # old episode too), so restarts in the middle of an episode leave nothing behind.
         self._episodes: dict[int, list[int]] = {}
+        self._forget_at = FORGET_EVERY
         self._inserts: queue.Queue[wire.TransitionBatch] = queue.Queue()
         self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
         self._unscored: queue.Queue[tuple[zenoh.Query, wire.UnscoredRequest]] = queue.Queue()
@@ -277,6 +282,8 @@ class ReplayService(MessageGuard):
             first = arrays["first_frame"]
             store_id = self._durably(lambda: self.store.begin_episode(first, msg.actor_id, msg.incarnation))
             self._episodes[key] = [msg.incarnation, msg.episode, store_id, 0]
+            if len(self._episodes) >= self._forget_at:
+                self._forget_closed()
         entry = self._episodes.get(key)
         if entry is not None and not self.store.is_open(entry[2]):
             # The store closed it: nothing came for a whole capacity of inserts (store.py).
@@ -310,6 +317,13 @@ class ReplayService(MessageGuard):
                 del self._episodes[key]
                 break
         return accepted
+
+    def _forget_closed(self) -> None:
+        """Drop the entries of episodes the store has closed: replicas that take a new id at each
+        start leave one each, never continued. Once the entries double, so the scans cost O(1) an
+        episode, and the entries stay within twice the actors still sending."""
+        self._episodes = {a: e for a, e in self._episodes.items() if self.store.is_open(e[2])}
+        self._forget_at = max(FORGET_EVERY, 2 * len(self._episodes))
 
     def _durably(self, write):  # noqa: ANN001, ANN202
         """write() once the log takes it: a failed write (a full disk) is never acknowledged; the
