@@ -5,8 +5,8 @@ eval.csv grows by a row per evaluation for the whole run: reading it whole
 each time costs the learner's process (its updates) more the longer the run.
 `EvalSeries` reads only the rows appended since its last read, and starts over
 when the file is cut (a resumed run drops rows) or replaced. Beyond
-`MAX_EVALS` evaluations it serves an evenly spaced subset, the first and the
-newest always in it; eval.csv keeps every row.
+`MAX_EVALS` evaluations it serves an evenly spaced subset (every second,
+fourth, ...), the first and the newest always in it; eval.csv keeps every row.
 """
 
 from __future__ import annotations
@@ -85,10 +85,15 @@ class EvalSeries:
 
 
 def thin(evals: list[dict], most: int) -> list[dict]:
-    """At most `most` of `evals`, evenly spaced, the first and the last always among them."""
+    """At most `most` of `evals`: every `stride`-th from the first, and the newest. The stride is a
+    power of two, so the points a dashboard draws stay where they are as evaluations come, until
+    the stride doubles (as the learner's own series thins)."""
     if len(evals) <= most:
         return list(evals)
     if most < 2:
         return evals[-most:] if most else []
-    n = len(evals)
-    return [evals[round(i * (n - 1) / (most - 1))] for i in range(most)]
+    stride = 1
+    while (len(evals) - 1) // stride + 1 >= most:  # room for the newest besides
+        stride *= 2
+    out = evals[::stride]
+    return out if out[-1] is evals[-1] else [*out, evals[-1]]
