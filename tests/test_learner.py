@@ -226,6 +226,29 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
     assert health.status_code == 200 and health.text.startswith("degraded: writes failing: history.json")
 
 
+def test_a_periodic_checkpoint_leaves_the_dashboard_series_a_killed_learner_resumes(tmp_path):
+    from types import SimpleNamespace
+
+    from services.learner.health import LearnerArgs
+    from services.learner.history import History, load
+    from services.learner.learner import Learner
+    from shared.service import Log, StopFlag
+
+    learner = Learner.__new__(Learner)  # what a checkpoint in the update loop uses, without Zenoh
+    learner.core = core_on(tmp_path)
+    learner.args = LearnerArgs(data=tmp_path)
+    learner.keys = wire.Keys("r")
+    learner.client = SimpleNamespace(invalid=0)
+    learner.history, learner.log, learner.stop, learner.wall_s = History(), Log("learner"), StopFlag(), 1.0
+    learner._scalars_at = 0.0
+    for _ in range(3):
+        learner.history.add(learner.status())
+    learner.save_checkpoint()
+    # No clean stop follows (SIGKILL): the next learner finds the checkpoint and the series beside it.
+    assert (tmp_path / CHECKPOINT).exists()
+    assert load(tmp_path) == learner.history.points() and len(load(tmp_path)) == 3
+
+
 def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):
     import builtins
 

@@ -253,7 +253,7 @@ class Learner:
                 self.publish_eval_weights()
                 asked = self._checkpoint_asked.pending()
                 if asked or core.checkpoint_due():
-                    core.save_checkpoint(self.wall_s)
+                    self.save_checkpoint()
                     if asked:
                         self._checkpoint_asked.written()
                 if self.between is not None and (target := self.between.due(core.env_steps)) is not None:
@@ -332,6 +332,13 @@ class Learner:
         else:
             self.log(f"stopping ({self.stop.reason}); checkpoint at {core.agent.num_updates} updates")
         self.stop.set("done")
+
+    def save_checkpoint(self) -> None:
+        """A checkpoint, and the dashboard's series beside it: a learner killed later (SIGKILL, out of
+        memory) and restarted resumes both from here, where only a clean stop used to leave the
+        series."""
+        self.core.save_checkpoint(self.wall_s)
+        self._leave("history.json", lambda: self.history.save(self.args.data))
 
     def _leave(self, name: str, write: Callable[[], None]) -> None:
         """Write a file the run leaves for `nasa status` (`name`, as /status `writes` counts it); one
