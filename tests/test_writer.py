@@ -267,6 +267,27 @@ def test_a_broken_episode_sends_nothing_more_and_the_next_one_starts_clean():
     assert (pub.sent[-1].episode, pub.sent[-1].start, pub.sent[-1].first_frame is not None) == (1, 0, True)
 
 
+def test_the_count_an_actor_warms_up_on_holds_its_steps_not_acknowledged_yet():
+    writer, _ = make_writer(send_batch=3)
+    f = frames(8)
+    writer.add_first(f[0])
+    for t in range(1, 8):  # two batches sent, the seventh step waits for its batch
+        writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[t], False, 0)
+    assert (writer.global_steps, writer.steps_at_least) == (0, 7)
+    writer._on_ack(ack(4, 9, 3))
+    assert (writer.global_steps, writer.steps_at_least) == (3, 7)
+    writer._on_ack(ack(4, 9, 6))
+    assert writer.steps_at_least == 7
+    writer.observe(50)  # other actors' inserts, seen in the replay's stats
+    assert writer.steps_at_least == 51  # which cannot hold the step not sent yet
+    lost, _ = make_writer(send_batch=3)
+    lost.add_first(f[0])
+    for t in range(1, 4):
+        lost.add(np.zeros(2, np.float32), 0.0, 1.0, f[t], False, 0)
+    lost.window.on_replay(False)  # gone: the batch in flight never lands
+    assert (lost.steps_at_least, lost.window.lost) == (0, 1)
+
+
 def test_writer_rejects_frames_of_another_shape_and_steps_before_an_episode():
     writer, _ = make_writer()
     with pytest.raises(RuntimeError, match="add_first"):

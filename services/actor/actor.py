@@ -1,9 +1,10 @@
 """The actor service: steps one environment with a local policy copy and streams transitions.
 
 - Acting: uniform random while the global env step count (from the replay's
-  acknowledgements and stats) is below warmup_steps, then the local policy
-  with exploration noise. Acting never waits for weights: the weights
-  subscriber parks the newest message and the loop loads it between steps.
+  acknowledgements and stats, plus this actor's steps not acknowledged yet) is
+  below warmup_steps, then the local policy with exploration noise. Acting
+  never waits for weights: the weights subscriber parks the newest message
+  and the loop loads it between steps.
 - Streaming: the environment loop hands each transition to the replay
   client's writer (`ZenohWriter`): batches, compressed frames, at most
   `max_in_flight` unacknowledged batches (backpressure from the replay's rate
@@ -351,7 +352,7 @@ class ActorService(MessageGuard):
             if self.bridge is not None and not self.bridge.present:
                 return  # the bridge went: nothing more of this episode is sent
             self.weights.maybe_load()
-            warming_up = max(w.global_steps, self.weights.env_steps) < c.warmup_steps
+            warming_up = max(w.steps_at_least, self.weights.env_steps) < c.warmup_steps
             action = collect_action(self.agent, ts.obs, warming_up, self.rng, loop.env.spec.action_dim)
             ts = loop.step(action, self.policy_version)
             self.step_times.observe(loop.last_step_s)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
@@ -97,13 +98,15 @@ class SendWindow:
         self.was_lost = False  # the replay has gone away at least once
         self.broken = False  # the replay went away during the episode under way
         self.global_steps = 0  # newest replay count seen (acks, stats)
+        self.acked_steps = 0  # newest replay count an ack of ours carried
         self.replay_done = False
         self.lost = 0  # batches counted lost (replay gone, or never acknowledged)
+        self._sizes: deque[int] = deque()  # transitions of each batch in flight, oldest first
         self._cv = threading.Condition()
 
-    def acquire(self, stop: StopFlag) -> bool:
-        """Wait until one more batch may be in flight and count it; False (nothing counted) if
-        stop is set or the episode is broken: that batch must not be sent."""
+    def acquire(self, stop: StopFlag, steps: int = 1) -> bool:
+        """Wait until one more batch (of `steps` transitions) may be in flight and count it; False
+        (nothing counted) if stop is set or the episode is broken: that batch must not be sent."""
         with self._cv:
             waited, seen = self.clock(), self.global_steps
             while self.in_flight >= self.max_in_flight and not stop and not self.broken:
@@ -120,17 +123,35 @@ class SendWindow:
                     continue
                 self.log(f"no acknowledgement for {self.ack_timeout_s:.0f} s: "
                          f"assuming the {self.in_flight} in-flight batches lost")
-                self.lost += self.in_flight
-                self.in_flight = 0
+                self._lose()
             if stop or self.broken:
                 return False
             self.in_flight += 1
+            self._sizes.append(steps)
             return True
+
+    def _lose(self) -> None:
+        """Under the lock: the batches in flight will never be acknowledged."""
+        self.lost += self.in_flight
+        self.in_flight = 0
+        self._sizes.clear()
+
+    @property
+    def steps_at_least(self) -> int:
+        """The replay's count once the batches in flight land: the newest count an ack carried
+        plus the transitions sent since, which it does not hold yet (or a newer count seen in its
+        stats, which other actors' inserts may have passed). Exact for a lone actor, whatever
+        the acks' delay."""
+        with self._cv:
+            return max(self.global_steps, self.acked_steps + sum(self._sizes))
 
     def on_ack(self, num_inserted: int) -> None:
         with self._cv:
             self.in_flight = max(0, self.in_flight - 1)
+            if self._sizes:  # the replay takes one actor's batches in the order they were sent
+                self._sizes.popleft()
             self.global_steps = max(self.global_steps, num_inserted)
+            self.acked_steps = max(self.acked_steps, num_inserted)
             self._cv.notify_all()
 
     def on_replay(self, alive: bool) -> None:
@@ -139,8 +160,7 @@ class SendWindow:
             was_alive, self.alive = self.alive, alive
             if not alive:
                 # Never acknowledged: the replay did not store them, or its acks were lost.
-                self.lost += self.in_flight
-                self.in_flight = 0
+                self._lose()
                 self.broken = True
                 if was_alive:
                     self.was_lost = True
@@ -235,6 +255,14 @@ class ZenohWriter:
         return self.window.global_steps
 
     @property
+    def steps_at_least(self) -> int:
+        """The replay's count once this writer's transitions land, those it has not sent yet
+        too (SendWindow.steps_at_least): what an actor's warm-up reads, so that a lone actor's
+        first policy step is the one after `warmup_steps`, as in `nasa train`, and not a few
+        later while its acks are on their way."""
+        return self.window.steps_at_least + len(self._steps)
+
+    @property
     def replay_done(self) -> bool:
         """The step budget is reached: the replay's stats say so, or an ack's count reached it
         (sooner: stats come every half second, and steps past the budget are dropped)."""
@@ -273,7 +301,7 @@ class ZenohWriter:
 
     def _send(self) -> None:
         steps, self._steps = self._steps, []
-        if not self.window.acquire(self.stop):
+        if not self.window.acquire(self.stop, len(steps)):
             return  # stopping, or the episode is broken: the loop abandons it
         msg = transition_batch(self.actor_id, self.incarnation, self._episode, self._start, self._first,
                                steps)

@@ -1,0 +1,183 @@
+"""What the learner sees, step by step, against the NaSA-TD3 reference's training loop.
+
+The reference (UoA-CARES/NaSA_TD3, `train_loop.py`) acts uniformly at random for steps
+1..warmup, acts with the policy from step warmup + 1, scores each later transition when it is
+stored (before that step's updates) and makes G updates after each of those steps. Its frame stack
+starts an episode with the reset frame k times. These tests pin the same schedule in `nasa train`
+and in an actor, and check that the two runners store the same transitions.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from nasa.train import Trainer
+from services.actor import actor as actor_module
+from services.actor.actor import ActorArgs, ActorService
+from services.replay.service import ReplayArgs, ReplayService
+from shared import wire
+from shared.env_loop import EnvLoop
+from shared.envs import EnvSpec, FrameStack
+from shared.replay.adder import StoreAdder, ZenohWriter
+from shared.replay.store import ReplayStore
+from shared.run_config import RunConfig
+from shared.service import Log, StopFlag
+from tests.tiny import WARMUP, tiny_config, tiny_run
+
+
+class CountingPixels:
+    """Frames that name their episode and step; episodes of `length` steps ending at a time limit."""
+
+    def __init__(self, shape: tuple[int, int, int], action_dim: int, length: int) -> None:
+        self.frame_shape, self.action_dim, self.length = shape, action_dim, length
+        self.episode, self.t = -1, 0
+
+    def _frame(self) -> np.ndarray:
+        frame = np.full(self.frame_shape, self.t, np.uint8)
+        frame[0] = self.episode  # the first channel names the episode
+        return frame
+
+    def reset(self) -> tuple[np.ndarray, float, float, bool]:
+        self.episode, self.t = self.episode + 1, 0
+        return self._frame(), 0.0, 1.0, False
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool]:
+        self.t += 1
+        return self._frame(), 0.5 * self.t + self.episode, 1.0, self.t == self.length
+
+    def rng_state(self) -> dict:
+        return {}
+
+    def set_rng_state(self, state: dict) -> None:
+        pass
+
+
+def test_nasa_train_acts_uniformly_for_the_warm_up_then_scores_and_updates_g_times_after_each_step(
+        tmp_path, monkeypatch):
+    g, extra = 2, 3
+    config = tiny_config(steps=WARMUP + extra, updates_per_step=g, eval_at_start=False, eval_every=1_000,
+                         eval_episodes=1)
+    config.env.action_repeat = 50  # 20-step episodes: an episode ends, and the final evaluation is short
+    trainer = Trainer.create(config, tmp_path)
+    events: list[tuple] = []
+    store, agent, scorer = trainer.store, trainer.agent, trainer.scorer
+    real_collect, real_update, real_score = actor_module.collect_action, agent.update, scorer.score_new
+
+    def collect(agent_, obs, warming_up, rng, action_dim):  # noqa: ANN001, ANN202
+        events.append(("act", warming_up, store.num_inserted, agent.num_updates))
+        return real_collect(agent_, obs, warming_up, rng, action_dim)
+
+    def score_new() -> int:
+        events.append(("score", store.num_inserted, agent.num_updates))
+        return real_score()
+
+    def update(batch):  # noqa: ANN001, ANN202
+        events.append(("update", store.num_inserted, agent.num_updates))
+        return real_update(batch)
+
+    monkeypatch.setattr("nasa.train.collect_action", collect)
+    monkeypatch.setattr(agent, "update", update)
+    monkeypatch.setattr(scorer, "score_new", score_new)
+    trainer.run()
+
+    expected: list[tuple] = []
+    for step in range(1, WARMUP + extra + 1):  # the reference's total_step_counter
+        warming_up = step <= WARMUP
+        done = g * max(0, step - 1 - WARMUP)  # updates made before this step
+        expected += [("act", warming_up, step - 1, done), ("score", step, done)]
+        if not warming_up:
+            expected += [("update", step, done + i) for i in range(g)]
+    assert events == expected
+    intrinsic = store.get(np.arange(store.num_inserted))["intrinsic"]
+    assert np.all(intrinsic[:WARMUP] == 0.0)  # no bonus stored before learning starts
+    assert np.all(intrinsic[WARMUP:] != 0.0) and np.all(np.isfinite(intrinsic))
+
+
+class LaggingAcks:
+    """A replay whose acknowledgement of a batch lands only after the actor's next step: as on a
+    real network, where the actor decides its next action before its last batch is acknowledged."""
+
+    def __init__(self, writer: ZenohWriter) -> None:
+        self.writer, self.stored, self.held = writer, 0, 0
+
+    def put(self, payload: bytes) -> None:
+        msg = wire.decode(payload, wire.TransitionBatch)
+        if self.held:
+            self.stored += self.held
+            data = wire.encode(wire.InsertAck(msg.actor_id, msg.incarnation, self.stored))
+            self.writer._on_ack(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+        self.held = msg.n
+
+
+def test_a_lone_actor_takes_its_first_policy_step_right_after_the_warm_up_while_its_acks_lag(monkeypatch):
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: None)  # the actor's; not this process's
+    run = tiny_run("td3_ae", steps=10_000)
+    actor = ActorService(ActorArgs(config=run.config, run_id="warmup-test", actor_id=7, send_batch=1,
+                                   max_in_flight=2), None, StopFlag(), run)  # type: ignore[arg-type]
+    actor.writer._publisher = LaggingAcks(actor.writer)
+    actor.writer.window.on_replay(True)
+    actor.env = FrameStack(CountingPixels(run.spec.frame_shape, run.spec.action_dim, WARMUP + 5), 3)
+    actor.loop = EnvLoop(actor.env, actor.writer)
+    warming: list[bool] = []
+    real_collect = actor_module.collect_action
+
+    def collect(agent, obs, warming_up, rng, action_dim):  # noqa: ANN001, ANN202
+        warming.append(warming_up)
+        return real_collect(agent, obs, warming_up, rng, action_dim)
+
+    monkeypatch.setattr(actor_module, "collect_action", collect)
+    actor._episode()
+    # As in nasa train and the reference: steps 1..warmup uniform, the policy from step warmup + 1.
+    assert warming == [True] * WARMUP + [False] * 5
+
+
+def test_both_runners_store_the_transitions_the_frame_stack_showed(tmp_path):
+    """nasa train (StoreAdder) and an actor (ZenohWriter to the replay service) store, for every
+    transition, the frame stacks before and after it (the first of an episode stacked from its
+    reset frame, the last with the final frame), its action, summed reward and the discount of
+    the terminal time limit: the reference's (state, action, reward, next_state, done)."""
+    shape, k, action_dim, length, episodes = (3, 8, 8), 3, 2, 7, 3
+    spec = EnvSpec(shape, k, action_dim)
+    config = tiny_config("nasa_td3", steps=1_000)
+    config.env.image_size, config.env.time_limit = shape[1], "terminal"
+    run = RunConfig(config, spec)
+    local = ReplayStore(1_000, shape, k, action_dim)
+    service = ReplayService(ReplayArgs(config=config, data=tmp_path, no_rate_limit=True), None,  # type: ignore[arg-type]
+                            StopFlag(), run)
+    writer = ZenohWriter(None, wire.Keys("t"), actor_id=1, incarnation=1, frame_shape=shape, send_batch=3,
+                         max_in_flight=2, stop=StopFlag(), log=Log("test"))
+
+    class ToService:
+        def put(self, payload: bytes) -> None:
+            msg = wire.decode(payload, wire.TransitionBatch, service.bounds)
+            assert service.insert_batch(msg) == msg.n
+            data = wire.encode(wire.InsertAck(1, 1, service.store.num_inserted))
+            writer._on_ack(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+
+    writer._publisher = ToService()
+    writer.window.on_replay(True)
+    rng = np.random.default_rng(0)
+    seen: list[tuple] = []  # (obs, action, reward, next_obs, discount) as the learner should see them
+    loops = [EnvLoop(FrameStack(CountingPixels(shape, action_dim, length), k), adder, "terminal")
+             for adder in (StoreAdder(local), writer)]
+    for _ in range(episodes):
+        steps = [loop.reset() for loop in loops]
+        np.testing.assert_array_equal(steps[0].obs, np.concatenate([steps[0].frame] * k))
+        while not steps[0].last:
+            action = rng.uniform(-1, 1, action_dim).astype(np.float32)
+            before = steps[0].obs
+            steps = [loop.step(action) for loop in loops]
+            seen.append((before, action, steps[0].reward, steps[0].obs, 0.0 if steps[0].last else 1.0))
+    n = episodes * length
+    assert local.num_inserted == service.store.num_inserted == n
+    for store in (local, service.store):
+        rows = store.get(np.arange(n))
+        for i, (obs, action, reward, next_obs, discount) in enumerate(seen):
+            np.testing.assert_array_equal(rows["obs"][i], obs, err_msg=f"obs of row {i}")
+            np.testing.assert_array_equal(rows["next_obs"][i], next_obs, err_msg=f"next_obs of row {i}")
+            np.testing.assert_array_equal(rows["action"][i], action)
+            assert (rows["reward"][i], rows["discount"][i]) == (np.float32(reward), discount), i
+    service.store.close()
