@@ -61,6 +61,7 @@ def test_nasa_train_acts_uniformly_for_the_warm_up_then_scores_and_updates_g_tim
     config = tiny_config(steps=WARMUP + extra, updates_per_step=g, eval_at_start=False, eval_every=1_000,
                          eval_episodes=1)
     config.env.action_repeat = 50  # 20-step episodes: an episode ends, and the final evaluation is short
+    config.env.time_limit = "terminal"
     trainer = Trainer.create(config, tmp_path)
     events: list[tuple] = []
     store, agent, scorer = trainer.store, trainer.agent, trainer.scorer
@@ -91,9 +92,12 @@ def test_nasa_train_acts_uniformly_for_the_warm_up_then_scores_and_updates_g_tim
         if not warming_up:
             expected += [("update", step, done + i) for i in range(g)]
     assert events == expected
-    intrinsic = store.get(np.arange(store.num_inserted))["intrinsic"]
-    assert np.all(intrinsic[:WARMUP] == 0.0)  # no bonus stored before learning starts
-    assert np.all(intrinsic[WARMUP:] != 0.0) and np.all(np.isfinite(intrinsic))
+    rows = store.get(np.arange(store.num_inserted))
+    assert np.all(rows["intrinsic"][:WARMUP] == 0.0)  # no bonus stored before learning starts
+    assert np.all(rows["intrinsic"][WARMUP:] != 0.0) and np.all(np.isfinite(rows["intrinsic"]))
+    # The reference's done at the time limit, which ends the 20th step's episode.
+    np.testing.assert_array_equal(np.flatnonzero(rows["discount"] == 0.0), [19])
+    assert np.all((rows["discount"] == 0.0) | (rows["discount"] == 1.0))
 
 
 class LaggingAcks:
@@ -102,9 +106,11 @@ class LaggingAcks:
 
     def __init__(self, writer: ZenohWriter) -> None:
         self.writer, self.stored, self.held = writer, 0, 0
+        self.discounts: list[float] = []
 
     def put(self, payload: bytes) -> None:
         msg = wire.decode(payload, wire.TransitionBatch)
+        self.discounts += wire.array(msg.discounts, "<f4", (msg.n,)).tolist()
         if self.held:
             self.stored += self.held
             data = wire.encode(wire.InsertAck(msg.actor_id, msg.incarnation, self.stored))
@@ -115,12 +121,13 @@ class LaggingAcks:
 def test_a_lone_actor_takes_its_first_policy_step_right_after_the_warm_up_while_its_acks_lag(monkeypatch):
     monkeypatch.setattr(torch, "set_num_threads", lambda n: None)  # the actor's; not this process's
     run = tiny_run("td3_ae", steps=10_000)
+    run.config.env.time_limit = "terminal"
     actor = ActorService(ActorArgs(config=run.config, run_id="warmup-test", actor_id=7, send_batch=1,
                                    max_in_flight=2), None, StopFlag(), run)  # type: ignore[arg-type]
-    actor.writer._publisher = LaggingAcks(actor.writer)
+    actor.writer._publisher = replay = LaggingAcks(actor.writer)
     actor.writer.window.on_replay(True)
     actor.env = FrameStack(CountingPixels(run.spec.frame_shape, run.spec.action_dim, WARMUP + 5), 3)
-    actor.loop = EnvLoop(actor.env, actor.writer)
+    assert actor._connect()  # the actor's loop, with the run's time-limit handling
     warming: list[bool] = []
     real_collect = actor_module.collect_action
 
@@ -132,6 +139,7 @@ def test_a_lone_actor_takes_its_first_policy_step_right_after_the_warm_up_while_
     actor._episode()
     # As in nasa train and the reference: steps 1..warmup uniform, the policy from step warmup + 1.
     assert warming == [True] * WARMUP + [False] * 5
+    assert replay.discounts == [1.0] * (WARMUP + 4) + [0.0]  # the reference's done at the time limit
 
 
 def test_both_runners_store_the_transitions_the_frame_stack_showed(tmp_path):
@@ -139,7 +147,7 @@ def test_both_runners_store_the_transitions_the_frame_stack_showed(tmp_path):
     transition, the frame stacks before and after it (the first of an episode stacked from its
     reset frame, the last with the final frame), its action, summed reward and the discount of
     the terminal time limit: the reference's (state, action, reward, next_state, done)."""
-    shape, k, action_dim, length, episodes = (3, 8, 8), 3, 2, 7, 3
+    shape, k, action_dim, length, episodes = (3, 8, 8), 3, 2, 10, 3  # an episode spans two chunks
     spec = EnvSpec(shape, k, action_dim)
     config = tiny_config("nasa_td3", steps=1_000)
     config.env.image_size, config.env.time_limit = shape[1], "terminal"
