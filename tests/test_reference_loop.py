@@ -9,6 +9,7 @@ and in an actor, and check that the two runners store the same transitions.
 
 from __future__ import annotations
 
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -19,6 +20,7 @@ from services.actor import actor as actor_module
 from services.actor.actor import ActorArgs, ActorService
 from services.replay.service import ReplayArgs, ReplayService
 from shared import wire
+from shared.agents import make_agent
 from shared.env_loop import EnvLoop
 from shared.envs import EnvSpec, FrameStack
 from shared.replay.adder import StoreAdder, ZenohWriter
@@ -118,7 +120,10 @@ class LaggingAcks:
         self.held = msg.n
 
 
-def test_a_lone_actor_takes_its_first_policy_step_right_after_the_warm_up_while_its_acks_lag(monkeypatch):
+def lone_actor(monkeypatch, episode: int) -> tuple[ActorService, LaggingAcks, list[tuple], bytes]:
+    """An actor (td3_ae, terminal time limit) whose replay acknowledges late, on episodes of
+    `episode` steps; the (warming_up, holds the learner's initial weights) of each action it
+    takes; and the learner's first weights message."""
     monkeypatch.setattr(torch, "set_num_threads", lambda n: None)  # the actor's; not this process's
     run = tiny_run("td3_ae", steps=10_000)
     run.config.env.time_limit = "terminal"
@@ -126,20 +131,46 @@ def test_a_lone_actor_takes_its_first_policy_step_right_after_the_warm_up_while_
                                    max_in_flight=2), None, StopFlag(), run)  # type: ignore[arg-type]
     actor.writer._publisher = replay = LaggingAcks(actor.writer)
     actor.writer.window.on_replay(True)
-    actor.env = FrameStack(CountingPixels(run.spec.frame_shape, run.spec.action_dim, WARMUP + 5), 3)
+    actor.env = FrameStack(CountingPixels(run.spec.frame_shape, run.spec.action_dim, episode), 3)
     assert actor._connect()  # the actor's loop, with the run's time-limit handling
-    warming: list[bool] = []
+    torch.manual_seed(run.config.seed)  # as the learner does before it builds its agent
+    learner = make_agent("td3_ae", run.spec.obs_shape, run.spec.action_dim, run.config.agent,
+                         torch.device("cpu")).policy_state_dict()
+    weights = wire.encode(wire.Weights(1, 0, 0, wire.pack_tensors(learner)))
+    acted: list[tuple] = []
     real_collect = actor_module.collect_action
 
     def collect(agent, obs, warming_up, rng, action_dim):  # noqa: ANN001, ANN202
-        warming.append(warming_up)
+        held = agent.policy_state_dict()
+        acted.append((warming_up, all(torch.equal(held[k], v) for k, v in learner.items())))
         return real_collect(agent, obs, warming_up, rng, action_dim)
 
     monkeypatch.setattr(actor_module, "collect_action", collect)
+    return actor, replay, acted, weights
+
+
+def test_a_lone_actor_takes_its_first_policy_step_right_after_the_warm_up_while_its_acks_lag(monkeypatch):
+    actor, replay, acted, weights = lone_actor(monkeypatch, WARMUP + 5)
+    actor.weights.offer(weights)
     actor._episode()
+    warming = [w for w, _ in acted]
     # As in nasa train and the reference: steps 1..warmup uniform, the policy from step warmup + 1.
     assert warming == [True] * WARMUP + [False] * 5
     assert replay.discounts == [1.0] * (WARMUP + 4) + [0.0]  # the reference's done at the time limit
+
+
+def test_an_actor_past_the_warm_up_acts_first_with_the_learners_initial_weights_not_its_own(monkeypatch):
+    """The actor's own networks come from its own seed; the learner's initial policy is the one
+    nasa train and the reference take their first policy steps with. Weights that come late are
+    waited for, once."""
+    actor, _, acted, weights = lone_actor(monkeypatch, WARMUP + 3)
+    late = threading.Timer(0.3, actor.weights.offer, [weights])
+    late.start()
+    actor._episode()
+    late.join()
+    assert [w for w, _ in acted] == [True] * WARMUP + [False] * 3
+    assert all(holds for _, holds in acted[WARMUP:])
+    assert actor.policy_version == 0 and actor.env_steps == WARMUP + 3
 
 
 def test_both_runners_store_the_transitions_the_frame_stack_showed(tmp_path):

@@ -3,7 +3,8 @@
 - Acting: uniform random while the global env step count (from the replay's
   acknowledgements and stats, plus this actor's steps not acknowledged yet) is
   below warmup_steps, then the local policy with exploration noise. Acting
-  never waits for weights: the weights subscriber parks the newest message
+  waits for weights once, before its first policy step, until it holds the
+  learner's; never after: the weights subscriber parks the newest message
   and the loop loads it between steps.
 - Streaming: the environment loop hands each transition to the replay
   client's writer (`ZenohWriter`): batches, compressed frames, at most
@@ -132,6 +133,8 @@ PAUSE_S = 1.0
 """How long an actor waits before it asks a bridge that refused (e-stop, fault) for a new episode."""
 UNREADABLE_FAULT = "unreadable"
 """The fault state reported for an environment whose own cannot be read."""
+WEIGHTS_POLL_S = 0.05
+"""How often an actor past the warm-up looks for the learner's first weights."""
 
 
 class StepTimes:
@@ -343,6 +346,21 @@ class ActorService(MessageGuard):
                 self.env_faults += 1
                 self.log.every("fault", 10.0, f"episode abandoned ({self.env_faults} so far): {err}")
 
+    def _await_first_weights(self) -> bool:
+        """Wait for the learner's weights before the first policy step: the actor's own networks
+        are not the run's (its seed is its own), and the first policy steps act with the learner's
+        initial policy in `nasa train` and the reference. Later weights never hold acting up.
+        False: the episode cannot go on (stop, budget, the replay gone)."""
+        w = self.writer
+        self.log("warm-up over: waiting for the learner's weights before the first policy step")
+        while not self.weights.maybe_load():
+            if self.stop or w.replay_done or w.broken:
+                return False
+            if self.bridge is not None and not self.bridge.present:
+                return False
+            self.stop.wait(WEIGHTS_POLL_S)
+        return True
+
     def _episode(self) -> None:
         """One episode, until its end, a stop, the replay's or the bridge's loss, or the budget."""
         c, w, loop = self.config, self.writer, self.loop
@@ -353,6 +371,8 @@ class ActorService(MessageGuard):
                 return  # the bridge went: nothing more of this episode is sent
             self.weights.maybe_load()
             warming_up = max(w.steps_at_least, self.weights.env_steps) < c.warmup_steps
+            if not warming_up and self.weights.version is None and not self._await_first_weights():
+                return
             action = collect_action(self.agent, ts.obs, warming_up, self.rng, loop.env.spec.action_dim)
             ts = loop.step(action, self.policy_version)
             self.step_times.observe(loop.last_step_s)
