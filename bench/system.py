@@ -214,10 +214,12 @@ def service_actor_rate(args: argparse.Namespace, actors: int,
     with tempfile.TemporaryDirectory() as tmp:
         cluster = Cluster(args, Path(tmp), auth)
         try:
-            # warm-up 0: actors act with their (initial) policy, as the in-process loop does
+            # warm-up 0: actors act with their (initial) policy, as the in-process loop does; with no
+            # learner, they do not wait for its weights
             cluster.start("replay", "replay", ["--data", tmp, "--no-rate-limit", "--warmup-steps", "0"])
             for i in range(actors):
-                cluster.start(f"actor-{i}", "actor", ["--actor-id", str(i), "--warmup-steps", "0"])
+                cluster.start(f"actor-{i}", "actor", ["--actor-id", str(i), "--warmup-steps", "0",
+                                                      "--act-before-weights"])
             pids = ({name: cluster.sup.children[name].proc.pid for name in ("actor-0", "replay")}
                     if actors == 1 else {})
             return cluster.insert_rate(args.seconds, pids=pids)

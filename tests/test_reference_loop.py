@@ -120,15 +120,16 @@ class LaggingAcks:
         self.held = msg.n
 
 
-def lone_actor(monkeypatch, episode: int) -> tuple[ActorService, LaggingAcks, list[tuple], bytes]:
-    """An actor (td3_ae, terminal time limit) whose replay acknowledges late, on episodes of
-    `episode` steps; the (warming_up, holds the learner's initial weights) of each action it
+def lone_actor(monkeypatch, episode: int,
+               **args: object) -> tuple[ActorService, LaggingAcks, list[tuple], bytes]:
+    """An actor (td3_ae, terminal time limit; ActorArgs `args`) whose replay acknowledges late, on
+    episodes of `episode` steps; the (warming_up, holds the learner's initial weights) of each action it
     takes; and the learner's first weights message."""
     monkeypatch.setattr(torch, "set_num_threads", lambda n: None)  # the actor's; not this process's
     run = tiny_run("td3_ae", steps=10_000)
     run.config.env.time_limit = "terminal"
     actor = ActorService(ActorArgs(config=run.config, run_id="warmup-test", actor_id=7, send_batch=1,
-                                   max_in_flight=2), None, StopFlag(), run)  # type: ignore[arg-type]
+                                   max_in_flight=2, **args), None, StopFlag(), run)  # type: ignore[arg-type]
     actor.writer._publisher = replay = LaggingAcks(actor.writer)
     actor.writer.window.on_replay(True)
     actor.env = FrameStack(CountingPixels(run.spec.frame_shape, run.spec.action_dim, episode), 3)
@@ -220,3 +221,10 @@ def test_both_runners_store_the_transitions_the_frame_stack_showed(tmp_path):
             np.testing.assert_array_equal(rows["action"][i], action)
             assert (rows["reward"][i], rows["discount"][i]) == (np.float32(reward), discount), i
     service.store.close()
+
+
+def test_a_benchmarked_actor_without_a_learner_acts_with_its_own_networks_when_told_to(monkeypatch):
+    actor, _, acted, _ = lone_actor(monkeypatch, WARMUP + 3, act_before_weights=True)
+    actor._episode()  # no weights ever come: it does not wait for them
+    assert [w for w, _ in acted] == [True] * WARMUP + [False] * 3
+    assert actor.weights.version is None and actor.env_steps == WARMUP + 3

@@ -127,6 +127,9 @@ class ActorArgs(ServiceArgs):
     bridge: str = ""
     """Step the environment through the robot bridge of this id (`python -m services.robot_bridge
     --bridge-id ID`) instead of in this process; "": in this process."""
+    act_before_weights: bool = False
+    """Benchmarks only: past the warm-up, act with this actor's own initial networks until the
+    learner's weights come instead of waiting for them (an actor measured without a learner)."""
 
 
 PAUSE_S = 1.0
@@ -371,7 +374,8 @@ class ActorService(MessageGuard):
                 return  # the bridge went: nothing more of this episode is sent
             self.weights.maybe_load()
             warming_up = max(w.steps_at_least, self.weights.env_steps) < c.warmup_steps
-            if not warming_up and self.weights.version is None and not self._await_first_weights():
+            if (not warming_up and self.weights.version is None and not self.args.act_before_weights
+                    and not self._await_first_weights()):
                 return
             action = collect_action(self.agent, ts.obs, warming_up, self.rng, loop.env.spec.action_dim)
             ts = loop.step(action, self.policy_version)
