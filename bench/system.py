@@ -104,7 +104,7 @@ def inprocess_update_loop(args: argparse.Namespace) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         store = ReplayStore(c.replay_capacity, spec.frame_shape, spec.frame_stack, spec.action_dim,
                             data_dir=Path(tmp) / "replay")
-        loop = EnvLoop(env, StoreAdder(store))
+        loop = EnvLoop(env, StoreAdder(store), c.env.time_limit)
         loop.reset()
         while loop.steps < args.fill:
             if loop.step(rng.uniform(-1, 1, spec.action_dim).astype(np.float32)).last:

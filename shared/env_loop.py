@@ -23,7 +23,11 @@ if TYPE_CHECKING:
 
 class EnvLoop:
     def __init__(self, env: PixelEnv, adder: Adder | None = None,
-                 time_limit: Literal["bootstrap", "terminal"] = "bootstrap") -> None:
+                 time_limit: Literal["bootstrap", "terminal"] | None = None) -> None:
+        """`time_limit`: the run's `env.time_limit`, which decides the discounts stored; needed with
+        an adder (the config holds the one default)."""
+        if adder is not None and time_limit is None:
+            raise TypeError("an EnvLoop that stores transitions needs the run's time_limit")
         self.env = env
         self.adder = adder
         self.time_limit = time_limit

@@ -120,7 +120,6 @@ def test_an_actor_whose_every_batch_the_replay_refuses_stops_with_the_reason_and
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run = tiny_run("td3_ae", steps=5000)
-    run.config.env.time_limit = 10
     keys = wire.Keys(f"t{free_port()}")
     heartbeats: queue.Queue = queue.Queue()
     replay_stop = StopFlag()

@@ -61,3 +61,11 @@ def test_bootstrap_keeps_the_suite_discount_and_run_episode_resets_the_counts():
     assert adder.calls[-1] == ("add", 3.0, 1.0, 3, True, 0)
     assert loop.run_episode(lambda obs: np.zeros(1, np.float32)) == 6.0
     assert (loop.episode_length, loop.steps) == (3, 6)
+
+
+def test_a_loop_that_stores_transitions_takes_the_runs_time_limit_not_a_default_of_its_own():
+    import pytest
+
+    with pytest.raises(TypeError, match="needs the run's time_limit"):
+        EnvLoop(CountingEnv(), RecordingAdder())
+    EnvLoop(CountingEnv())  # one that only plays episodes (evaluation) stores no discount
