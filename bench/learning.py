@@ -31,10 +31,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
@@ -42,6 +40,7 @@ import time
 from contextlib import nullcontext
 from pathlib import Path
 
+from bench.processes import stop_group, stopped_cleanly
 from nasa.layout import usable_cores
 from nasa.up import free_port
 from shared.faults import RunFolderError, lock_run
@@ -66,18 +65,13 @@ def run_bounded(argv: list[str], minutes: float, log: Path, eval_csv: Path | Non
     seen: dict[int, float] = {}
     with open(log, "w") as out:
         proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-        while proc.poll() is None and time.monotonic() - start < minutes * 60:
-            time.sleep(poll_s)
-            if eval_csv is not None:
-                note_rows(eval_csv, seen, time.monotonic() - start)
-        if proc.poll() is None:
-            for sig, grace in ((signal.SIGINT, 20), (signal.SIGTERM, 60), (signal.SIGKILL, None)):
-                os.killpg(proc.pid, sig)
-                try:
-                    proc.wait(timeout=grace)
-                    break
-                except subprocess.TimeoutExpired:
-                    continue
+        try:
+            while proc.poll() is None and time.monotonic() - start < minutes * 60:
+                time.sleep(poll_s)
+                if eval_csv is not None:
+                    note_rows(eval_csv, seen, time.monotonic() - start)
+        finally:  # at the bound, and on Ctrl-C or SIGTERM: in its own session, no signal reaches it
+            stop_group(proc)
         if eval_csv is not None:  # rows written while it stopped: seen now, past the bound
             note_rows(eval_csv, seen, time.monotonic() - start)
     return time.monotonic() - start, seen
@@ -261,4 +255,5 @@ def run_seed(args: argparse.Namespace, seed: int, settings: list[str], runners: 
 
 
 if __name__ == "__main__":
-    main()
+    with stopped_cleanly("python -m bench.learning"):
+        main()

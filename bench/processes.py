@@ -1,0 +1,61 @@
+"""How a benchmark stops on Ctrl-C or SIGTERM, and stops the processes it started.
+
+Python's default SIGTERM ends a process without running its `finally` blocks: the temporary
+folders stay, and a child started in a session of its own (`nasa up`, `nasa train`, which no
+signal to the benchmark reaches) goes on holding its ports and cores. Standard library and
+nasa.stopping only, as bench.gpu imports it before its set-up step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+from collections.abc import Iterator
+
+from nasa.stopping import Terminated, interrupted, raise_terminated
+
+# nasa up and nasa train stop their children in order on SIGINT; SIGTERM next, for a child that
+# ignores SIGINT (one started in the background by a non-interactive shell).
+STOP_STEPS: tuple[tuple[int, float], ...] = ((signal.SIGINT, 20.0), (signal.SIGTERM, 60.0))
+
+
+@contextlib.contextmanager
+def stopped_cleanly(prog: str) -> Iterator[None]:
+    """Around a benchmark's main: SIGTERM is raised as Terminated where the main thread is, as
+    Ctrl-C raises KeyboardInterrupt, so every `finally` block runs (children stopped, temporary
+    folders removed); then one line, not a traceback, and exit 130 or 143."""
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        with interrupted(prog):
+            yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
+def stop_group(proc: subprocess.Popen, steps: tuple[tuple[int, float], ...] = STOP_STEPS) -> int:
+    """Stop `proc`, started with start_new_session=True, and its process group: each signal of
+    `steps` in turn, waiting its grace for the leader to exit, then SIGKILL. A Ctrl-C or SIGTERM
+    while it waits (the user insisting) kills the group at once and is raised again. Returns the
+    leader's exit code."""
+    try:
+        for sig, grace in steps:
+            if proc.poll() is not None:
+                break
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, sig)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=grace)
+    except (KeyboardInterrupt, Terminated):
+        _kill_group(proc)
+        raise
+    if proc.poll() is None:
+        _kill_group(proc)
+    return proc.returncode
