@@ -410,4 +410,7 @@ def auth_comparison(args: argparse.Namespace, report) -> dict:  # noqa: ANN001
 
 
 if __name__ == "__main__":
-    main()
+    from bench.processes import stopped_cleanly
+
+    with stopped_cleanly("python -m bench.system"):
+        main()

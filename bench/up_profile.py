@@ -37,6 +37,7 @@ import httpx
 import numpy as np
 
 from bench.gil_profile import GilProfileError, Recording
+from bench.processes import stop_group, stopped_cleanly
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
@@ -224,16 +225,13 @@ def main() -> None:
             result = measure(first, last, wire_seconds(data / "config.json"), usable_cores())
             if recording is not None:
                 result["learner_gil"] = gil_result(recording)
-        finally:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        finally:  # nasa up runs in a session of its own: only this stops it
+            stop_group(proc, ((signal.SIGINT, 60.0),))
     result |= {"task": args.task, "layout": layout_line, "up_args": args.up_args,
                "load_avg_1m": round(os.getloadavg()[0], 2)}
     print(json.dumps(result))
 
 
 if __name__ == "__main__":
-    main()
+    with stopped_cleanly("python -m bench.up_profile"):
+        main()

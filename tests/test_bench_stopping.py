@@ -1,0 +1,110 @@
+"""A benchmark stopped by Ctrl-C or SIGTERM leaves no process and no temporary folder behind.
+
+Each benchmark runs as a user starts it (`python -m bench.<name>`, tiny settings) with a mark in
+its environment that every process it starts inherits, whatever session it runs in: what carries
+the mark once the benchmark has exited was left behind.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from system_harness import REPO, TINY
+
+pytestmark = pytest.mark.system
+
+
+def marked(mark: str) -> list[tuple[int, str]]:
+    """Live processes (pid, command line) whose environment holds BENCH_TEST_MARK=`mark`."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            if f"BENCH_TEST_MARK={mark}".encode() not in (proc / "environ").read_bytes().split(b"\0"):
+                continue
+            if (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                continue
+            found.append((int(proc.name), (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()))
+        except OSError:
+            continue
+    return found
+
+
+def wait_for(what: str, ready: Callable[[], bool], bench: subprocess.Popen, timeout: float = 240) -> None:
+    deadline = time.monotonic() + timeout
+    while not ready():
+        if bench.poll() is not None:
+            pytest.fail(f"the benchmark ended (exit {bench.returncode}) before {what}: {bench.stdout.read()}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"no {what} in {timeout:.0f} s")
+        time.sleep(0.5)
+
+
+def stop_and_check(bench: subprocess.Popen, signum: int, mark: str, tmp: Path) -> str:
+    """Send `signum` to the benchmark; it exits 128 + signum, and nothing of it is left."""
+    bench.send_signal(signum)
+    try:
+        out, _ = bench.communicate(timeout=150)
+    except subprocess.TimeoutExpired:
+        bench.kill()
+        pytest.fail("the benchmark did not stop within 150 s of the signal")
+    deadline = time.monotonic() + 20  # children stopping on their own after it (PDEATHSIG)
+    while (left := marked(mark)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for pid, _ in left:  # not to leave them to the rest of the suite
+        os.kill(pid, signal.SIGKILL)
+    assert left == [], f"left running: {left}\n{out}"
+    # torch's compile cache is torch's, kept on purpose
+    left_files = sorted(p.name for p in tmp.iterdir() if not p.name.startswith("torchinductor_"))
+    assert left_files == [], "temporary folders left behind"
+    assert bench.returncode == 128 + signum, out
+    assert "Traceback" not in out, out
+    return out
+
+
+def start(argv: list[str], mark: str, tmp: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "BENCH_TEST_MARK": mark, "TMPDIR": str(tmp)}
+    return subprocess.Popen([sys.executable, "-m", *argv], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+def running(mark: str, needle: str) -> Callable[[], bool]:
+    return lambda: any(needle in cmd for _, cmd in marked(mark))
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_bench_learning_stops_its_run_on_a_signal(tmp_path, signum):
+    # nasa train runs in a session of its own: no signal to the benchmark reaches it but through it.
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    bench = start(["bench.learning", "--only", "train", "--task", "cartpole-balance", "--minutes", "10",
+                   "--out", str(tmp_path / "out"), "--", *TINY], mark, tmp)
+    wait_for("nasa train", running(mark, "nasa.cli train"), bench)
+    time.sleep(1.0)
+    stop_and_check(bench, signum, mark, tmp)
+
+
+def test_bench_up_profile_stops_nasa_up_on_sigterm(tmp_path):
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    bench = start(["bench.up_profile", "--task", "cartpole-balance", "--seconds", "600", "--",
+                   "--actors", "1", "--learner-threads", "1", "--", *TINY], mark, tmp)
+    wait_for("replay service", running(mark, "services.replay"), bench)
+    stop_and_check(bench, signal.SIGTERM, mark, tmp)
+
+
+def test_bench_system_removes_its_folders_on_sigterm(tmp_path):
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    bench = start(["bench.system", "--seconds", "2", "--fill", "50"], mark, tmp)
+    wait_for("a service", running(mark, "services."), bench)
+    stop_and_check(bench, signal.SIGTERM, mark, tmp)
