@@ -37,6 +37,8 @@ import tomllib
 import urllib.request
 from pathlib import Path
 
+from bench import processes
+
 ROOT = Path(__file__).resolve().parents[1]
 UP_ARGS = ["--preset", "paper", "--device", "cuda", "--actors", "8", "--task", "cheetah-run"]
 UP_PROFILE_S = 45.0  # the up step's measured window, once the learner updates
@@ -123,6 +125,9 @@ def run_child(cmd: list[str], timeout: float, env: dict | None = None) -> dict:
         os.killpg(proc.pid, signal.SIGKILL)
         output, _ = proc.communicate()
         result = {"rc": None, "error": f"timed out after {timeout:.0f} s"}
+    except BaseException:  # Ctrl-C, SIGTERM: in its own session, no signal reaches the child but this
+        stop_group(proc, grace_s=0.0)
+        raise
     result["seconds"] = round(time.perf_counter() - start, 1)
     result["output"] = output or ""
     return result
@@ -238,14 +243,7 @@ def summarize_up(samples: list[dict], gpu: list[dict]) -> dict:
 
 def stop_group(proc: subprocess.Popen, grace_s: float = 30.0) -> int | None:
     """SIGINT to nasa up (it stops its services), then SIGKILL to the group if it lingers."""
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(grace_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    return proc.returncode
+    return processes.stop_group(proc, ((signal.SIGINT, grace_s),))
 
 
 def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> dict:
@@ -259,17 +257,22 @@ def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> d
                             start_new_session=True)  # fmt: skip
     samples, gpu, start = [], [], time.monotonic()
     window = UpWindow(proc.pid, port, data)
-    while time.monotonic() - start < run_for and proc.poll() is None:
-        time.sleep(poll_s)
-        status = get_status(port)
-        if status is not None:
-            samples.append(status)
-            if status.get("updates", 0) > 0:
-                window.tick(left_s=run_for - (time.monotonic() - start))
-        if (g := gpu_sample()) is not None:
-            gpu.append(g)
-    exited_early = proc.poll() is not None
-    profile = window.result()
+    try:
+        while time.monotonic() - start < run_for and proc.poll() is None:
+            time.sleep(poll_s)
+            status = get_status(port)
+            if status is not None:
+                samples.append(status)
+                if status.get("updates", 0) > 0:
+                    window.tick(left_s=run_for - (time.monotonic() - start))
+            if (g := gpu_sample()) is not None:
+                gpu.append(g)
+        exited_early = proc.poll() is not None
+        profile = window.result()
+    except BaseException:  # nasa up runs in a session of its own: only this stops it
+        stop_group(proc)
+        shutil.rmtree(data, ignore_errors=True)
+        raise
     rc = stop_group(proc)
     output = proc.stdout.read() if proc.stdout else ""
     out = {"seconds": round(time.monotonic() - start, 1), "args": UP_ARGS, **summarize_up(samples, gpu),
@@ -379,7 +382,10 @@ def main(argv: list[str] | None = None) -> None:
         if name in skip:
             continue
         print(f"gpu-check: {name} ({budget.left():.0f} s left)", flush=True)
-        steps[name] = step(reserve_after(name, skip))
+        try:
+            steps[name] = step(reserve_after(name, skip))
+        except Exception as err:  # noqa: BLE001 -- the JSON line must come, naming the step that failed
+            steps[name] = {"error": f"{type(err).__name__}: {err}"}
         print(f"gpu-check: {name}: {json.dumps({k: v for k, v in steps[name].items() if k != 'tail'})}",
               flush=True)  # fmt: skip
     summary = assemble(torch.cuda.get_device_name(0), steps, time.monotonic() - start)
@@ -388,4 +394,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with processes.stopped_cleanly("python -m bench.gpu"):
+        main()

@@ -250,3 +250,47 @@ def test_the_up_steps_window_opens_once_the_learner_updates_with_time_left_and_c
     assert out["updates_per_s"] == 1.0 and out["cpu_s"] == {"launcher+router": 50.0, "learner": 50.0,
                                                               "replay": 50.0}
     assert out["learner_gil"] == {"error": "pid 7"} and "wire" not in out
+
+
+def test_a_check_stopped_by_sigterm_kills_the_step_it_runs(tmp_path):
+    # The step's child runs in a session of its own: no signal to the check reaches it but through it.
+    marker = tmp_path / "grandchild.pid"
+    script = (
+        "import sys\nfrom bench import gpu, processes\n"
+        "with processes.stopped_cleanly('python -m bench.gpu'):\n"
+        f"    gpu.run_child(['sh', '-c', 'sleep 60 & echo $! > {marker}; wait'], timeout=120)\n"
+    )
+    check = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (marker.exists() and marker.read_text().strip()):
+        assert time.monotonic() < deadline and check.poll() is None, "the step never started"
+        time.sleep(0.1)
+    pid = int(marker.read_text())
+    check.send_signal(signal.SIGTERM)
+    _, err = check.communicate(timeout=60)
+    for _ in range(100):
+        if not running(pid):
+            break
+        time.sleep(0.05)
+    left = running(pid)
+    if left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, "the step's child was left running"
+    assert check.returncode == 143 and "stopped (SIGTERM)" in err and "Traceback" not in err
+
+
+def test_a_step_that_raises_is_an_error_in_the_json_line(monkeypatch, capsys):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda _i=0: "a GPU")
+
+    def broken(budget, reserve):  # noqa: ANN001, ANN202
+        raise RuntimeError("nvidia-smi vanished")
+
+    monkeypatch.setattr(gpu, "step_tests", broken)
+    with pytest.raises(SystemExit) as exit_:
+        gpu.main(["--skip", "learner,profile,up"])
+    assert exit_.value.code == 1
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert line["ok"] is False and line["tests"] == {"error": "RuntimeError: nvidia-smi vanished"}
