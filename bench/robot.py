@@ -103,4 +103,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from bench.processes import stopped_cleanly
+
+    with stopped_cleanly("python -m bench.robot"):
+        main()

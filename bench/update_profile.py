@@ -185,4 +185,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from bench.processes import stopped_cleanly
+
+    with stopped_cleanly("python -m bench.update_profile"):
+        main()

@@ -108,3 +108,12 @@ def test_bench_system_removes_its_folders_on_sigterm(tmp_path):
     bench = start(["bench.system", "--seconds", "2", "--fill", "50"], mark, tmp)
     wait_for("a service", running(mark, "services."), bench)
     stop_and_check(bench, signal.SIGTERM, mark, tmp)
+
+
+def test_bench_learner_stops_its_worker_and_removes_its_batch_on_sigterm(tmp_path):
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    bench = start(["bench.learner", "--rounds", "1", "--batch", "8", "--updates", "2000", "--threads", "1"],
+                  mark, tmp)
+    wait_for("worker", running(mark, "--worker"), bench)
+    stop_and_check(bench, signal.SIGTERM, mark, tmp)
