@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from bench import hardware
+from shared.config import ALGOS
 
 ALGO = "nasa_td3"
 ACTION_DIM = 6  # cheetah-run
@@ -495,19 +496,35 @@ def variant_list(text: str) -> list[str]:
     return names
 
 
+def positive(kind: type) -> Callable[[str], float]:
+    """An argparse type: a number of `kind` above 0."""
+
+    def parse(text: str) -> float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"must be above 0, got {text!r}")
+        return value
+
+    return parse
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--reference", type=Path, default=None, help="a checkout of UoA-CARES/NaSA_TD3")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--batch", type=int, default=128)
-    p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--updates", type=int, default=4, help="timed updates per process (even)")
-    p.add_argument("--score-repeats", type=int, default=3)
-    p.add_argument("--peak-seconds", type=float, default=1.0, help="timing per matmul size")
+    p.add_argument("--batch", type=positive(int), default=128)
+    p.add_argument("--rounds", type=positive(int), default=3)
+    p.add_argument("--updates", type=positive(int), default=4, help="timed updates per process (even)")
+    p.add_argument("--score-repeats", type=positive(int), default=3)
+    p.add_argument("--peak-seconds", type=positive(float), default=1.0, help="timing per matmul size")
     p.add_argument(
         "--threads", type=int, default=0, help="torch threads (0: torch's default, as the learner)"
     )
-    p.add_argument("--algo", default=ALGO, help="the project's agent (the reference is NaSA-TD3)")
+    p.add_argument("--algo", default=ALGO, choices=ALGOS,
+                   help="the project's agent (the reference is NaSA-TD3)")
     p.add_argument(
         "--variants",
         type=variant_list,
@@ -525,15 +542,16 @@ def main(argv: list[str] | None = None) -> None:
     if args.worker:
         run_worker(args)
         return
-    if args.reference is not None:
-        from bench import reference
+    from bench import reference
+    from shared.device import DeviceError, resolve_device
 
-        reference.load_class(args.reference)  # a bad directory fails here, before any rendering
-    if args.rounds < 1:
-        raise SystemExit("--rounds must be at least 1")
-    from shared.device import resolve_device
-
-    device = resolve_device(args.device)
+    try:  # a bad directory or device fails here, in one line, before any rendering
+        if args.reference is not None:
+            reference.load_class(args.reference)
+        device = resolve_device(args.device)
+    except (reference.ReferenceError, DeviceError) as err:
+        print(f"bench.learner: {err}", file=sys.stderr)
+        sys.exit(2)
     info = hardware.machine(device)
     if args.threads > 0:
         info["torch_threads"] = args.threads

@@ -1,0 +1,37 @@
+"""bench.learner refuses bad input in one line with exit 2, before it renders or starts anything."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import learner
+
+
+def refused(argv: list[str], capsys: pytest.CaptureFixture) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        learner.main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def test_a_folder_that_is_not_the_reference_checkout_is_one_line(tmp_path, capsys):
+    (tmp_path / "networks").mkdir()  # half a checkout: no nasa_td3.py
+    for folder in (tmp_path / "missing", tmp_path, tmp_path / "networks"):
+        err = refused(["--reference", str(folder)], capsys)
+        assert err.count("\n") == 1 and "is not a checkout of UoA-CARES/NaSA_TD3" in err
+
+
+def test_an_unknown_device_is_one_line(capsys):
+    err = refused(["--device", "tpu"], capsys)
+    assert err.count("\n") == 1 and "unknown device 'tpu'" in err
+
+
+@pytest.mark.parametrize("flag", ["--batch", "--rounds", "--updates", "--score-repeats", "--peak-seconds"])
+def test_counts_and_times_must_be_above_zero(flag, capsys):
+    assert f"argument {flag}: must be above 0" in refused([flag, "0"], capsys)
+
+
+def test_an_unknown_algorithm_is_refused_before_any_worker_runs(capsys):
+    assert "argument --algo: invalid choice: 'td4'" in refused(["--algo", "td4"], capsys)
