@@ -25,6 +25,7 @@ import threading
 import time
 from pathlib import Path
 
+from bench.args import ALGOS, task_name
 from bench.system import Cluster, cpu_seconds
 
 GOAL = 0.98  # the polled learner keeps at least 98% of its updates/s
@@ -104,8 +105,8 @@ def measure(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m bench.dashboard", description=__doc__.split("\n\n")[0])
-    p.add_argument("--task", default="cartpole-balance")
-    p.add_argument("--algo", default="nasa_td3")
+    p.add_argument("--task", type=task_name, default="cartpole-balance")
+    p.add_argument("--algo", choices=ALGOS, default="nasa_td3")
     p.add_argument("--seconds", type=float, default=15.0, help="length of each window")
     p.add_argument("--rounds", type=int, default=2, help="pairs of quiet and polled windows")
     p.add_argument("--fill", type=int, default=600, help="transitions stored before the learner starts")

@@ -40,6 +40,7 @@ import time
 from contextlib import nullcontext
 from pathlib import Path
 
+from bench.args import task_name
 from bench.processes import stop_group, stopped_cleanly
 from nasa.layout import usable_cores
 from nasa.up import free_port
@@ -201,7 +202,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench-results/learning"))
     parser.add_argument("--only", choices=("train", "up"), default=None)
     parser.add_argument("--seed", type=seed_list, default=[0], help="a seed, or several: 0,1,2")
-    parser.add_argument("--task", default=TASK, help="the task (default: the headline task)")
+    parser.add_argument("--task", type=task_name, default=TASK, help="the task (default: the headline task)")
     parser.add_argument("--report", action="store_true", help="only summarize the runs already in --out")
     own, settings = split_settings(sys.argv[1:])
     args = parser.parse_args(own)

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.args import ALGOS, task_name
+
 REPO = Path(__file__).resolve().parents[1]
 # Every stored transition a warm-up one (intrinsic 0): no scoring on either side. The step budget
 # (Cluster.common) is twice it, so the learner, which makes no update past G x (steps - warm-up),
@@ -325,8 +327,8 @@ def service_figures(args: argparse.Namespace, report, load: list[float]) -> dict
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m bench.system", description=__doc__.split("\n\n")[0])
-    p.add_argument("--task", default="cartpole-balance")
-    p.add_argument("--algo", default="nasa_td3")
+    p.add_argument("--task", type=task_name, default="cartpole-balance")
+    p.add_argument("--algo", choices=ALGOS, default="nasa_td3")
     p.add_argument("--seconds", type=float, default=10.0, help="measuring window of each figure")
     p.add_argument("--fill", type=int, default=600, help="transitions in the replay for the learner figures")
     p.add_argument("--device", default="cpu")

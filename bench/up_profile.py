@@ -36,6 +36,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bench.args import task_name
 from bench.gil_profile import GilProfileError, Recording
 from bench.processes import stop_group, stopped_cleanly
 from bench.system import cpu_seconds
@@ -196,7 +197,7 @@ def measure(a: dict, b: dict, wire_cost: dict, cores: int) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--task", default="ball_in_cup-catch")
+    p.add_argument("--task", type=task_name, default="ball_in_cup-catch")
     p.add_argument("--seconds", type=float, default=120.0, help="the measured window")
     p.add_argument("--settle", type=float, default=30.0, help="seconds of learning before the window")
     p.add_argument("--gil", action="store_true",

@@ -1,0 +1,28 @@
+"""A benchmark given an unknown task or algorithm refuses it as a bad flag: one line, exit 2, at
+once, not after starting services that refuse it while the benchmark waits for them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from system_harness import REPO
+
+
+@pytest.mark.parametrize("name", ["system", "dashboard", "learning", "up_profile"])
+def test_an_unknown_task_is_refused_at_once(name):
+    out = subprocess.run([sys.executable, "-m", f"bench.{name}", "--task", "cartpole-sideways"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and out.stdout == ""
+    last = out.stderr.splitlines()[-1]
+    assert "argument --task: unknown task 'cartpole-sideways'; valid tasks are: " in last
+    assert "cartpole-balance" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("name", ["system", "dashboard"])
+def test_an_unknown_algorithm_is_refused_at_once(name):
+    out = subprocess.run([sys.executable, "-m", f"bench.{name}", "--algo", "td4"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "argument --algo: invalid choice: 'td4'" in out.stderr
+    assert "Traceback" not in out.stderr
