@@ -85,3 +85,19 @@ def test_a_graphed_measurement_that_fails_reports_its_error_and_nothing_else(mon
     monkeypatch.setattr(update_profile, "updates_per_s", broken)
     out = update_profile.graphed({}, torch.device("cpu"), updates=1, profiled=1)
     assert out == {"cuda_graph_error": f"RuntimeError: {why}"}
+
+
+def test_the_device_is_resolved_as_the_learner_resolves_it(monkeypatch):
+    # On the CPU that keeps freed memory for reuse, as bench.learner's workers and the learner do.
+    import shared.device
+
+    kept = []
+    monkeypatch.setattr(shared.device, "keep_freed_memory", lambda: kept.append(True) or True)
+    assert update_profile.parse_args(["--device", "cpu"]).device == torch.device("cpu") and kept
+
+
+@pytest.mark.parametrize("device", ["tpu", "cuda:99"])
+def test_a_device_that_is_not_here_is_refused_with_exit_2(device, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        update_profile.parse_args(["--device", device])
+    assert exit_info.value.code == 2 and "--device" in capsys.readouterr().err
