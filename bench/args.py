@@ -8,7 +8,7 @@ import argparse
 
 from shared.config import ALGOS
 
-__all__ = ["ALGOS", "task_name"]
+__all__ = ["ALGOS", "task_name", "task_names"]
 
 
 def task_name(text: str) -> str:
@@ -20,3 +20,8 @@ def task_name(text: str) -> str:
     except UnknownTaskError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
     return text
+
+
+def task_names(text: str) -> list[str]:
+    """An argparse type: comma-separated tasks, each one some environment source owns."""
+    return [task_name(name) for name in text.split(",")]

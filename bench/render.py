@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from bench.args import task_name
 from shared import envs, gl
 
 QUALITIES = gl.RENDER_QUALITIES  # paper first: the others are compared with it
@@ -112,7 +113,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--gl-threads", action="store_true", help="compare the rasterizer's threads")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--tasks", nargs="+", default=list(envs.PAPER_TASKS))
+    parser.add_argument("--tasks", nargs="+", type=task_name, default=list(envs.PAPER_TASKS))
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:

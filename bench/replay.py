@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.args import task_names
 from shared.envs import PAPER_TASKS, make
 from shared.replay import ReplayStore
 from shared.replay.codec import COMPRESSIONS, FrameCodec
@@ -211,7 +212,7 @@ def main() -> None:
     p.add_argument("--compression", choices=COMPRESSIONS, default="lz4")
     p.add_argument("--per-chunk", type=int, default=8, help="transitions per decoded chunk")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--tasks", default=",".join(PAPER_TASKS))
+    p.add_argument("--tasks", type=task_names, default=list(PAPER_TASKS), help="comma-separated")
     args = p.parse_args()
     print(
         f"replay bench: {args.frames} real frames per task (render_quality=fast, random actions), "
@@ -220,7 +221,7 @@ def main() -> None:
     )
     rows = {}
     with tempfile.TemporaryDirectory(prefix="replay-bench-") as tmp:
-        for task in args.tasks.split(","):
+        for task in args.tasks:
             rows[task] = bench_task(task, args, Path(tmp))
 
     def mean(key: str) -> float:

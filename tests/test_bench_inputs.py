@@ -10,13 +10,16 @@ import pytest
 from system_harness import REPO
 
 
-@pytest.mark.parametrize("name", ["system", "dashboard", "learning", "up_profile"])
+@pytest.mark.parametrize("name", ["system", "dashboard", "learning", "up_profile", "replay", "render"])
 def test_an_unknown_task_is_refused_at_once(name):
-    out = subprocess.run([sys.executable, "-m", f"bench.{name}", "--task", "cartpole-sideways"], cwd=REPO,
+    flags = {"replay": ["--tasks", "cartpole-balance,cartpole-sideways"],
+             "render": ["--tasks", "cartpole-balance", "cartpole-sideways"]}
+    flag = flags.get(name, ["--task", "cartpole-sideways"])  # the bad one after a good one
+    out = subprocess.run([sys.executable, "-m", f"bench.{name}", *flag], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and out.stdout == ""
     last = out.stderr.splitlines()[-1]
-    assert "argument --task: unknown task 'cartpole-sideways'; valid tasks are: " in last
+    assert f"argument {flag[0]}: unknown task 'cartpole-sideways'; valid tasks are: " in last
     assert "cartpole-balance" in out.stderr and "Traceback" not in out.stderr
 
 
