@@ -138,15 +138,17 @@ def main(argv: list[str] | None = None) -> None:
                     answered = [0] * len(pollers)
                     readers = [threading.Thread(target=_count, args=(q, answered, i), daemon=True)
                                for i, q in enumerate(pollers)]
-                    for r in readers:
-                        r.start()
-                    time.sleep(1.0)  # the pollers' start-up is not measured
-                    t0, s0, c0, n0 = time.monotonic(), steps[0], cpu_seconds(os.getpid()), sum(answered)
-                    time.sleep(args.seconds)
-                    t1, s1, c1, n1 = time.monotonic(), steps[0], cpu_seconds(os.getpid()), sum(answered)
-                    for q in pollers:
-                        q.kill()
-                        q.wait()
+                    try:
+                        for r in readers:
+                            r.start()
+                        time.sleep(1.0)  # the pollers' start-up is not measured
+                        t0, s0, c0, n0 = time.monotonic(), steps[0], cpu_seconds(os.getpid()), sum(answered)
+                        time.sleep(args.seconds)
+                        t1, s1, c1, n1 = time.monotonic(), steps[0], cpu_seconds(os.getpid()), sum(answered)
+                    finally:  # also on Ctrl-C or SIGTERM: left, each would fail on the stopped API
+                        for q in pollers:
+                            q.kill()
+                            q.wait()
                     out[kind]["steps_per_s"].append(round((s1 - s0) / (t1 - t0), 2))
                     out[kind]["steps_per_cpu_s"].append(round((s1 - s0) / max(c1 - c0, 1e-9), 2))
                     out[kind]["requests_per_s"].append(round((n1 - n0) / (t1 - t0), 1))

@@ -117,3 +117,13 @@ def test_bench_learner_stops_its_worker_and_removes_its_batch_on_sigterm(tmp_pat
                   mark, tmp)
     wait_for("worker", running(mark, "--worker"), bench)
     stop_and_check(bench, signal.SIGTERM, mark, tmp)
+
+
+def test_bench_status_polling_stops_its_pollers_on_sigterm(tmp_path):
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    bench = start(["bench.status_polling", "--pollers", "2", "--seconds", "8", "--rounds", "1"], mark, tmp)
+    # The quiet window comes first: wait for the pollers of the next one, in its measured part.
+    wait_for("pollers", lambda: sum("httpx" in cmd for _, cmd in marked(mark)) == 2, bench)
+    time.sleep(1.5)
+    stop_and_check(bench, signal.SIGTERM, mark, tmp)
