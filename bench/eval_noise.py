@@ -60,17 +60,20 @@ def first_goal_distribution(chances: list[float]) -> tuple[list[float], float]:
 def analyse(rows: list[tuple[int, np.ndarray]], episodes: int, goal: float, resamples: int,
             seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
-    steps, per_step = [], []
+    steps, means, chances, per_step = [], [], [], []
     for step, returns in rows:
         n = len(returns)
         mean = float(returns.mean())
         half_width = 1.96 * float(returns.std(ddof=1)) / math.sqrt(n) if n > 1 else None
         chance = chance_of_goal(returns, episodes, goal, resamples, rng)
         steps.append(step)
+        means.append(mean)
+        chances.append(chance)
         per_step.append({"step": step, "episodes": n, "mean": round(mean, 1),
                          "ci95": round(half_width, 1) if half_width is not None else None,
                          "chance_of_goal": round(chance, 4)})
-    first, never = first_goal_distribution([r["chance_of_goal"] for r in per_step])
+    # From the values as computed: the rounded ones printed would read 699.96 as the goal of 700.
+    first, never = first_goal_distribution(chances)
     cumulative = list(np.cumsum(first)) if first else []
 
     def quantile_step(q: float) -> int | None:
@@ -80,7 +83,7 @@ def analyse(rows: list[tuple[int, np.ndarray]], episodes: int, goal: float, resa
         "episodes_per_evaluation": episodes,
         "goal": goal,
         "per_step": per_step,
-        "first_step_mean_at_goal": next((r["step"] for r in per_step if r["mean"] >= goal), None),
+        "first_step_mean_at_goal": next((s for s, m in zip(steps, means, strict=True) if m >= goal), None),
         "chance_goal_read_by_last_step": round(1.0 - never, 4),
         "median_first_goal_step": quantile_step(0.5),
         "first_goal_step_quartiles": [quantile_step(0.25), quantile_step(0.75)],

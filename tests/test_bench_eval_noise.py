@@ -61,3 +61,11 @@ def test_the_command_prints_one_json_line_last_and_refuses_a_folder_without_eval
     refused = subprocess.run([sys.executable, "-m", "bench.eval_noise", str(tmp_path / "empty")],
                              capture_output=True, text=True)
     assert refused.returncode == 2 and "eval.csv" in refused.stderr
+
+
+def test_a_mean_just_under_the_goal_is_not_read_as_the_goal():
+    # 699.96, shown rounded as 700.0, is under 700.
+    rows = [(0, np.array([699.92, 700.0])), (1000, np.array([700.0, 700.0]))]
+    result = analyse(rows, 2, 700.0, 1000)
+    assert result["per_step"][0]["mean"] == 700.0  # as printed
+    assert result["first_step_mean_at_goal"] == 1000
