@@ -104,3 +104,11 @@ def test_a_second_launch_on_the_same_out_is_refused_and_clears_nothing(tmp_path)
     assert "belongs to another run (pid" in second.stderr and "a launch under way" in second.stderr
     assert "use another --out" in second.stderr
     assert (run / "eval.csv").read_text() == "step,mean\n0,0\n"  # the first launch's run is untouched
+
+
+def test_a_mean_just_under_the_goal_does_not_reach_it(tmp_path):
+    # 699.96 is shown rounded as 700.0 in the curve, but is under the goal of 700.
+    (tmp_path / "eval.csv").write_text("step,mean\n0,0\n1000,699.96\n2000,700\n")
+    summary = summarize(tmp_path, 60.0, 60.0, {0: 1.0, 1000: 20.0, 2000: 40.0})
+    assert summary["evals_step_mean_launch_s_run_s"][1][1] == 700.0
+    assert summary["first_goal_step"] == 2000 and summary["first_goal_launch_s"] == 40.0
