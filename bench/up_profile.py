@@ -152,7 +152,9 @@ def gil_result(recording: Recording | GilProfileError) -> dict:
         return {"error": str(err)}
 
 
-def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float) -> None:
+def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float, head: list[str]) -> None:
+    """Until the learner has made an update; else one line: why nasa up ended (its last line of
+    output, `head` being the lines already read of it), or that it made none in time."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and proc.poll() is None:
         try:
@@ -161,7 +163,12 @@ def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float) -> None:
         except (httpx.HTTPError, ValueError):
             pass
         time.sleep(1)
-    raise SystemExit(f"nasa up made no update in {timeout_s:.0f} s (exit {proc.poll()})")
+    if proc.poll() is None:
+        raise SystemExit(f"bench.up_profile: nasa up made no update in {timeout_s:.0f} s")
+    lines = [line.strip() for line in [*head, *proc.stdout.read().splitlines()] if line.strip()]
+    why = lines[-1] if lines else "no output"
+    raise SystemExit(f"bench.up_profile: nasa up ended (exit {proc.returncode}) before its first update: "
+                     f"{why}")
 
 
 def learner_wall_share(a: dict, b: dict) -> dict[str, float]:
@@ -213,10 +220,12 @@ def main() -> None:
         proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 start_new_session=True)
         try:
-            layout_line = [proc.stdout.readline().strip() for _ in range(2)][1]
-            print(layout_line, flush=True)
+            head = [proc.stdout.readline() for _ in range(2)]
+            layout_line = head[1].strip()
+            if layout_line:  # none where nasa up refused its flags: its error comes below
+                print(layout_line, flush=True)
             url = f"http://127.0.0.1:{port}"
-            wait_learning(url, proc, 600)
+            wait_learning(url, proc, 600, head)
             time.sleep(args.settle)
             pids = {"launcher+router": proc.pid, **service_pids(proc.pid)}
             first = snapshot(url, pids)
