@@ -42,6 +42,7 @@ from bench.processes import stop_group, stopped_cleanly
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
+from shared.service import EXIT_BAD_INPUT
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -167,8 +168,9 @@ def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float, head: list
         raise SystemExit(f"bench.up_profile: nasa up made no update in {timeout_s:.0f} s")
     lines = [line.strip() for line in [*head, *proc.stdout.read().splitlines()] if line.strip()]
     why = lines[-1] if lines else "no output"
-    raise SystemExit(f"bench.up_profile: nasa up ended (exit {proc.returncode}) before its first update: "
-                     f"{why}")
+    print(f"bench.up_profile: nasa up ended (exit {proc.returncode}) before its first update: {why}",
+          file=sys.stderr)
+    sys.exit(2 if proc.returncode == EXIT_BAD_INPUT else 1)  # its input refused: so is this run's
 
 
 def learner_wall_share(a: dict, b: dict) -> dict[str, float]:
