@@ -63,10 +63,14 @@ def measure(args: argparse.Namespace) -> dict:
             url = f"http://127.0.0.1:{port}"
 
             def updates() -> int:
+                deadline = time.monotonic() + 180
                 while True:
                     try:
                         return int(httpx.get(url + "/status", timeout=5.0).json()["updates"])
                     except (httpx.HTTPError, KeyError, ValueError):
+                        cluster.check_alive()  # a learner that died would be waited on for ever
+                        if time.monotonic() > deadline:
+                            raise RuntimeError(f"no status from the learner; see {tmp}/logs") from None
                         time.sleep(0.2)
 
             while updates() < 3:

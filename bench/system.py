@@ -160,6 +160,15 @@ class Cluster:
     def start(self, name: str, role: str, extra: list[str]) -> None:
         self.sup.add(name, role, [*self.common, *extra])
 
+    def check_alive(self) -> None:
+        """RuntimeError naming the first service that has ended, and why (its log's last line): no
+        service is restarted here, and a wait on it would last its whole timeout."""
+        from nasa.up import exit_text
+
+        for child in self.sup.children.values():
+            if child.proc is not None and (code := child.proc.poll()) is not None:
+                raise RuntimeError(f"{child.name} {exit_text(code)} ({self.sup.last_error(child)})")
+
     def learner_on_a_filled_replay(self, fill: int, port: int, extra: list[str]) -> None:
         """The replay (no rate limit) filled to `fill` rows by one actor, the actor stopped, and
         the learner started on it, its status API on `port`: a learner with nothing to wait on."""
@@ -168,6 +177,7 @@ class Cluster:
         self.start("actor-0", "actor", ["--actor-id", "0", *WARM])
         deadline = time.monotonic() + 180
         while not (self.inserted and self.inserted[-1][1] >= fill):
+            self.check_alive()
             if time.monotonic() > deadline:
                 raise RuntimeError("replay did not fill")
             time.sleep(0.2)
@@ -175,6 +185,7 @@ class Cluster:
         self.sup.stopping = True
         actor.proc.terminate()
         actor.proc.wait(timeout=30)
+        del self.sup.children["actor-0"]  # stopped on purpose: not a service that ended (check_alive)
         self.sup.stopping = False
         self.start("learner", "learner", ["--data", data, "--port", str(port), *extra, *WARM])
 
@@ -186,6 +197,7 @@ class Cluster:
         pids = pids or {}
         deadline = time.monotonic() + timeout
         while not (self.inserted and self.inserted[-1][1] > 0):
+            self.check_alive()
             if time.monotonic() > deadline:
                 raise RuntimeError(f"no inserts; see {self.data / 'logs'}")
             time.sleep(0.2)
@@ -286,6 +298,7 @@ def service_learner_rate(args: argparse.Namespace, auth: bool = False) -> float:
 
             deadline = time.monotonic() + 180
             while (u := updates()) is None or u < 3:
+                cluster.check_alive()
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"learner made no updates; see {tmp}/logs")
                 time.sleep(0.2)
@@ -349,6 +362,12 @@ def main(argv: list[str] | None = None) -> None:
 
     if args.only_auth and not args.auth_rounds:
         p.error("--only-auth needs --auth-rounds N")
+    from shared.device import DeviceError, resolve_device
+
+    try:  # here, not in the services started after the in-process figures
+        resolve_device(args.device)
+    except DeviceError as err:
+        p.error(f"--device: {err}")
     load = [os.getloadavg()[0]]
     result: dict = {"task": args.task, "algo": args.algo, "preset": "cpu-small", "render_quality": "fast",
                     "device": args.device, "learner_threads": args.learner_threads}

@@ -19,3 +19,27 @@ def test_only_auth_needs_rounds(capsys):
     with pytest.raises(SystemExit):
         main(["--only-auth"])
     assert "--only-auth needs --auth-rounds" in capsys.readouterr().err
+
+
+def test_a_device_that_is_not_here_is_refused_before_anything_runs(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--device", "cuda:7"])
+    assert exit_.value.code == 2 and "--device: " in capsys.readouterr().err
+
+
+def test_a_service_that_ends_is_named_at_once_not_waited_on(tmp_path):
+    # A replay that refuses its flags: the wait for inserts says so instead of lasting its timeout.
+    import argparse
+    import time
+
+    from bench.system import Cluster
+
+    cluster = Cluster(argparse.Namespace(task="cartpole-balance", algo="nasa_td3"), tmp_path)
+    try:
+        cluster.start("replay", "replay", ["--no-such-flag"])
+        start = time.monotonic()
+        with pytest.raises(RuntimeError, match=r"replay exited with 2 \(.*replay\.log: .*no-such-flag"):
+            cluster.insert_rate(1.0, timeout=120.0)
+        assert time.monotonic() - start < 100
+    finally:
+        cluster.close()
