@@ -73,6 +73,20 @@ def phase(system, seconds: float) -> tuple[float, int, int]:  # noqa: ANN001
     return b["wall_s"] - a["wall_s"], b["env_steps"] - a["env_steps"], b["updates"] - a["updates"]
 
 
+def fuzzed_phase(system, session, messages: list, rate: float, seconds: float,  # noqa: ANN001
+                 sent: list) -> tuple[float, int, int]:
+    """One phase (`phase`) under a stream of bad messages, stopped with it however it ends: left
+    running, the sender (not a daemon) would keep this process from exiting after a Ctrl-C."""
+    stop = threading.Event()
+    sender = threading.Thread(target=fuzz_stream, args=(session, messages, rate, stop, sent))
+    sender.start()
+    try:
+        return phase(system, seconds)
+    finally:
+        stop.set()
+        sender.join()
+
+
 def rates(phases: list[tuple[float, int, int]]) -> dict:
     t, e, u = (sum(p[i] for p in phases) for i in range(3))
     return {"env_steps_per_s": round(e / t, 2), "updates_per_s": round(u / t, 2), "seconds": round(t, 1)}
@@ -107,12 +121,7 @@ def main(argv: list[str] | None = None) -> None:
             clean, fuzzed, sent = [], [], [0]
             for _ in range(args.rounds):
                 clean.append(phase(system, args.seconds))
-                stop = threading.Event()
-                sender = threading.Thread(target=fuzz_stream, args=(session, messages, args.rate, stop, sent))
-                sender.start()
-                fuzzed.append(phase(system, args.seconds))
-                stop.set()
-                sender.join()
+                fuzzed.append(fuzzed_phase(system, session, messages, args.rate, args.seconds, sent))
             last = system.status()
             restarts = sum(c.restarts for c in system.sup.children.values())
             session.close()
