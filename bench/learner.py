@@ -224,7 +224,8 @@ def project_scoring(agent, data: dict, device: torch.device, repeats: int, count
     return {"score_ms_per_transition": ms, "score_flops_per_transition": flops}
 
 
-def reference_worker(data: dict, device: torch.device, updates: int, directory: Path, count: bool) -> dict:
+def reference_worker(data: dict, device: torch.device, updates: int, directory: Path, count: bool,
+                     score_repeats: int) -> dict:
     from bench import reference
 
     torch.manual_seed(0)
@@ -243,7 +244,10 @@ def reference_worker(data: dict, device: torch.device, updates: int, directory: 
 
     result = {
         "updates_per_s": rate,
-        "score_ms_per_transition": {"batch_1": seconds_per_call(score_singles, 1, device) * 1000 / n_singles},
+        # As many timed passes as the project's scoring gets (--score-repeats), not one.
+        "score_ms_per_transition": {
+            "batch_1": seconds_per_call(score_singles, score_repeats, device) * 1000 / n_singles
+        },
     }
     if count:
         result["update_flops"] = update_flops
@@ -287,7 +291,8 @@ def run_worker(args: argparse.Namespace) -> None:
             if args.variants:
                 result |= variant_figures(data, device, args.updates, args.score_repeats, args.variants)
         else:
-            result = reference_worker(data, device, args.updates, args.reference, args.count_flops)
+            result = reference_worker(data, device, args.updates, args.reference, args.count_flops,
+                                      args.score_repeats)
     result["torch_threads"] = torch.get_num_threads()
     result["load_avg_1m"] = os.getloadavg()[0]
     print(json.dumps(result))

@@ -35,3 +35,17 @@ def test_counts_and_times_must_be_above_zero(flag, capsys):
 
 def test_an_unknown_algorithm_is_refused_before_any_worker_runs(capsys):
     assert "argument --algo: invalid choice: 'td4'" in refused(["--algo", "td4"], capsys)
+
+
+def test_the_reference_scores_as_many_timed_passes_as_the_project(monkeypatch, cpu):
+    import numpy as np
+
+    from bench import reference
+
+    scored = []
+    monkeypatch.setattr(reference, "make", lambda *a, **k: object())
+    monkeypatch.setattr(reference, "update", lambda agent, data: None)
+    monkeypatch.setattr(reference, "score_one", lambda agent, *t: scored.append(1) or 0.0)
+    data = {"stacks": np.zeros((33, 9, 8, 8), np.uint8), "action": np.zeros((32, 6), np.float32)}
+    learner.reference_worker(data, cpu, updates=2, directory=None, count=False, score_repeats=3)
+    assert len(scored) == learner.SINGLES * (1 + 3)  # one untimed pass, then the project's repeats
