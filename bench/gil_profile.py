@@ -45,8 +45,9 @@ class Recording:
         spy = find_py_spy()
         if spy is None:
             raise GilProfileError("py-spy not found (pip install py-spy, or set PY_SPY to its binary)")
-        self.seconds, self.rate_hz, self.out = seconds, rate_hz, Path(out)
-        cmd = [spy, "record", "--pid", str(pid), "--duration", str(max(1, round(seconds))),
+        # py-spy records whole seconds: the shares are of the duration it records, not the one asked.
+        self.seconds, self.rate_hz, self.out = max(1, round(seconds)), rate_hz, Path(out)
+        cmd = [spy, "record", "--pid", str(pid), "--duration", str(self.seconds),
                "--rate", str(rate_hz), "--format", "raw", "--output", str(self.out),
                "--threads", "--gil", "--nonblocking"]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -83,3 +83,21 @@ def test_a_real_recording_sees_both_busy_threads_share_the_lock(tmp_path):
     assert 0.6 < sum(shares.values()) <= 1.05  # one lock: the shares add up to at most the wall clock
     assert "spin_main (<string>)" in out["main_thread_functions"] or any(
         k.startswith("spin_main") for k in out["main_thread_functions"])
+
+
+FAKE_PY_SPY = """#!/bin/sh
+# Holds the lock in every sample of the duration and rate it is given, as a busy main thread does.
+while [ $# -gt 0 ]; do
+  case "$1" in --duration) d=$2; shift;; --rate) r=$2; shift;; --output) o=$2; shift;; esac; shift
+done
+echo "thread (1): MainThread;f (a.py:1) $((d * r))" > "$o"
+"""
+
+
+def test_shares_are_of_the_whole_seconds_py_spy_records(monkeypatch, tmp_path):
+    spy = tmp_path / "py-spy"
+    spy.write_text(FAKE_PY_SPY)
+    spy.chmod(0o755)
+    monkeypatch.setenv("PY_SPY", str(spy))
+    out = Recording(1, 0.4, tmp_path / "gil.txt", rate_hz=10).result()  # py-spy records 1 s of it
+    assert out["seconds"] == 1 and out["gil_share_by_thread"] == {"MainThread": 1.0}
