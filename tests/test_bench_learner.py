@@ -49,3 +49,16 @@ def test_the_reference_scores_as_many_timed_passes_as_the_project(monkeypatch, c
     data = {"stacks": np.zeros((33, 9, 8, 8), np.uint8), "action": np.zeros((32, 6), np.float32)}
     learner.reference_worker(data, cpu, updates=2, directory=None, count=False, score_repeats=3)
     assert len(scored) == learner.SINGLES * (1 + 3)  # one untimed pass, then the project's repeats
+
+
+def test_the_bf16_peak_is_timed_only_for_a_bf16_variant(monkeypatch, cpu, tmp_path):
+    """A CPU without bfloat16 units emulates it: its peak takes minutes and no figure reads it
+    unless a variant runs in bf16."""
+    from bench import hardware
+
+    monkeypatch.setattr(hardware, "matmul_peak_gflops", lambda *a, **k: 1.0)
+    assert learner.peak_worker(cpu, 0.01, bf16=False) == {"fp32": 1.0}
+    assert learner.peak_worker(cpu, 0.01, bf16=True) == {"fp32": 1.0, "bf16": 1.0}
+    assert learner.uses_bf16(["nasa_td3+bf16"]) and not learner.uses_bf16(["td3_ae", "sac_ae"])
+    args = learner.parse_args(["--variants", "nasa_td3+bf16"])
+    assert "nasa_td3+bf16" in learner.worker_command(args, "peak", tmp_path / "batch.npz", False)
