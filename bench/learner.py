@@ -14,8 +14,8 @@ weighs on both sides alike):
 - `reference` (with `--reference DIR`, a checkout of UoA-CARES/NaSA_TD3): its
   `train_policy` + `train_predictive_model` per update and `get_intrinsic_values`
   per transition, on the same batch;
-- `peak`: the matmul peak of this device with the same threads (fp32 and bf16 GEMM on
-  the CPU, the faster of BLAS and oneDNN; fp32, TF32 and BF16 on a GPU).
+- `peak`: the matmul peak of this device with the same threads (fp32 GEMM on
+  the CPU, and bf16 with a bf16 variant, the faster of BLAS and oneDNN; fp32, TF32 and BF16 on a GPU).
 
 The summary holds the medians over rounds, the ratios to the reference (none
 without --reference) and the achieved FLOP/s over the peak. FLOPs are torch's
