@@ -209,6 +209,12 @@ class Cluster:
         t0, n0 = self.inserted[-1]
         c0 = cpu()
         time.sleep(seconds)
+        deadline = time.monotonic() + timeout
+        while self.inserted[-1][0] == t0:  # a window shorter than the replay's stats interval
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no replay stats after the window; see {self.data / 'logs'}")
+            time.sleep(0.05)
         t1, n1 = self.inserted[-1]
         c1 = cpu()
         steps = max(n1 - n0, 1)

@@ -43,3 +43,17 @@ def test_a_service_that_ends_is_named_at_once_not_waited_on(tmp_path):
         assert time.monotonic() - start < 100
     finally:
         cluster.close()
+
+
+def test_a_window_shorter_than_the_replays_stats_interval_waits_for_the_next_stats(tmp_path):
+    import threading
+
+    from bench.system import Cluster
+
+    cluster = Cluster.__new__(Cluster)  # the rate's arithmetic alone: stats as the replay sends them
+    cluster.inserted, cluster.data, cluster.check_alive = [(1.0, 10)], tmp_path, lambda: None
+    late = threading.Timer(0.3, lambda: cluster.inserted.append((2.0, 30)))
+    late.start()
+    rate, cpu = cluster.insert_rate(0.01, settle_s=0.0)
+    late.join()
+    assert rate == 20.0 and set(cpu) == {"router"}
