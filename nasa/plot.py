@@ -8,16 +8,24 @@ Finds every eval.csv under a results folder, names each run by its config.json
   runner (a run of the distributed system, `nasa up`, is told by the learner/
   folder it leaves, and drawn as "<algo>, nasa up"): the mean
   over seeds of the evaluation return, with a band of +-1 standard deviation
-  over seeds (population std). Seeds are aligned on the steps every seed was
-  evaluated at, so a curve stops where its shortest seed stops (no
-  interpolation: nothing is drawn that was not measured). A dotted line marks
-  the untrained policy's return (the evaluation at step 0, mean over the
-  task's runs). With `--x minutes` the x axis is the run's wall-clock time at
-  which each evaluated step was reached (train.csv), to compare runners.
+  over seeds (population std). Where every seed was evaluated at the same
+  steps the curve is drawn at those; where their steps differ (an evaluator
+  that skipped a step, another eval_every), each seed is interpolated
+  linearly onto every step any of them was evaluated at, and the caption says
+  so. A curve stops where its shortest seed stops. Runs of one task with
+  different action repeats are separate series. A dotted line marks the
+  untrained policy's return (the evaluation at step 0, mean over the task's
+  runs). The x axis: env steps (`--x steps`: one step is one action, held for
+  `action_repeat` simulator frames; the label gives the action repeat),
+  frames (`--x frames`: steps x action repeat, the axis of SAC-AE's and DrQ's
+  published figures, and of the paper's, which has no action repeat), or the
+  run's wall-clock time at which each evaluated step was reached (`--x
+  minutes`, train.csv), to compare runners.
 - results.md: per task and algorithm, the final return (mean +- std over seeds
   of each seed's last evaluation), the best return (mean over seeds of each
-  seed's best evaluation), the number of seeds, the last step, and the paper's
-  approximate figure at 1M steps where the paper gives one (docs/reference.md).
+  seed's best evaluation), the number of seeds, the action repeat, the last
+  step and frame, and the paper's approximate figure at 1M steps without
+  action repeat (1M frames) where the paper gives one (docs/reference.md).
 """
 
 from __future__ import annotations
@@ -53,6 +61,7 @@ PAPER_FINAL: dict[str, dict[str, float]] = {
     "cheetah-run": {"nasa_td3": 570, "sac_ae": 280, "td3_ae": 360},
 }
 BAND = "band: +-1 std over seeds"
+X_LABELS = {"frames": "frames (env steps x action repeat)", "minutes": "wall-clock minutes"}
 
 
 @dataclass
@@ -69,11 +78,20 @@ class SeedCurve:
     """`train` (nasa train, nasa reproduce) or `up` (the distributed system)."""
     walls: np.ndarray | None = None
     """Wall-clock seconds at which each step was reached (NaN: not known)."""
+    action_repeat: int | None = None
+    """Simulator frames per env step (config.json's env.action_repeat; None: not known)."""
 
     @property
     def series(self) -> str:
         """The curve's name in a panel: the algorithm, and the runner when it is the distributed one."""
         return self.algo if self.runner == "train" else f"{self.algo}, nasa up"
+
+    @property
+    def frames(self) -> np.ndarray:
+        """The frame count of each evaluated step (ValueError: the action repeat is not known)."""
+        if self.action_repeat is None:
+            raise ValueError("its action repeat is not known (no env.action_repeat in a config.json)")
+        return self.steps * self.action_repeat
 
 
 @dataclass
@@ -89,6 +107,15 @@ class Summary:
     final_std: float
     best_mean: float
     paper: float | None
+    action_repeat: int | None = None
+    """The series' action repeat (None: not known)."""
+
+    @property
+    def last_frames(self) -> tuple[int, int] | None:
+        """(min, max) over seeds of each seed's last evaluated frame (None: action repeat unknown)."""
+        if self.action_repeat is None:
+            return None
+        return self.last_steps[0] * self.action_repeat, self.last_steps[1] * self.action_repeat
 
 
 def run_identity(folder: Path) -> tuple[str, str, int] | None:
@@ -107,6 +134,20 @@ def run_identity(folder: Path) -> tuple[str, str, int] | None:
     if folder.name.startswith("seed") and folder.name[4:].isdigit():
         return folder.parent.parent.name, folder.parent.name, int(folder.name[4:])
     return None
+
+
+def action_repeat_of(folder: Path) -> int | None:
+    """The run's env.action_repeat from its config.json, or None where it has none."""
+    config_path = folder / "config.json"
+    if not config_path.exists():
+        return None
+    env = read_json_object(config_path, what="a run's config").get("env")
+    repeat = env.get("action_repeat") if isinstance(env, dict) else None
+    if repeat is None:
+        return None
+    if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
+        raise ConfigError(f"{config_path}: env.action_repeat must be a whole number from 1, got {repeat!r}")
+    return repeat
 
 
 def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
@@ -135,6 +176,7 @@ def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
             if (np.abs(steps) >= 2**62).any():  # beyond any run, and near int64's end
                 raise ValueError("a step out of range")
             steps = steps.astype(np.int64)
+            repeat = action_repeat_of(path.parent)
             at = eval_walls(path.parent, steps.tolist()) if walls else {}
         except ConfigError as err:
             print(f"nasa plot: skipping {path}: {err}", file=sys.stderr)
@@ -149,8 +191,19 @@ def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
             continue
         seen[(*identity, runner)] = path
         runs.append(SeedCurve(*identity, steps=steps, means=means, path=path, runner=runner,
-                              walls=np.array([at.get(int(s), np.nan) for s in steps])))
+                              walls=np.array([at.get(int(s), np.nan) for s in steps]),
+                              action_repeat=repeat))
     return runs
+
+
+def with_frames(runs: list[SeedCurve]) -> list[SeedCurve]:
+    """The runs whose action repeat is known (a frame axis needs it); the others are named."""
+    known = [r for r in runs if r.action_repeat is not None]
+    for r in runs:
+        if r.action_repeat is None:
+            print(f"nasa plot: skipping {r.path} on the frames axis: no env.action_repeat in a config.json",
+                  file=sys.stderr)
+    return known
 
 
 def _order(names: set[str], preferred: tuple[str, ...]) -> list[str]:
@@ -158,23 +211,45 @@ def _order(names: set[str], preferred: tuple[str, ...]) -> list[str]:
     return [n for n in preferred if n in names] + sorted(names - set(preferred))
 
 
+def series_name(run: SeedCurve, split_repeat: bool) -> str:
+    """The run's series; with `split_repeat` (its task has runs of several action repeats, whose
+    steps are not the same amount of experience) the action repeat too."""
+    if not split_repeat:
+        return run.series
+    return f"{run.series}, action repeat {'?' if run.action_repeat is None else run.action_repeat}"
+
+
 def group(runs: list[SeedCurve]) -> dict[str, dict[str, list[SeedCurve]]]:
-    """task -> series (algorithm, and runner) -> seed curves, tasks and algorithms in the paper's order."""
+    """task -> series (algorithm, runner, and action repeat where the task's runs differ in it) ->
+    seed curves, tasks and algorithms in the paper's order."""
     out: dict[str, dict[str, list[SeedCurve]]] = {}
     for task in _order({r.task for r in runs}, PAPER_TASKS):
         of_task = [r for r in runs if r.task == task]
+        split = len({r.action_repeat for r in of_task}) > 1
+        names = {series_name(r, split) for r in of_task}
         out[task] = {
-            series: sorted((r for r in of_task if r.series == series), key=lambda r: r.seed)
-            for series in _order({r.series for r in of_task}, ALGOS)
+            name: sorted((r for r in of_task if series_name(r, split) == name), key=lambda r: r.seed)
+            for name in _order(names, ALGOS)
         }
     return out
 
 
+def same_steps(curves: list[SeedCurve]) -> bool:
+    """Whether every seed was evaluated at the same steps up to the shortest seed's last."""
+    end = min(int(c.steps[-1]) for c in curves)
+    first = curves[0].steps[curves[0].steps <= end].tolist()
+    return all(c.steps[c.steps <= end].tolist() == first for c in curves)
+
+
 def align(curves: list[SeedCurve]) -> tuple[np.ndarray, np.ndarray]:
-    """(steps, values[seed, step]) on the steps every seed was evaluated at."""
-    per_seed = [dict(zip(c.steps.tolist(), c.means.tolist(), strict=True)) for c in curves]
-    common = sorted(set.intersection(*(set(d) for d in per_seed)))
-    return np.array(common, dtype=int), np.array([[d[s] for s in common] for d in per_seed])
+    """(steps, values[seed, step]) on a grid common to the seeds, up to the shortest seed's last
+    step: the steps they were evaluated at where these are the same; else every step any of them
+    was evaluated at from the latest first step, each seed interpolated linearly between its own
+    evaluations (its steps are ascending: eval.csv is written in step order)."""
+    start = max(int(c.steps[0]) for c in curves)
+    end = min(int(c.steps[-1]) for c in curves)
+    grid = np.unique(np.concatenate([c.steps[(c.steps >= start) & (c.steps <= end)] for c in curves]))
+    return grid.astype(int), np.array([np.interp(grid, c.steps, c.means) for c in curves])
 
 
 def untrained(curves: list[SeedCurve]) -> float | None:
@@ -190,10 +265,12 @@ def summarize(runs: list[SeedCurve]) -> list[Summary]:
             final = np.array([c.means[-1] for c in curves])
             best = np.array([c.means.max() for c in curves])
             last = [int(c.steps[-1]) for c in curves]
+            repeats = {c.action_repeat for c in curves}  # one: a series holds one action repeat
             rows.append(Summary(
                 task, algo, len(curves), (min(last), max(last)),
                 float(final.mean()), float(final.std()), float(best.mean()),
-                PAPER_FINAL.get(task, {}).get(algo),
+                PAPER_FINAL.get(task, {}).get(curves[0].algo),
+                repeats.pop() if len(repeats) == 1 else None,
             ))
     return rows
 
@@ -201,27 +278,54 @@ def summarize(runs: list[SeedCurve]) -> list[Summary]:
 def results_table(summaries: list[Summary]) -> str:
     """The results as a markdown table."""
     lines = [
-        "| task | algo | seeds | last step | final return | best return | paper @1M |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| task | algo | seeds | action repeat | last step | last frame | final return | best return "
+        "| paper @1M frames |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summaries:
-        lo, hi = s.last_steps
-        last = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        repeat = "?" if s.action_repeat is None else str(s.action_repeat)
+        frames = "?" if s.last_frames is None else _span(s.last_frames)
         paper = "n/a" if s.paper is None else f"~{s.paper:.0f}"
+        # One seed has no spread over seeds: a "± 0.0" would read as a measured one.
+        final = f"{s.final_mean:.1f}" if s.seeds == 1 else f"{s.final_mean:.1f} ± {s.final_std:.1f}"
         lines.append(
-            f"| {s.task} | {s.algo} | {s.seeds} | {last} | {s.final_mean:.1f} ± {s.final_std:.1f} "
+            f"| {s.task} | {s.algo} | {s.seeds} | {repeat} | {_span(s.last_steps)} | {frames} | {final} "
             f"| {s.best_mean:.1f} | {paper} |"
         )
     return "\n".join(lines) + "\n"
 
 
+def _span(bounds: tuple[int, int]) -> str:
+    lo, hi = bounds
+    return f"{lo}" if lo == hi else f"{lo}-{hi}"
+
+
 def x_values(curves: list[SeedCurve], steps: np.ndarray, x: str) -> np.ndarray:
-    """The x of each aligned step: the step, or the mean over seeds of the minutes it was reached at."""
+    """The x of each aligned step: the step, its frame (step x the series' action repeat), or the
+    mean over seeds of the minutes it was reached at."""
     if x == "steps":
         return steps
+    if x == "frames":
+        (repeat,) = {c.action_repeat for c in curves}  # a series holds one action repeat (group)
+        if repeat is None:
+            raise ValueError("a frames axis needs each run's action repeat (with_frames)")
+        return steps * repeat
     walls = [dict(zip(c.steps.tolist(), (c.walls if c.walls is not None else c.steps * np.nan).tolist(),
                       strict=True)) for c in curves]
     return np.array([np.nanmean([w[s] for w in walls]) / 60.0 for s in steps.tolist()])
+
+
+def x_label(curves: list[SeedCurve], x: str) -> str:
+    """The x axis' name; on env steps, with the panel's action repeat, which says what a step is."""
+    if x != "steps":
+        return X_LABELS[x]
+    repeats = {c.action_repeat for c in curves}
+    if len(repeats) > 1:
+        return "env steps (action repeat differs between series: --x frames compares them)"
+    (repeat,) = repeats
+    if repeat is None:
+        return "env steps (action repeat not known)"
+    return f"env steps (action repeat {repeat}: {repeat} frame{'s' if repeat > 1 else ''} each)"
 
 
 def plot_curves(runs: list[SeedCurve], x: str = "steps") -> Figure:
@@ -239,10 +343,12 @@ def plot_curves(runs: list[SeedCurve], x: str = "steps") -> Figure:
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     for ax in axes[len(grouped):]:
         fig.delaxes(ax)  # so the figure holds exactly one axes per task
-    all_series = _order({r.series for r in runs}, ALGOS)
+    all_series = _order({name for by_series in grouped.values() for name in by_series}, ALGOS)
     colors = {name: f"C{i}" for i, name in enumerate(all_series)}  # same color in every panel
+    interpolated = False
     for ax, (task, by_series) in zip(axes, grouped.items(), strict=False):
         for name, curves in by_series.items():
+            interpolated |= not same_steps(curves)
             steps, values = align(curves)
             mean, std = values.mean(axis=0), values.std(axis=0)
             xs = x_values(curves, steps, x)
@@ -256,13 +362,14 @@ def plot_curves(runs: list[SeedCurve], x: str = "steps") -> Figure:
         if base is not None:
             ax.axhline(base, color="0.4", linestyle=":", label=f"untrained ({base:.0f})")
         ax.set_title(task)
-        ax.set_xlabel("environment steps" if x == "steps" else "wall-clock minutes")
+        ax.set_xlabel(x_label([c for curves in by_series.values() for c in curves], x))
         ax.set_ylabel("evaluation return")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
     # Two short lines: one panel is narrow, and the caption must stay readable there.
-    fig.suptitle(f"line: mean over seeds; {BAND}\nseeds aligned on the steps all evaluated at",
-                 fontsize="medium")
+    how = ("seeds' evaluations at different steps: each interpolated linearly onto all their steps"
+           if interpolated else "seeds aligned on the steps all evaluated at")
+    fig.suptitle(f"line: mean over seeds; {BAND}\n{how}", fontsize="medium")
     return fig
 
 
@@ -274,8 +381,10 @@ class PlotCommand:
     """Folder holding run folders (as `nasa reproduce` writes them, or any with a config.json)."""
     out: Path | None = None
     """Where to write the figures and table (default: the results folder)."""
-    x: Literal["steps", "minutes"] = "steps"
-    """The x axis: environment steps, or the wall-clock minutes at which each step was reached."""
+    x: Literal["steps", "frames", "minutes"] = "steps"
+    """The x axis: env steps (one action each), frames (env steps x action repeat: the axis of the
+    paper, which has no action repeat, and of SAC-AE's and DrQ's figures), or the wall-clock minutes
+    at which each step was reached."""
 
 
 def plot(argv: list[str]) -> None:
@@ -283,6 +392,8 @@ def plot(argv: list[str]) -> None:
     if not cmd.results.is_dir():
         _fail(f"{cmd.results} is not a folder")
     runs = find_runs(cmd.results, walls=cmd.x == "minutes")
+    if cmd.x == "frames":
+        runs = with_frames(runs)
     if not runs:
         _fail(f"no run with an evaluation under {cmd.results}")
     out = cmd.out or cmd.results
@@ -291,7 +402,9 @@ def plot(argv: list[str]) -> None:
     note = (
         "Final return: mean ± std over seeds (population std) of each seed's last evaluation. "
         "Best return: mean over seeds of each seed's best evaluation. "
-        "Paper: approximate final return at 1M steps read off the reference's figure.\n"
+        "A step is one action, held for `action repeat` frames. "
+        "Paper: approximate final return at 1M steps without action repeat (1M frames) read off the "
+        "reference's figure: compare it with a run's last frame, not its last step.\n"
     )
     try:
         out.mkdir(parents=True, exist_ok=True)

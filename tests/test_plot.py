@@ -11,7 +11,17 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from nasa.plot import PAPER_FINAL, SeedCurve, align, find_runs, plot, plot_curves, summarize
+from nasa.plot import (
+    PAPER_FINAL,
+    SeedCurve,
+    align,
+    find_runs,
+    plot,
+    plot_curves,
+    results_table,
+    summarize,
+    with_frames,
+)
 from shared.envs import PAPER_TASKS
 from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields
 
@@ -45,7 +55,8 @@ def results(tmp_path: Path) -> tuple[Path, dict]:
                 if task == "cheetah-run":
                     # Named by config.json only, in a folder of another layout.
                     folder = root / "other" / f"{algo}-{seed}"
-                    config = {"algo": algo, "seed": seed, "steps": 40, "env": {"task": task}}
+                    config = {"algo": algo, "seed": seed, "steps": 40,
+                              "env": {"task": task, "action_repeat": 4}}
                     folder.mkdir(parents=True)
                     (folder / "config.json").write_text(json.dumps(config))
                 else:
@@ -137,11 +148,13 @@ def test_plot_command_writes_figures_and_table(
             assert line in printed  # the same table is printed
     paper = {"cartpole-balance": {"nasa_td3": "~950", "td3_ae": "~950"},
              "cheetah-run": {"nasa_td3": "~570", "td3_ae": "~360"}}
-    for (task, algo), (_, _, seeds, last, final, best, paper_cell) in rows.items():
+    for (task, algo), (_, _, seeds, repeat, last, frame, final, best, paper_cell) in rows.items():
         finals = [data[task, algo, s][1][-1] for s in SEEDS]
         bests = [max(data[task, algo, s][1]) for s in SEEDS]
         assert seeds == "3"
         assert last == ("30-40" if (task, algo) == ("cartpole-balance", "nasa_td3") else "40")
+        # cartpole's runs have no config.json: their action repeat, so their frames, are not known
+        assert (repeat, frame) == (("?", "?") if task == "cartpole-balance" else ("4", "160"))
         assert final == f"{statistics.mean(finals):.1f} ± {statistics.pstdev(finals):.1f}"
         assert best == f"{statistics.mean(bests):.1f}"
         assert paper_cell == paper[task][algo]
@@ -289,3 +302,66 @@ def test_a_damaged_train_csv_hides_only_the_wall_clock_axis(
     runs = find_runs(root, walls=True)
     assert {(r.task, r.algo, r.seed) for r in runs} == set(data) - {("cheetah-run", "nasa_td3", 1)}
     assert f"nasa plot: skipping {damaged / 'eval.csv'}: unreadable (ValueError" in capsys.readouterr().err
+
+
+def write_run(folder: Path, task: str, seed: int, repeat: int, steps: list[int], means: list[float]) -> None:
+    """A nasa_td3 run named by its config.json, with its action repeat."""
+    write_eval(folder, steps, means)
+    config = {"algo": "nasa_td3", "seed": seed, "env": {"task": task, "action_repeat": repeat}}
+    (folder / "config.json").write_text(json.dumps(config))
+
+
+def test_runs_of_different_action_repeats_are_separate_series_and_meet_on_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An env step of action repeat 8 is 8 frames: such a run is not averaged with one of action
+    repeat 1, and on the frames axis (the paper's and SAC-AE's) its steps sit at 8x."""
+    root = tmp_path / "runs"
+    write_run(root / "a", "cheetah-run", 0, 1, [0, 800, 1600], [1.0, 100.0, 200.0])
+    write_run(root / "b", "cheetah-run", 1, 8, [0, 100, 200], [2.0, 150.0, 300.0])
+    write_eval(root / "cheetah-run" / "nasa_td3" / "seed2", [0, 100], [3.0, 4.0])  # no config.json
+    runs = find_runs(root)
+    (ax,) = plot_curves(runs, x="steps").axes
+    assert ax.get_xlabel().startswith("env steps (action repeat differs")
+    (ax,) = plot_curves(with_frames(runs), x="frames").axes
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert lines["nasa_td3, action repeat 1 (n=1)"].get_xdata().tolist() == [0, 800, 1600]
+    assert lines["nasa_td3, action repeat 8 (n=1)"].get_xdata().tolist() == [0, 800, 1600]
+    assert ax.get_xlabel() == "frames (env steps x action repeat)"
+    assert "skipping" in capsys.readouterr().err  # the run of unknown action repeat, named
+    out = tmp_path / "out"
+    plot([str(root), "--x", "frames", "--out", str(out)])
+    table = (out / "results.md").read_text()
+    assert "| cheetah-run | nasa_td3, action repeat 8 | 1 | 8 | 200 | 1600 |" in table
+    assert "| cheetah-run | nasa_td3, action repeat 1 | 1 | 1 | 1600 | 1600 |" in table
+    assert "nasa_td3, action repeat ?" not in table
+    assert "1M frames" in table
+
+
+def test_the_env_steps_axis_names_the_action_repeat(tmp_path: Path) -> None:
+    write_run(tmp_path / "a", "cartpole-balance", 0, 8, [0, 10], [1.0, 2.0])
+    (ax,) = plot_curves(find_runs(tmp_path), x="steps").axes
+    assert ax.get_xlabel() == "env steps (action repeat 8: 8 frames each)"
+    assert ax.get_lines()[0].get_label() == "nasa_td3 (n=1)"  # one action repeat: no split
+
+
+def test_seeds_evaluated_at_different_steps_meet_on_a_common_grid(tmp_path: Path) -> None:
+    """One seed's evaluator skipped steps the other evaluated: both are interpolated onto every
+    step either evaluated, rather than kept only where both did."""
+    root = tmp_path / "runs"
+    write_eval(root / "cartpole-balance" / "nasa_td3" / "seed0", [0, 10, 20, 30], [0.0, 10.0, 20.0, 30.0])
+    write_eval(root / "cartpole-balance" / "nasa_td3" / "seed1", [0, 15, 30, 40], [0.0, 30.0, 60.0, 70.0])
+    runs = find_runs(root)
+    steps, values = align(runs)
+    assert steps.tolist() == [0, 10, 15, 20, 30]  # to the shorter seed's last
+    assert values.tolist() == [[0.0, 10.0, 15.0, 20.0, 30.0], [0.0, 20.0, 30.0, 40.0, 60.0]]
+    fig = plot_curves(runs)
+    (line,) = [ln for ln in fig.axes[0].get_lines() if ln.get_label().startswith("nasa_td3")]
+    assert line.get_ydata().tolist() == pytest.approx([0.0, 15.0, 22.5, 30.0, 45.0])
+    assert "interpolated" in fig.get_suptitle()
+
+
+def test_one_seed_shows_no_spread_over_seeds(tmp_path: Path) -> None:
+    write_eval(tmp_path / "cartpole-balance" / "nasa_td3" / "seed0", [0, 10], [5.0, 500.0])
+    table = results_table(summarize(find_runs(tmp_path)))
+    assert "| 500.0 | 500.0 |" in table and "±" not in table
