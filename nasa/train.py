@@ -266,7 +266,7 @@ class Trainer:
             tqdm.write(f"eval step {self.counters.env_steps}: evaluation failed, no result for this "
                        f"step: {err}")
             return
-        row = self.recorder.eval_row(self.counters.env_steps, returns)
+        row = self.recorder.eval_row(self.counters.env_steps, returns, updates=self.agent.num_updates)
         self.scalars.eval(self.counters.env_steps, row["mean"], row["std"])
         tqdm.write(f"eval step {self.counters.env_steps}: mean return {row['mean']:.1f} +- {row['std']:.1f}")
 

@@ -59,6 +59,19 @@ def newest_eval_step(env_steps: int, config: TrainConfig) -> int:
     return (env_steps // config.eval_every) * config.eval_every
 
 
+def total_updates(config: TrainConfig) -> int:
+    """The run's updates: G a step after warm-up."""
+    return config.updates_per_step * max(0, config.steps - config.warmup_steps)
+
+
+def final_eval_waits(step: int, config: TrainConfig, updates: int, final: bool) -> bool:
+    """Whether eval step `step` must wait for more updates: the budget's own is the final policy's,
+    played once every update of the run is made (or, `final`, once the learner has made all it
+    will), as `nasa train` plays it after its last step's updates. The actors reach the budget
+    before a distributed learner's last updates are made."""
+    return step == config.steps > 0 and not final and updates < total_updates(config)
+
+
 def eval_due(env_steps: int, config: TrainConfig, done: int) -> int | None:
     """The eval step to evaluate now: the newest eval step reached, if newer than `done` (-1:
     nothing evaluated yet, so step 0 is due). Steps between are skipped when evaluating is slower

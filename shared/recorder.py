@@ -18,7 +18,7 @@ import numpy as np
 
 from shared import checkpoint
 from shared.agents import Agent
-from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields, read_rows
+from shared.runlog import TRAIN_FIELDS, CsvLog, eval_fields, older_eval_fields, read_rows
 
 T = TypeVar("T")
 
@@ -57,13 +57,16 @@ class Recorder:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.eval_episodes = eval_episodes
-        self.eval_log = CsvLog(self.out / "eval.csv", eval_fields(eval_episodes))
+        self.eval_log = CsvLog(self.out / "eval.csv", eval_fields(eval_episodes),
+                               older=older_eval_fields(eval_episodes))
         self.train_log = CsvLog(self.out / "train.csv", TRAIN_FIELDS)
 
-    def eval_row(self, step: int, returns: list[float]) -> dict:
-        """Append one evaluation (each episode's extrinsic return) and return its row."""
+    def eval_row(self, step: int, returns: list[float], *, updates: int) -> dict:
+        """Append one evaluation (each episode's extrinsic return, played by the weights of
+        `updates` updates) and return its row."""
         returns = [float(r) for r in returns][: self.eval_episodes]
-        row = {"step": int(step), "mean": float(np.mean(returns)), "std": float(np.std(returns))}
+        row = {"step": int(step), "updates": int(updates), "mean": float(np.mean(returns)),
+               "std": float(np.std(returns)), "min": min(returns), "max": max(returns)}
         row |= {f"return_{i}": r for i, r in enumerate(returns)}
         self.eval_log.append(row)
         return row

@@ -21,7 +21,14 @@ TRAIN_FIELDS = (
 
 
 def eval_fields(episodes: int) -> list[str]:
-    return ["step", "mean", "std", *(f"return_{i}" for i in range(episodes))]
+    """eval.csv's columns: the env step evaluated, the update count of the weights that played it,
+    the mean, population std, min and max of the episodes' extrinsic returns, and each return."""
+    return ["step", "updates", "mean", "std", "min", "max", *(f"return_{i}" for i in range(episodes))]
+
+
+def older_eval_fields(episodes: int) -> list[list[str]]:
+    """eval.csv headers of earlier versions, which a resumed run continues under (CsvLog `older`)."""
+    return [["step", "mean", "std", *(f"return_{i}" for i in range(episodes))]]
 
 
 class RunLogError(ConfigError):
@@ -31,13 +38,17 @@ class RunLogError(ConfigError):
 class CsvLog:
     """An append-only CSV with a fixed header; rows are flushed at once.
 
-    An existing file is continued only if it starts with this header: a damaged or foreign file is
-    refused, named, and left as it is, so resuming never writes rows under another header.
+    An existing file is continued only if it starts with this header, or with one of `older` (the
+    header an earlier version wrote: its rows go on under it, without the columns it lacks, as
+    rewriting the file on a full disk could lose it): a damaged or foreign file is refused, named,
+    and left as it is, so resuming never writes rows under another header.
     """
 
-    def __init__(self, path: str | Path, fields: list[str] | tuple[str, ...]) -> None:
+    def __init__(self, path: str | Path, fields: list[str] | tuple[str, ...],
+                 older: list[list[str]] | None = None) -> None:
         self.path = Path(path)
         self.fields = list(fields)
+        self.known = set(self.fields)  # what a row may hold, whatever header the file has
         if not self.path.exists() or self.path.stat().st_size == 0:  # empty: nothing to lose
             with open(self.path, "w", newline="") as f:
                 csv.writer(f).writerow(self.fields)
@@ -48,7 +59,9 @@ class CsvLog:
             header = next(csv.reader([first.decode("utf-8")]), [])
         except UnicodeDecodeError:
             header = None
-        if header != self.fields:
+        if header in (older or []):
+            self.fields = list(header)
+        elif header != self.fields:
             raise RunLogError(
                 f"{self.path} does not start with the header this run writes "
                 f"({','.join(self.fields)}): it is damaged or from other settings; "
@@ -71,7 +84,7 @@ class CsvLog:
                 f.truncate(end)
 
     def append(self, row: dict) -> None:
-        unknown = set(row) - set(self.fields)
+        unknown = set(row) - self.known
         if unknown:
             raise ValueError(f"{self.path.name}: unknown fields {sorted(unknown)}")
         with open(self.path, "a", newline="") as f:

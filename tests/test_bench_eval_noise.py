@@ -15,7 +15,7 @@ from shared.recorder import Recorder
 def write_run(tmp_path, evaluations: dict[int, list[float]]):
     recorder = Recorder(tmp_path, max(len(r) for r in evaluations.values()))
     for step, returns in evaluations.items():
-        recorder.eval_row(step, returns)
+        recorder.eval_row(step, returns, updates=step)
     return tmp_path / "eval.csv"
 
 

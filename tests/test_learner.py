@@ -47,8 +47,11 @@ def test_an_algorithm_without_intrinsic_rewards_trains_on_unscored_rows(tmp_path
 
 def test_evaluations_are_recorded_once_and_episodes_carry_the_update_means(tmp_path):
     core = core_on(tmp_path)
-    assert core.record_eval(wire.EvalResult(0, 0, [1.0, 3.0])) == {
-        "step": 0, "mean": 2.0, "std": 1.0, "return_0": 1.0, "return_1": 3.0}
+    # The row says which weights played it: the update count the evaluator's weights carried.
+    assert core.record_eval(wire.EvalResult(0, 7, [1.0, 3.0])) == {
+        "step": 0, "updates": 7, "mean": 2.0, "std": 1.0, "min": 1.0, "max": 3.0,
+        "return_0": 1.0, "return_1": 3.0}
+    assert read_rows(tmp_path / "eval.csv")[0]["updates"] == "7"
     assert core.record_eval(wire.EvalResult(0, 0, [9.0, 9.0])) is None  # sent again after a restart
     core.train_on(core.scorer.client.sample(16))
     core.record_episode(12.5, 25, wall_s=3.0)  # no rate sampled yet: none written
@@ -85,6 +88,41 @@ def test_the_evaluators_weights_go_once_per_eval_period_with_the_decoder_and_the
     assert (at_fifty.version, at_fifty.env_steps) == (1, 53)
     assert not core.eval_weights_due()
     assert "decoder.fc.weight" not in decoded(core.weights_message(epoch=1))
+
+
+def test_the_budgets_own_eval_step_gets_the_weights_of_the_runs_last_update(tmp_path):
+    """A budget of 230 with eval_every 50: step 230 is an eval step of its own, as in nasa train,
+    and its weights go out once the run's updates (G x (230 - 225) = 5) are all made, not when the
+    actors reach it; a learner that stops short (`final`) sends what it has."""
+    client = LocalReplay(filled_store(60), np.random.default_rng(0))
+    core = LearnerCore(tiny_run(steps=230, warmup_steps=225), tmp_path, client, torch.device("cpu"))
+    assert core.target_updates == 5
+    core.weights_message(epoch=1, evaluation=True)  # step 0's
+    core.board.seen_env_steps(200)
+    assert core.eval_weights_due()
+    core.weights_message(epoch=1, evaluation=True)
+    core.board.seen_env_steps(230)  # the actors are done; the learner has 5 updates to make
+    assert not core.eval_weights_due()
+    assert core.eval_weights_due(final=True)
+    for _ in range(5):
+        core.train_on(client.sample(16))
+    assert core.eval_weights_due()
+    final = wire.decode(core.weights_message(epoch=1, evaluation=True), wire.Weights)
+    assert (final.version, final.env_steps) == (5, 230)
+    assert not core.eval_weights_due(final=True)
+
+
+def test_between_updates_the_budgets_step_waits_for_the_last_update(tmp_path):
+    from services.learner.evaluation import BetweenUpdates
+
+    core = core_on(tmp_path)
+    config = tiny_run(steps=230, warmup_steps=225).config
+    between = BetweenUpdates(config, core.agent, done_step=200)
+    assert between.due(230) is None  # 0 of its 5 updates made
+    assert between.due(230, final=True) == 230
+    for _ in range(5):
+        core.train_on(core.scorer.client.sample(16))
+    assert between.due(230) == 230
 
 
 def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path, monkeypatch):

@@ -60,7 +60,11 @@ def test_seeded_run_is_deterministic_and_writes_the_run_folder(tmp_path):
     train = stable_rows(tmp_path / "a" / "train.csv")
     assert [r["step"] for r in train] == ["40", "80"]
     assert train[1]["critic_loss"] and train[1]["novelty_mean"] and train[1]["ensemble_loss"]
-    assert [r["step"] for r in read_rows(tmp_path / "a" / "eval.csv")] == ["0", "40", "80"]
+    evals = read_rows(tmp_path / "a" / "eval.csv")
+    assert [r["step"] for r in evals] == ["0", "40", "80"]
+    # Each evaluation is played by the weights of its step: G (1) updates a step after warm-up (15).
+    assert [r["updates"] for r in evals] == ["0", "25", "65"]
+    assert all(r["min"] == r["max"] == r["return_0"] for r in evals)  # one episode
     assert train == stable_rows(tmp_path / "b" / "train.csv")
     assert stable_rows(tmp_path / "a" / "eval.csv") == stable_rows(tmp_path / "b" / "eval.csv")
 
@@ -318,7 +322,7 @@ def test_a_row_its_writer_did_not_finish_is_dropped_before_the_next_one(tmp_path
         b"step,mean,std,return_0,return_1\r\n1000,12.5,0.5,12,13\r\n2000,30,1")  # died mid-row
     recorder = Recorder(tmp_path, 2)
     assert recorder.last_eval() == {"step": 1000, "mean": 12.5, "std": 0.5}
-    recorder.eval_row(2000, [300.0, 310.0])
+    recorder.eval_row(2000, [300.0, 310.0], updates=1000)
     rows = read_rows(tmp_path / "eval.csv")
     assert [(r["step"], r["mean"], r["return_0"]) for r in rows] == [
         ("1000", "12.5", "12"), ("2000", "305", "300")]

@@ -21,7 +21,7 @@ from services.learner.status import StatusBoard
 from shared import checkpoint, wire
 from shared.agents import batch_to_device, make_agent
 from shared.agents.base import nonfinite_skips
-from shared.evaluation import is_eval_step
+from shared.evaluation import final_eval_waits, is_eval_step, newest_eval_step, total_updates
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
@@ -51,11 +51,11 @@ class LearnerCore:
         self.checkpoint_error = ""  # why the last checkpoint was not written ("" if it was)
         self._checkpoint_retry_at = 0.0
         self.scalars = Scalars(self.out / TENSORBOARD_DIR / "learner")
-        self._eval_sent: int | None = None  # the eval period whose weights went to the evaluator
+        self._eval_sent: int | None = None  # the eval step whose weights went to the evaluator
         self.counters = Counters()
         self.means = MetricMeans()
         self.policy_version = 0
-        self.target_updates = c.updates_per_step * max(0, c.steps - c.warmup_steps)
+        self.target_updates = total_updates(c)
         self.last_checkpoint_step = 0
         self.resumed = False
         self.eval = self.recorder.last_eval() or {"step": None, "mean": None, "std": None}
@@ -117,19 +117,24 @@ class LearnerCore:
             return None
         self.policy_version = self.agent.num_updates
         if evaluation:
-            self._eval_sent = self.eval_period()
+            self._eval_sent = self.eval_step()
             if hasattr(self.agent, "decoder"):
                 state |= {f"decoder.{k}": v for k, v in self.agent.decoder.state_dict().items()}
         tensors = wire.pack_tensors(state)
         return wire.encode(wire.Weights(epoch, self.policy_version, self.env_steps, tensors))
 
-    def eval_period(self) -> int:
-        return self.env_steps // self.config.eval_every
+    def eval_step(self) -> int:
+        """The newest eval step reached, the budget's own too where it is no multiple of eval_every."""
+        return newest_eval_step(self.env_steps, self.config)
 
-    def eval_weights_due(self) -> bool:
+    def eval_weights_due(self, final: bool = False) -> bool:
         """Whether an eval step was reached since the evaluator's weights last went out: it plays
-        each evaluation with the weights of its step, as `nasa train` does, and takes in only those."""
-        return self.eval_period() != self._eval_sent
+        each evaluation with the weights of its step, as `nasa train` does, and takes in only those.
+        The budget's step waits for the run's last update (`final`: the learner has stopped updating)."""
+        step = self.eval_step()
+        if final_eval_waits(step, self.config, self.agent.num_updates, final):
+            return False
+        return step != self._eval_sent
 
     def done(self) -> bool:
         return self.board.replay["done"] and self.agent.num_updates >= self.target_updates
@@ -154,7 +159,7 @@ class LearnerCore:
         """An evaluation's row in eval.csv; None if that step is recorded already (sent again)."""
         if self.eval["step"] is not None and r.step <= self.eval["step"]:
             return None
-        row = self.recorder.eval_row(r.step, r.returns)
+        row = self.recorder.eval_row(r.step, r.returns, updates=r.policy_version)
         self.eval = {"step": r.step, "mean": row["mean"], "std": row["std"]}
         self.scalars.eval(r.step, row["mean"], row["std"])
         return row

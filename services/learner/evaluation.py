@@ -17,7 +17,7 @@ from shared import envs, wire
 from shared.agents import Agent
 from shared.config import EVAL_SEED_OFFSET, TrainConfig
 from shared.envs import PixelEnv
-from shared.evaluation import draws_restarter, eval_due, evaluate, first_done
+from shared.evaluation import draws_restarter, eval_due, evaluate, final_eval_waits, first_done
 
 
 class BetweenUpdates:
@@ -34,10 +34,15 @@ class BetweenUpdates:
         """The evaluation environment's draws now, for the learner's checkpoint (None: none made)."""
         return None if self.env is None else self.env.rng_state()
 
-    def due(self, env_steps: int) -> int | None:
+    def due(self, env_steps: int, final: bool = False) -> int | None:
+        """The eval step to play now, or None; the budget's waits for the run's last update
+        (`final`: the learner has stopped updating)."""
         if self.done < 0 and self.agent.num_updates == 0:
             return 0  # the untrained policy is step 0's, however far the actors got meanwhile
-        return eval_due(env_steps, self.config, self.done)
+        target = eval_due(env_steps, self.config, self.done)
+        if target is not None and final_eval_waits(target, self.config, self.agent.num_updates, final):
+            return None
+        return target
 
     def run(self, target: int) -> wire.EvalResult:
         """The evaluation of step `target`, with the agent's weights of now. envs.EnvFault: an

@@ -179,9 +179,10 @@ class Learner:
         if n % self.args.publish_every == 0 and n != self._published:
             self.publish_weights()
 
-    def publish_eval_weights(self) -> None:
-        """The evaluator's weights, once an eval step is reached (none when the learner evaluates)."""
-        if self.between is None and self.core.eval_weights_due():
+    def publish_eval_weights(self, final: bool = False) -> None:
+        """The evaluator's weights, once an eval step is reached (none when the learner evaluates);
+        `final`: the run's updates are over, so the budget's step waits no more."""
+        if self.between is None and self.core.eval_weights_due(final):
             self.publish_weights(evaluation=True)
 
     def run(self) -> None:
@@ -315,10 +316,10 @@ class Learner:
             if core.scorer is not None:
                 core.scorer.catch_up()
             self.publish_weights()
-            self.publish_eval_weights()
+            self.publish_eval_weights(final=True)
             if self.between is None:
                 self._wait_final_eval()
-            elif (target := self.between.due(core.env_steps)) is not None:
+            elif (target := self.between.due(core.env_steps, final=True)) is not None:
                 self._evaluate(target)
         core.save_checkpoint(self.wall_s)
         self._leave("status.json", self.write_final_status)
