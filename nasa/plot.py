@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -310,9 +311,12 @@ def x_values(curves: list[SeedCurve], steps: np.ndarray, x: str) -> np.ndarray:
         if repeat is None:
             raise ValueError("a frames axis needs each run's action repeat (with_frames)")
         return steps * repeat
-    walls = [dict(zip(c.steps.tolist(), (c.walls if c.walls is not None else c.steps * np.nan).tolist(),
-                      strict=True)) for c in curves]
-    return np.array([np.nanmean([w[s] for w in walls]) / 60.0 for s in steps.tolist()])
+    # Each seed's clock at the grid's steps, interpolated as its returns are (align); NaN: not known.
+    walls = np.array([np.interp(steps, c.steps, c.walls if c.walls is not None else c.steps * np.nan)
+                      for c in curves])
+    with warnings.catch_warnings():  # a step no seed's clock reached: NaN, drawn as a gap
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(walls, axis=0) / 60.0
 
 
 def x_label(curves: list[SeedCurve], x: str) -> str:

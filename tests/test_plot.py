@@ -365,3 +365,16 @@ def test_one_seed_shows_no_spread_over_seeds(tmp_path: Path) -> None:
     write_eval(tmp_path / "cartpole-balance" / "nasa_td3" / "seed0", [0, 10], [5.0, 500.0])
     table = results_table(summarize(find_runs(tmp_path)))
     assert "| 500.0 | 500.0 |" in table and "±" not in table
+
+
+def test_seeds_at_different_steps_also_meet_on_the_wall_clock_axis(tmp_path: Path) -> None:
+    root = tmp_path / "runs"
+    for seed, steps in ((0, [0, 10, 20]), (1, [0, 20])):
+        folder = root / "cartpole-balance" / "nasa_td3" / f"seed{seed}"
+        write_eval(folder, steps, [float(s) for s in steps])
+        log = CsvLog(folder / "train.csv", TRAIN_FIELDS)
+        for step in (10, 20):
+            log.append({"step": step, "wall_s": 6.0 * step})  # a minute a step of 10
+    (ax,) = plot_curves(find_runs(root, walls=True), x="minutes").axes
+    (line,) = [ln for ln in ax.get_lines() if ln.get_label().startswith("nasa_td3")]
+    assert line.get_xdata().tolist() == pytest.approx([0.0, 1.0, 2.0])
