@@ -75,7 +75,8 @@ def test_between_updates_the_learner_evaluates_the_same_steps_and_episodes_as_th
     assert ours.returns == theirs.returns  # the same episodes, the same policy: the same returns
     assert between.due(49) is None
     assert between.due(130) == 100  # slower than training: 50 is skipped, as the evaluator does
-    assert between.due(10_000) == 500  # never past the run's budget
+    assert between.due(10_000) is None  # the budget's step: the final policy's, not made yet
+    assert between.due(10_000, final=True) == 500  # never past the run's budget
     # A resumed learner does not evaluate again a step its eval.csv holds.
     assert BetweenUpdates(ev.config, ev.agent, done_step=100).due(130) is None
     off = tiny_run("td3_ae", steps=500, eval_at_start=False).config
@@ -237,7 +238,7 @@ def test_a_budget_that_is_no_multiple_of_eval_every_is_evaluated_at_its_end():
     assert eval_due(120, c, done=100) == 120 and eval_due(10_000, c, done=100) == 120
     assert eval_due(10_000, c, done=120) is None
     between = BetweenUpdates(c, _service().agent, done_step=100)
-    assert between.due(125) == 120
+    assert between.due(125, final=True) == 120  # once the learner's updates are over
 
 
 def test_a_restarted_learner_gets_the_newest_step_evaluated_again():

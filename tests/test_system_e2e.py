@@ -74,6 +74,7 @@ def test_system_end_to_end(tmp_path):
     rows = read_rows(tmp_path / "run" / "eval.csv")
     assert_eval_steps([int(r["step"]) for r in rows], STEPS, EVAL_EVERY)
     assert all(r["mean"] != "" for r in rows)
+    assert int(rows[-1]["updates"]) == STEPS - WARMUP  # the budget's step: the final policy's
     train = read_rows(tmp_path / "run" / "train.csv")
     assert len(train) >= 1 and all(float(r["length"]) > 0 for r in train)
     assert (tmp_path / "run" / "learner" / "checkpoint.pt").exists()

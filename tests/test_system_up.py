@@ -22,6 +22,7 @@ from system_harness import REPO, TINY, WARMUP
 from bench.up_profile import service_pids
 from nasa import layout
 from nasa.up import TEST_START_PAUSE, free_port
+from shared.runlog import read_rows
 
 
 def children_of(pid: int) -> list[int]:
@@ -342,6 +343,8 @@ def test_nasa_up_can_evaluate_between_the_learners_updates_with_no_evaluator_pro
     # A step the actor passed while the learner was evaluating is skipped, as the evaluator skips it.
     assert steps[0] == 0 and steps[-1] == 150 and steps == sorted(set(steps)), rows
     assert set(steps) <= {0, 50, 100, 150}, rows
+    last = read_rows(data / "eval.csv")[-1]
+    assert int(last["updates"]) == 150 - WARMUP  # the budget's step: the final policy's
     learner_log = (data / "logs" / "learner.log").read_text()
     assert "eval step 0 (policy 0, between updates)" in learner_log
     assert "eval step 150 (policy " in learner_log and "run done" in learner_log
