@@ -296,6 +296,16 @@ def test_a_damaged_eval_csv_leaves_the_history_without_evaluations(tmp_path, dam
     assert response.status_code == 200 and response.json()["evals"] == []
 
 
+def test_the_history_leaves_out_an_evaluation_row_being_written(tmp_path):
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "status.json").write_text(json.dumps(STATUS))
+    # The row of 2000 cut short after its std's first digit: its std may be 5.25.
+    (tmp_path / "eval.csv").write_bytes(b"step,updates,mean,std,min,max,return_0,return_1\n"
+                                        b"1000,990,30,1,29,31,29,31\n2000,1990,305,5")
+    response = TestClient(folder_app(tmp_path)).get("/history")
+    assert response.json()["evals"] == [{"step": 1000, "mean": 30.0, "std": 1.0}]
+
+
 @pytest.mark.parametrize("port", ["99999", "busy"])
 def test_a_stopped_dashboard_on_a_port_it_cannot_have_is_one_line_and_exit_2(tmp_path, port):
     (tmp_path / "learner").mkdir()
