@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import warnings
 from collections.abc import Callable
@@ -212,6 +213,16 @@ def _order(names: set[str], preferred: tuple[str, ...]) -> list[str]:
     return [n for n in preferred if n in names] + sorted(names - set(preferred))
 
 
+def _series_order(names: set[str]) -> list[str]:
+    """Series by algorithm in the paper's order, then by what follows it ("nasa up", the action
+    repeat) with numbers in numeric order (action repeat 5 before 25)."""
+    def key(name: str) -> tuple:
+        algo, _, rest = name.partition(", ")
+        rank = ALGOS.index(algo) if algo in ALGOS else len(ALGOS)
+        return rank, algo, [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", rest)]
+    return sorted(names, key=key)
+
+
 def series_name(run: SeedCurve, split_repeat: bool) -> str:
     """The run's series; with `split_repeat` (its task has runs of several action repeats, whose
     steps are not the same amount of experience) the action repeat too."""
@@ -230,7 +241,7 @@ def group(runs: list[SeedCurve]) -> dict[str, dict[str, list[SeedCurve]]]:
         names = {series_name(r, split) for r in of_task}
         out[task] = {
             name: sorted((r for r in of_task if series_name(r, split) == name), key=lambda r: r.seed)
-            for name in _order(names, ALGOS)
+            for name in _series_order(names)
         }
     return out
 
@@ -347,7 +358,7 @@ def plot_curves(runs: list[SeedCurve], x: str = "steps") -> Figure:
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     for ax in axes[len(grouped):]:
         fig.delaxes(ax)  # so the figure holds exactly one axes per task
-    all_series = _order({name for by_series in grouped.values() for name in by_series}, ALGOS)
+    all_series = _series_order({name for by_series in grouped.values() for name in by_series})
     colors = {name: f"C{i}" for i, name in enumerate(all_series)}  # same color in every panel
     interpolated = False
     for ax, (task, by_series) in zip(axes, grouped.items(), strict=False):

@@ -304,10 +304,11 @@ def test_a_damaged_train_csv_hides_only_the_wall_clock_axis(
     assert f"nasa plot: skipping {damaged / 'eval.csv'}: unreadable (ValueError" in capsys.readouterr().err
 
 
-def write_run(folder: Path, task: str, seed: int, repeat: int, steps: list[int], means: list[float]) -> None:
-    """A nasa_td3 run named by its config.json, with its action repeat."""
+def write_run(folder: Path, task: str, seed: int, repeat: int, steps: list[int], means: list[float],
+              algo: str = "nasa_td3") -> None:
+    """A run named by its config.json, with its action repeat."""
     write_eval(folder, steps, means)
-    config = {"algo": "nasa_td3", "seed": seed, "env": {"task": task, "action_repeat": repeat}}
+    config = {"algo": algo, "seed": seed, "env": {"task": task, "action_repeat": repeat}}
     (folder / "config.json").write_text(json.dumps(config))
 
 
@@ -335,6 +336,13 @@ def test_runs_of_different_action_repeats_are_separate_series_and_meet_on_frames
     assert "| cheetah-run | nasa_td3, action repeat 8 | 1 | 8 | 200 | 1600 |" in table
     assert "| cheetah-run | nasa_td3, action repeat 1 | 1 | 1 | 1600 | 1600 |" in table
     assert "nasa_td3, action repeat ?" not in table
+    write_run(root / "c", "cheetah-run", 2, 2, [0, 800], [1.0, 2.0])
+    write_run(root / "d", "cheetah-run", 3, 1, [0, 800], [1.0, 2.0], algo="td3_ae")
+    (ax,) = plot_curves(with_frames(find_runs(root)), x="frames").axes
+    # The paper's algorithm order, then the action repeat in numeric order.
+    assert [ln.get_label().split(" (n")[0] for ln in ax.get_lines()] == [
+        "nasa_td3, action repeat 1", "nasa_td3, action repeat 2", "nasa_td3, action repeat 8",
+        "td3_ae, action repeat 1", "untrained (1)"]
     assert "1M frames" in table
 
 
