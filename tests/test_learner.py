@@ -35,6 +35,7 @@ def test_an_update_scores_what_collect_timing_owes_and_reports_policy_lag(tmp_pa
     # The rows were collected by policy versions 0..5 (t // 10); the last update was number 2.
     assert status["policy_lag"]["max"] == 2 - int(batch["policy_version"].min())
     assert status["config_digest"] == core.run.digest()
+    assert status["action_repeat"] == core.config.env.action_repeat  # what a step is, in frames
 
 
 def test_an_algorithm_without_intrinsic_rewards_trains_on_unscored_rows(tmp_path):

@@ -29,7 +29,8 @@ from shared.video import count_frames
 
 STATUS = {
     "run_id": "r1", "algo": "nasa_td3", "task": "cartpole-balance", "device": "cpu", "config_digest": "abc",
-    "steps_budget": 1000, "warmup_steps": 20, "updates": 321, "updates_target_per_env_step": 1,
+    "steps_budget": 1000, "action_repeat": 8, "warmup_steps": 20, "updates": 321,
+    "updates_target_per_env_step": 1,
     "updates_per_env_step": 0.987, "policy_version": 320,
     "eval": {"step": 300, "mean": 123.5, "std": 4.25},
     "intrinsic": {"novelty_mean": 0.31, "surprise_mean": 0.002, "scored": 300, "scored_at_first_sample": 2,

@@ -238,6 +238,7 @@ class LearnerCore:
             "device": str(self.device),
             "config_digest": self.run.digest(),
             "steps_budget": c.steps,
+            "action_repeat": c.env.action_repeat,
             "warmup_steps": c.warmup_steps,
             "updates": updates,
             "updates_target_per_env_step": c.updates_per_step,

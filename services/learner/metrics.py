@@ -35,6 +35,7 @@ SCALARS: tuple[tuple[str, str, str, str], ...] = (
     ("env_steps", "nasa_env_steps_total", "counter", "Environment steps stored by the replay (all actors)"),
     ("steps_budget", "nasa_env_steps_budget", "gauge", "The run's step budget (--steps)"),
     ("warmup_steps", "nasa_warmup_env_steps", "gauge", "Uniform random env steps before learning"),
+    ("action_repeat", "nasa_action_repeat_frames", "gauge", "Simulator frames per env step"),
     ("updates", "nasa_updates_total", "counter", "Gradient updates of the learner"),
     ("updates_target_per_env_step", "nasa_updates_per_env_step_target", "gauge", "G, the target ratio"),
     ("updates_per_env_step", "nasa_updates_per_env_step", "gauge", "Updates per env step after warm-up"),

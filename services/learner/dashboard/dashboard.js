@@ -129,6 +129,8 @@ function drawStatus(s) {
   document.getElementById("title").textContent = `${s.algo} on ${s.task}`;
   document.getElementById("summary").textContent =
     `run ${s.run_id} · ${s.device} · env steps ${fmt(s.env_steps)} / ${fmt(s.steps_budget)}` +
+    // A step is action_repeat frames; an older run's status has no such field.
+    (s.action_repeat ? ` (action repeat ${s.action_repeat}: ${fmt(s.env_steps * s.action_repeat)} frames)` : "") +
     ` · updates ${fmt(s.updates)} · ${fmt(s.env_steps_per_s)} steps/s · ${fmt(s.updates_per_s)} updates/s`;
   const e = s.eval || {};
   const latest = document.getElementById("eval-latest");
