@@ -88,13 +88,6 @@ class SeedCurve:
         """The curve's name in a panel: the algorithm, and the runner when it is the distributed one."""
         return self.algo if self.runner == "train" else f"{self.algo}, nasa up"
 
-    @property
-    def frames(self) -> np.ndarray:
-        """The frame count of each evaluated step (ValueError: the action repeat is not known)."""
-        if self.action_repeat is None:
-            raise ValueError("its action repeat is not known (no env.action_repeat in a config.json)")
-        return self.steps * self.action_repeat
-
 
 @dataclass
 class Summary:
