@@ -386,3 +386,12 @@ def test_seeds_at_different_steps_also_meet_on_the_wall_clock_axis(tmp_path: Pat
     (ax,) = plot_curves(find_runs(root, walls=True), x="minutes").axes
     (line,) = [ln for ln in ax.get_lines() if ln.get_label().startswith("nasa_td3")]
     assert line.get_xdata().tolist() == pytest.approx([0.0, 1.0, 2.0])
+
+
+@pytest.mark.parametrize("content", [b"", b"step,upd", b"step,updates,mean,std,min,max,return_0\r\n"])
+def test_an_empty_or_header_only_eval_csv_is_a_run_not_evaluated_yet(tmp_path: Path, content: bytes) -> None:
+    write_eval(tmp_path / "cartpole-balance" / "nasa_td3" / "seed0", [0, 10], [5.0, 500.0])
+    empty = tmp_path / "cartpole-balance" / "nasa_td3" / "seed1"
+    empty.mkdir(parents=True)
+    (empty / "eval.csv").write_bytes(content)  # made, killed before or while writing its header
+    assert [r.seed for r in find_runs(tmp_path)] == [0]
