@@ -12,6 +12,11 @@ torch.set_num_threads(2)
 # our own is reset to the default in each child, as a user's terminal gives it.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+# anyio is a pytest plugin, so pytest rewrites its modules as they are imported; the module a
+# FileResponse imports lazily was then first parsed in a TestClient's event-loop thread, where
+# CPython 3.11's parser can fail ("AST constructor recursion depth mismatch"). Imported here, in
+# the main thread, it is parsed once and for all before any test.
+import anyio._core._fileio  # noqa: E402, F401
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

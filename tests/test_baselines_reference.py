@@ -16,9 +16,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.agents import make_agent
 from shared.config import agent_defaults
 from shared.nets import float_channels_last
+from tests import test_agents as agents_test
 
 OBS_SHAPE = (9, 48, 48)
 ACTION_DIM = 2
@@ -26,23 +26,15 @@ SMALL = {"latent_dim": 16, "hidden_dim": 32, "num_filters": 8}
 
 
 def make(algo: str, **overrides):
-    config = agent_defaults(algo)
-    for key, value in {**SMALL, **overrides}.items():
-        setattr(config, key, value)
     torch.manual_seed(0)
-    return make_agent(algo, OBS_SHAPE, ACTION_DIM, config, torch.device("cpu"))
+    return agents_test.make(algo, **{**SMALL, **overrides})
 
 
 def batch(seed: int, size: int = 8) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    return {
-        "obs": torch.randint(0, 256, (size, *OBS_SHAPE), dtype=torch.uint8, generator=g),
-        "next_obs": torch.randint(0, 256, (size, *OBS_SHAPE), dtype=torch.uint8, generator=g),
-        "action": torch.rand(size, ACTION_DIM, generator=g) * 2 - 1,
-        "reward": torch.rand(size, generator=g),
-        "discount": (torch.rand(size, generator=g) > 0.2).float(),
-        "intrinsic": torch.zeros(size),
-    }
+    """test_agents' batch, with some transitions terminal (discount 0) and no intrinsic reward."""
+    b = agents_test.random_batch(size, seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    return b | {"discount": (torch.rand(size, generator=g) > 0.2).float(), "intrinsic": torch.zeros(size)}
 
 
 def assert_same_modules(agent, ref, names: list[str], step: int) -> None:

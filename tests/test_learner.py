@@ -213,23 +213,15 @@ def test_a_token_file_that_gives_no_token_is_refused_before_the_learner_connects
         check_args(LearnerArgs(api_token_file=path))
 
 
-def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_still_ends(
-        tmp_path, capsys, monkeypatch):
-    import builtins
+def bare_learner(tmp_path):  # noqa: ANN001, ANN201
+    """A Learner with its core, history and status, without Zenoh: what _finish and a checkpoint use."""
     from types import SimpleNamespace
 
-    from fastapi.testclient import TestClient
-
-    from services.learner.health import LearnerArgs, degraded_reasons
+    from services.learner.health import LearnerArgs
     from services.learner.history import History
-    from services.learner.learner import FINAL_STATUS, Learner
-    from services.learner.metrics import LearnerMetrics
-    from services.learner.status_api import make_app
-    from shared import files
+    from services.learner.learner import Learner
     from shared.service import Log, StopFlag
-    from tests.test_train import FullFile
 
-    # A learner at its end, without Zenoh: what _finish uses.
     learner = Learner.__new__(Learner)
     learner.core = core_on(tmp_path)
     learner.args = LearnerArgs(data=tmp_path)
@@ -237,6 +229,24 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
     learner.client = SimpleNamespace(invalid=0)
     learner.history, learner.log, learner.stop, learner.wall_s = History(), Log("learner"), StopFlag(), 1.0
     learner._scalars_at = 0.0
+    return learner
+
+
+def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_still_ends(
+        tmp_path, capsys, monkeypatch):
+    import builtins
+
+    from fastapi.testclient import TestClient
+
+    from services.learner.health import degraded_reasons
+    from services.learner.learner import FINAL_STATUS
+    from services.learner.metrics import LearnerMetrics
+    from services.learner.status_api import make_app
+    from shared import files
+    from tests.test_train import FullFile
+
+    # A learner at its end, without Zenoh: what _finish uses.
+    learner = bare_learner(tmp_path)
     metrics = LearnerMetrics(learner.status)
     app = make_app(learner.status, lambda: [], metrics=metrics.render,
                    degraded=lambda: degraded_reasons(learner.core), render_every_s=0.0)
@@ -266,20 +276,9 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
 
 
 def test_a_periodic_checkpoint_leaves_the_dashboard_series_a_killed_learner_resumes(tmp_path):
-    from types import SimpleNamespace
+    from services.learner.history import load
 
-    from services.learner.health import LearnerArgs
-    from services.learner.history import History, load
-    from services.learner.learner import Learner
-    from shared.service import Log, StopFlag
-
-    learner = Learner.__new__(Learner)  # what a checkpoint in the update loop uses, without Zenoh
-    learner.core = core_on(tmp_path)
-    learner.args = LearnerArgs(data=tmp_path)
-    learner.keys = wire.Keys("r")
-    learner.client = SimpleNamespace(invalid=0)
-    learner.history, learner.log, learner.stop, learner.wall_s = History(), Log("learner"), StopFlag(), 1.0
-    learner._scalars_at = 0.0
+    learner = bare_learner(tmp_path)  # what a checkpoint in the update loop uses
     for _ in range(3):
         learner.history.add(learner.status())
     learner.save_checkpoint()
