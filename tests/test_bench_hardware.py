@@ -188,7 +188,9 @@ def test_worker_commands_alternate_and_count_once():
     assert args.variants == list(learner.VARIANTS)
     project = learner.worker_command(args, "project", Path("/tmp/b.npz"), count=False)
     assert project[project.index("--variants") + 1] == ",".join(learner.VARIANTS)
-    assert "--variants" not in learner.worker_command(args, "peak", Path("/tmp/b.npz"), count=False)
+    # the peak worker reads them for whether to time the bf16 peak; the reference's never runs them
+    assert "--variants" in learner.worker_command(args, "peak", Path("/tmp/b.npz"), count=False)
+    assert "--variants" not in learner.worker_command(args, "reference", Path("/tmp/b.npz"), count=False)
     with pytest.raises(SystemExit):
         learner.parse_args(["--variants", "td3_ae,no_such_agent"])
 

@@ -14,10 +14,10 @@ from shared.recorder import Recorder
 def test_each_read_parses_only_the_rows_appended_since_the_last(tmp_path):
     recorder = Recorder(tmp_path, eval_episodes=2)
     for i in range(500):
-        recorder.eval_row(i * 10, [float(i), float(i + 1)])
+        recorder.eval_row(i * 10, [float(i), float(i + 1)], updates=0)
     series = EvalSeries(tmp_path / "eval.csv")
     assert len(series()) == 500 and series.lines_read == 501  # the header and every row, once
-    recorder.eval_row(5000, [7.0, 9.0])
+    recorder.eval_row(5000, [7.0, 9.0], updates=0)
     with open(tmp_path / "eval.csv", "a") as f:
         f.write("5010,1")  # a row still being written: left for the next read
     evals = series()
@@ -31,7 +31,7 @@ def test_each_read_parses_only_the_rows_appended_since_the_last(tmp_path):
 def test_a_file_cut_back_or_replaced_is_read_again(tmp_path):
     recorder = Recorder(tmp_path, eval_episodes=1)
     for i in range(5):
-        recorder.eval_row(i, [float(i)])
+        recorder.eval_row(i, [float(i)], updates=0)
     series = EvalSeries(tmp_path / "eval.csv")
     assert [e["step"] for e in series()] == [0, 1, 2, 3, 4]
     recorder.eval_log.truncate(2)  # a resume drops the rows after its checkpoint
@@ -47,14 +47,14 @@ def test_history_serves_a_bounded_evenly_spaced_subset_of_a_long_runs_evaluation
     recorder = Recorder(tmp_path, eval_episodes=1)
     n = 3 * MAX_EVALS + 7
     for i in range(n):
-        recorder.eval_row(i * 1000, [float(i)])
+        recorder.eval_row(i * 1000, [float(i)], updates=0)
     app = make_app(lambda: {}, lambda: [], lambda: [], data=tmp_path, render_every_s=0.0)
     client = TestClient(app)
     steps = [e["step"] for e in client.get("/history").json()["evals"]]
     assert MAX_EVALS // 2 < len(steps) <= MAX_EVALS and steps[0] == 0 and steps[-1] == (n - 1) * 1000
     gaps = [b - a for a, b in zip(steps, steps[1:], strict=False)]
     assert len(set(gaps[:-1])) == 1 and 0 < gaps[-1] <= gaps[0]  # evenly spaced, then the newest
-    recorder.eval_row(n * 1000, [1.0])
+    recorder.eval_row(n * 1000, [1.0], updates=0)
     again = [e["step"] for e in client.get("/history").json()["evals"]]
     assert again[:-1] == steps[:-1] and again[-1] == n * 1000  # the points drawn stay where they were
     assert sum(1 for _ in open(tmp_path / "eval.csv")) == n + 2  # the file keeps every row
@@ -70,10 +70,10 @@ def test_thin_keeps_short_series_whole():
 def test_a_file_cut_and_grown_past_its_old_size_between_reads_is_read_again(tmp_path):
     recorder = Recorder(tmp_path, eval_episodes=1)
     for i in range(5):
-        recorder.eval_row(i, [float(i)])
+        recorder.eval_row(i, [float(i)], updates=0)
     series = EvalSeries(tmp_path / "eval.csv")
     assert len(series()) == 5
     recorder.eval_log.truncate(2)
     for i in range(100, 110):
-        recorder.eval_row(i, [float(i)])
+        recorder.eval_row(i, [float(i)], updates=0)
     assert [e["step"] for e in series()] == [0, 1, *range(100, 110)]
