@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 from collections.abc import Iterator
+from pathlib import Path
 
 from nasa.stopping import Terminated, interrupted, raise_terminated
 
@@ -59,3 +60,23 @@ def stop_group(proc: subprocess.Popen, steps: tuple[tuple[int, float], ...] = ST
     if proc.poll() is None:
         _kill_group(proc)
     return proc.returncode
+
+
+def processes_with(variable: str, value: str) -> list[tuple[int, list[str]]]:
+    """The live processes (pid, argv) whose environment holds `variable`=`value`, which every
+    process they start inherits, whatever its session; zombies and processes gone meanwhile are
+    left out."""
+    entry = f"{variable}={value}".encode()
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            if entry not in (proc / "environ").read_bytes().split(b"\0"):
+                continue
+            if (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                continue
+            found.append((int(proc.name), (proc / "cmdline").read_bytes().decode().split("\0")))
+        except OSError:
+            continue
+    return found

@@ -38,7 +38,7 @@ import numpy as np
 
 from bench.args import task_name
 from bench.gil_profile import GilProfileError, Recording
-from bench.processes import stop_group, stopped_cleanly
+from bench.processes import processes_with, stop_group, stopped_cleanly
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
@@ -52,17 +52,7 @@ def service_pids(launcher: int) -> dict[str, int]:
     `-m services.<role>` that carry NASA_PARENT_PID. A service's own children inherit that
     variable too (the evaluator's ffmpeg, while it writes a video): they are not services."""
     found: dict[str, int] = {}
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            if f"NASA_PARENT_PID={launcher}".encode() not in (proc / "environ").read_bytes().split(b"\0"):
-                continue
-            argv = (proc / "cmdline").read_bytes().decode().split("\0")
-            if (proc / "stat").read_text().split(")")[-1].split()[0] == "Z":
-                continue
-        except OSError:
-            continue
+    for pid, argv in processes_with("NASA_PARENT_PID", str(launcher)):
         i = argv.index("-m") if "-m" in argv else len(argv)
         module = argv[i + 1] if i + 1 < len(argv) else ""
         if not module.startswith("services."):
@@ -71,7 +61,7 @@ def service_pids(launcher: int) -> dict[str, int]:
         name, n = module, 1
         while name in found:
             name, n = f"{module}-{n}", n + 1
-        found[name] = int(proc.name)
+        found[name] = pid
     return found
 
 

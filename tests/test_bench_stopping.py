@@ -19,24 +19,14 @@ from pathlib import Path
 import pytest
 from system_harness import REPO, TINY
 
+from bench.processes import processes_with
+
 pytestmark = pytest.mark.system
 
 
 def marked(mark: str) -> list[tuple[int, str]]:
     """Live processes (pid, command line) whose environment holds BENCH_TEST_MARK=`mark`."""
-    found = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            if f"BENCH_TEST_MARK={mark}".encode() not in (proc / "environ").read_bytes().split(b"\0"):
-                continue
-            if (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
-                continue
-            found.append((int(proc.name), (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()))
-        except OSError:
-            continue
-    return found
+    return [(pid, " ".join(argv)) for pid, argv in processes_with("BENCH_TEST_MARK", mark)]
 
 
 def wait_for(what: str, ready: Callable[[], bool], bench: subprocess.Popen, timeout: float = 240) -> None:
