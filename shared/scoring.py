@@ -16,12 +16,21 @@ is stored finite and within the replay's reward bound: one that is not finite
 clipped, as the replay refuses a write-back with either and the row would stay
 unscored. The running means and counts go into the learner's checkpoint
 (`state`), so a resumed run's /status goes on with the whole run's.
+
+Over the wire (the learner service) asking the replay for the owed rows is a
+round trip the update would wait on; `fetching_ahead` asks from a thread
+instead, so the rows are on hand when the next update scores them (one or two
+updates later than a blocking ask: the learner's updates and the actors' steps
+are not in lockstep there anyway).
 """
 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
+import threading
+from collections import OrderedDict, deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -54,30 +63,83 @@ class IntrinsicScorer:
         self._cache: OrderedDict[int, float] = OrderedDict()
         self._sums = {"novelty": 0.0, "surprise": 0.0}
         self._count = 0
+        self._fetched: deque[tuple[Batch | None, int]] = deque()  # fetching_ahead's answers, in order
+        self._fetching = False
+        self._fetch_error: BaseException | None = None
 
     def score_new(self) -> int:
-        """Score up to one batch of the oldest rows not scored yet; returns how many rows it saw."""
+        """Score up to one batch of the oldest rows not scored yet (while fetching ahead: the rows
+        fetched so far, without waiting); returns how many rows it saw."""
         zeros = 0
         warm = min(self.client.num_inserted, self.warmup_steps)
         if self._after < warm:  # warm-up rows score 0: no frames needed
             index = np.arange(self._after, warm)
             self.client.set_intrinsic(index, np.zeros(len(index), np.float32))
             self._after, zeros = warm, len(index)
+        if self._fetch_error is not None:
+            raise RuntimeError("the thread fetching owed rows failed") from self._fetch_error
+        if self._fetched or self._fetching:
+            seen = 0
+            while self._fetched:
+                seen += self._score_owed(*self._fetched.popleft())
+            return zeros + seen
         if self._after >= self.client.num_inserted:
             # Nothing stored since the last scan: no query (the learner service would otherwise ask
             # the replay before every update). Its count comes with every batch the replay serves,
             # so a row is found at the first update after a batch that could hold it.
             return zeros
-        batch, seen = self.client.unscored(self._after, self.batch_size)
+        return zeros + self._score_owed(*self.client.unscored(self._after, self.batch_size))
+
+    def _score_owed(self, batch: Batch | None, seen: int) -> int:
+        """Score what `client.unscored` answered; every row in [_after, seen) it left out is scored
+        or evicted."""
         if batch is None:
             self._after = max(self._after, seen)
-            return zeros
+            return 0
         self.score_batch(batch, on_arrival=True)
         self._after = max(self._after, int(batch["index"].max()) + 1)
-        return zeros + len(batch["index"])
+        return len(batch["index"])
+
+    @contextmanager
+    def fetching_ahead(self, idle_s: float = 0.005, depth: int = 4) -> Iterator[None]:
+        """Inside the block a thread asks the replay for the owed rows as they are stored, and
+        score_new scores what it has fetched without asking itself. On exit the thread stops;
+        what it fetched is still scored by the next score_new (or catch_up)."""
+        stop = threading.Event()
+
+        def fetch() -> None:
+            after = max(self._after, self.warmup_steps)  # warm-up rows need no frames (score_new)
+            try:
+                while not stop.is_set():
+                    if len(self._fetched) >= depth or after >= self.client.num_inserted:
+                        stop.wait(idle_s)
+                        continue
+                    batch, seen = self.client.unscored(after, self.batch_size)
+                    if batch is None and seen <= after:  # no answer: ask again later, not at once
+                        stop.wait(0.1)
+                        continue
+                    self._fetched.append((batch, seen))
+                    after = max(after, seen if batch is None else int(batch["index"].max()) + 1)
+            except BaseException as err:  # noqa: BLE001 - score_new raises it in the learner's thread
+                self._fetch_error = err
+
+        thread = threading.Thread(target=fetch, name="score-ahead", daemon=True)
+        self._fetching = True
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            # An ask in flight may take the client's timeout; one it answers late is still scored
+            # right (a row scored since comes from the cache).
+            thread.join(timeout=1.0)
+            self._fetching = False
 
     def catch_up(self) -> None:
-        """Score every row stored so far (the end of a run: the last arrivals)."""
+        """Score every row stored so far (the end of a run: the last arrivals); not while
+        fetching_ahead, whose thread may not have fetched them yet."""
+        if self._fetching:
+            raise RuntimeError("catch_up inside fetching_ahead")
         while self.score_new():
             pass
 

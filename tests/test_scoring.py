@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -182,3 +185,81 @@ def test_one_row_is_scored_on_one_thread_and_the_thread_count_comes_back():
         torch.set_num_threads(before)
     assert threads_seen == [(16, 2), (1, 1)]
     assert after == 2
+
+
+class ThreadRecordingClient(LocalReplay):
+    """Records which thread asks for the owed rows."""
+
+    def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003
+        super().__init__(*args, **kwargs)
+        self.askers: set[str] = set()
+
+    def unscored(self, after: int, limit: int):  # noqa: ANN201
+        self.askers.add(threading.current_thread().name)
+        return super().unscored(after, limit)
+
+
+def add_steps(store: ReplayStore, n: int) -> None:
+    spec, adder = tiny_run().spec, StoreAdder(store)
+    rng = np.random.default_rng(store.num_inserted)
+    adder.add_first(rng.integers(0, 255, spec.frame_shape, np.uint8))
+    for _ in range(n):
+        adder.add(rng.uniform(-1, 1, spec.action_dim).astype(np.float32), 1.0, 1.0,
+                  rng.integers(0, 255, spec.frame_shape, np.uint8), False, policy_version=0)
+
+
+def test_fetching_ahead_the_updates_thread_never_asks_and_every_row_is_scored_once_as_a_blocking_ask_would():
+    store, agent = filled_store(30), nasa_agent()
+    client = ThreadRecordingClient(store, np.random.default_rng(0))
+    scorer = IntrinsicScorer(agent, client, WARMUP, batch_size=8)
+    with scorer.fetching_ahead(idle_s=0.001):
+        for _ in range(6):  # steps stored while updates run: each scored at a later update
+            add_steps(store, 5)
+            deadline = time.monotonic() + 10
+            while scorer.scored < store.num_inserted - WARMUP and time.monotonic() < deadline:
+                scorer.score_new()
+                time.sleep(0.001)
+    scorer.catch_up()
+    assert threading.current_thread().name not in client.askers and client.askers == {"score-ahead"}
+    assert scorer.scored == store.num_inserted - WARMUP  # no row twice
+    stored = store.get(np.arange(store.num_inserted))["intrinsic"]
+    assert np.all(stored[:WARMUP] == 0.0)
+    rows = store.get(np.arange(WARMUP, store.num_inserted))
+    expected = agent.score(torch.as_tensor(rows["obs"]), torch.as_tensor(rows["action"]),
+                           torch.as_tensor(rows["next_obs"]))["intrinsic"].numpy()
+    np.testing.assert_allclose(stored[WARMUP:], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_rows_fetched_ahead_but_not_scored_when_the_block_ends_are_scored_by_catch_up_once():
+    store, agent = filled_store(WARMUP), nasa_agent()
+    client = CountingClient(store, np.random.default_rng(0))
+    scorer = IntrinsicScorer(agent, client, WARMUP, batch_size=4)
+    with scorer.fetching_ahead(idle_s=0.001):
+        add_steps(store, 10)
+        deadline = time.monotonic() + 10
+        while client.scans < 3 and time.monotonic() < deadline:  # 10 rows, 4 at a time: all fetched
+            time.sleep(0.001)
+        with pytest.raises(RuntimeError):
+            scorer.catch_up()  # its thread may not have fetched everything yet
+    assert scorer.scored == 0
+    scans = client.scans
+    scorer.catch_up()
+    assert scorer.scored == 10 and not np.isnan(store.get(np.arange(store.num_inserted))["intrinsic"]).any()
+    assert client.scans == scans  # what the thread fetched covers every row: no ask again
+
+
+class FailingClient(LocalReplay):
+    def unscored(self, after: int, limit: int):  # noqa: ANN201
+        raise OSError("the replay's answer could not be read")
+
+
+def test_a_failure_of_the_fetching_thread_is_raised_in_the_updates_thread():
+    store, agent = filled_store(WARMUP + 3), nasa_agent()
+    scorer = IntrinsicScorer(agent, FailingClient(store, np.random.default_rng(0)), WARMUP, batch_size=4)
+    with scorer.fetching_ahead(idle_s=0.001):
+        deadline = time.monotonic() + 10
+        while scorer._fetch_error is None and time.monotonic() < deadline:
+            time.sleep(0.001)
+        with pytest.raises(RuntimeError, match="fetching owed rows") as caught:
+            scorer.score_new()
+    assert isinstance(caught.value.__cause__, OSError)

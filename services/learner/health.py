@@ -37,6 +37,10 @@ class LearnerArgs(ServiceArgs):
     """Stage batches on the learner's device ahead of the update (pinned buffers, copies on a side
     stream: shared/prefetch.py): `on`, `off`, or `auto` (on with CUDA, where the copy can overlap
     the update; off on the CPU, where it would only add a copy)."""
+    score_ahead: bool = True
+    """Collect timing: a thread asks the replay for the rows owed a score while the update runs, so
+    the update does not wait on that round trip (the rows are scored an update or two later than
+    they would be with `--no-score-ahead`, which asks before each update)."""
     final_eval_wait_s: float = 300.0
     """At the end, how long to wait for the evaluation of the last eval step (while no evaluator is
     alive, only a short grace for one to come back)."""

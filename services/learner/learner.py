@@ -3,7 +3,8 @@
 - Batches: a `Prefetcher` keeps sample requests in flight to the replay (paced
   by its rate limiter), so the compute thread finds the next batch ready.
 - Intrinsic rewards (collect timing): the core's scorer scores the oldest
-  unscored rows before each update and writes the scores back.
+  unscored rows before each update and writes the scores back (a thread fetches
+  them while the previous update runs, `--no-score-ahead` asks before each).
 - Weights: version = the update count; published every `publish_every`
   updates (latest wins) and served on `learner/weights/latest` for processes
   that just started. The evaluator's weights go out on `learner/eval_weights`
@@ -248,6 +249,8 @@ class Learner:
             if use_device_prefetch(self.args.device_prefetch, core.device):
                 staged = DevicePrefetcher(lambda: prefetcher.get(timeout=0.2), core.device)
                 stack.enter_context(staged)
+            if core.scorer is not None and self.args.score_ahead:
+                stack.enter_context(core.scorer.fetching_ahead())
             while not self.stop:
                 self.wall_s = wall0 + time.monotonic() - wall_start
                 self._drain()
