@@ -148,9 +148,9 @@ def action_repeat_of(folder: Path) -> int | None:
 def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
     """Every eval.csv under `results_dir` with at least one row and a known task/algo/seed, with
     the wall-clock time of each step (train.csv) when `walls`. A run whose files cannot be read (a
-    damaged file, a row cut short, a step or return that is inf or nan) is named and skipped, so one
-    bad folder does not hide the others' curves; train.csv is read only for `walls`, so its damage
-    hides no step curve."""
+    damaged file, a row cut short, a step or return that is inf or nan, steps out of order) is named
+    and skipped, so one bad folder does not hide the others' curves; train.csv is read only for
+    `walls`, so its damage hides no step curve."""
     runs: list[SeedCurve] = []
     seen: dict[tuple[str, str, int, str], Path] = {}
     for path in sorted(Path(results_dir).rglob("eval.csv")):
@@ -170,6 +170,8 @@ def find_runs(results_dir: Path, walls: bool = False) -> list[SeedCurve]:
                 raise ValueError("a step or mean that is not a finite number")
             if (np.abs(steps) >= 2**62).any():  # beyond any run, and near int64's end
                 raise ValueError("a step out of range")
+            if (np.diff(steps) <= 0).any():  # align interpolates along the file's order
+                raise ValueError("steps not in increasing order (eval.csv is written in step order)")
             steps = steps.astype(np.int64)
             repeat = action_repeat_of(path.parent)
             at = eval_walls(path.parent, steps.tolist()) if walls else {}

@@ -211,6 +211,12 @@ INF_SEED = '{"env": {"task": "cheetah-run"}, "algo": "td3", "seed": 1e400}'
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n10,inf\n"), "not a finite number"),
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,nan\n10,1.0\n"), "not a finite number"),
         (lambda f: (f / "eval.csv").write_text("step,mean\n0,1.0\n1e20,1.0\n"), "a step out of range"),
+        # eval.csv is written in step order: one out of it (merged or edited by hand) was drawn with
+        # values interpolated along the file's order, not the evaluations it holds.
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,0.0\n20,500.0\n10,7.0\n30,30.0\n"),
+         "steps not in increasing order"),
+        (lambda f: (f / "eval.csv").write_text("step,mean\n0,0.0\n10,7.0\n10,500.0\n"),
+         "steps not in increasing order"),
         # A field past the csv module's length limit (an unclosed quote, a binary blob).
         (lambda f: (f / "eval.csv").write_text('step,mean\n0,1.0\n"' + "x" * 200_000 + "\n"),
          "not a CSV file this version can read"),
