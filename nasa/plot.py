@@ -242,10 +242,12 @@ def group(runs: list[SeedCurve]) -> dict[str, dict[str, list[SeedCurve]]]:
 
 
 def same_steps(curves: list[SeedCurve]) -> bool:
-    """Whether every seed was evaluated at the same steps up to the shortest seed's last."""
+    """Whether every seed was evaluated at the same steps over the span `align` draws (from the
+    latest first step to the shortest seed's last)."""
+    start = max(int(c.steps[0]) for c in curves)
     end = min(int(c.steps[-1]) for c in curves)
-    first = curves[0].steps[curves[0].steps <= end].tolist()
-    return all(c.steps[c.steps <= end].tolist() == first for c in curves)
+    first = curves[0].steps[(curves[0].steps >= start) & (curves[0].steps <= end)].tolist()
+    return all(c.steps[(c.steps >= start) & (c.steps <= end)].tolist() == first for c in curves)
 
 
 def align(curves: list[SeedCurve]) -> tuple[np.ndarray, np.ndarray]:

@@ -375,6 +375,18 @@ def test_seeds_evaluated_at_different_steps_meet_on_a_common_grid(tmp_path: Path
     assert "interpolated" in fig.get_suptitle()
 
 
+def test_seeds_that_start_at_different_steps_are_aligned_not_interpolated(tmp_path: Path) -> None:
+    """One seed has no step-0 evaluation: the curve starts at the step both have, and every point
+    drawn is one both seeds were evaluated at, so the caption says no interpolation."""
+    root = tmp_path / "runs"
+    write_eval(root / "cartpole-balance" / "nasa_td3" / "seed0", [0, 10, 20], [0.0, 10.0, 20.0])
+    write_eval(root / "cartpole-balance" / "nasa_td3" / "seed1", [10, 20], [30.0, 40.0])
+    runs = find_runs(root)
+    assert align(runs)[0].tolist() == [10, 20]
+    fig = plot_curves(runs)
+    assert "interpolated" not in fig.get_suptitle() and "aligned" in fig.get_suptitle()
+
+
 def test_one_seed_shows_no_spread_over_seeds(tmp_path: Path) -> None:
     write_eval(tmp_path / "cartpole-balance" / "nasa_td3" / "seed0", [0, 10], [5.0, 500.0])
     table = results_table(summarize(find_runs(tmp_path)))
