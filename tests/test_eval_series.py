@@ -77,3 +77,19 @@ def test_a_file_cut_and_grown_past_its_old_size_between_reads_is_read_again(tmp_
     for i in range(100, 110):
         recorder.eval_row(i, [float(i)], updates=0)
     assert [e["step"] for e in series()] == [0, 1, *range(100, 110)]
+
+
+def test_a_file_cut_and_grown_back_to_its_old_size_between_reads_is_read_again(tmp_path):
+    # A resume drops rows after its checkpoint and its evaluations write them again: rows of the
+    # same length leave the file at the size last read, with other returns in it.
+    recorder = Recorder(tmp_path, eval_episodes=1)
+    for i in range(5):
+        recorder.eval_row(i, [float(i)], updates=0)
+    series = EvalSeries(tmp_path / "eval.csv")
+    assert [e["mean"] for e in series()] == [0.0, 1.0, 2.0, 3.0, 4.0]
+    size = os.path.getsize(tmp_path / "eval.csv")
+    recorder.eval_log.truncate(3)
+    for i in (3, 4):
+        recorder.eval_row(i, [float(i + 5)], updates=0)
+    assert os.path.getsize(tmp_path / "eval.csv") == size
+    assert [e["mean"] for e in series()] == [0.0, 1.0, 2.0, 8.0, 9.0]

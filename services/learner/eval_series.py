@@ -39,17 +39,17 @@ class EvalSeries:
             return []
         if (st.st_dev, st.st_ino) != self._file or st.st_size < self._offset:
             self._start_over((st.st_dev, st.st_ino))
-        if st.st_size > self._offset:
-            try:
-                new = self._read_on()
-            except OSError:
-                return thin(self._evals, self.max_evals)
-            whole = new[: new.rfind(b"\n") + 1]
-            self._offset += len(whole)
-            lines = whole.splitlines(keepends=True)
-            for line in lines:
-                self._take(line.rstrip(b"\r\n"))
-            self._last = lines[-1] if lines else self._last
+        # Read at the size last read too: a file cut and written again to that size holds other rows.
+        try:
+            new = self._read_on()
+        except OSError:
+            return thin(self._evals, self.max_evals)
+        whole = new[: new.rfind(b"\n") + 1]
+        self._offset += len(whole)
+        lines = whole.splitlines(keepends=True)
+        for line in lines:
+            self._take(line.rstrip(b"\r\n"))
+        self._last = lines[-1] if lines else self._last
         return thin(self._evals, self.max_evals)
 
     def _read_on(self) -> bytes:
