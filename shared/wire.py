@@ -55,7 +55,7 @@ from shared.envs import ACTION_BOUND
 # 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
 # key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read.
 # A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures,
-# InsertAck.refused, ActorStatus.refused)
+# InsertAck.refused, ActorStatus.refused, BridgeEStop.request)
 # keeps the version: a receiver fills in the default where a sender has not the field, and ignores
 # fields it does not know, so either side of a rolling upgrade reads the other's messages.
 SCHEMA_VERSION = 3
@@ -675,6 +675,7 @@ CHECKS: dict[type[Message], Any] = {
 # | reset     (queryable)                | BridgeReset -> BridgeReply | bridge answers; its actor    |
 # | step      (queryable)                | BridgeStep -> BridgeReply  | bridge answers; its actor    |
 # | estop                                | BridgeEStop                | operator, `nasa`, tests      |
+# | estop_ack                            | BridgeEStopAck             | bridge; the operator waiting |
 # | alive     (liveliness token)         |                            | bridge; actors watch it      |
 #
 # A bridge owns one gripper (or its stand-in), so its keys name the bridge, not a run.
@@ -691,6 +692,7 @@ class BridgeKeys:
         self.reset = f"{p}/reset"
         self.step = f"{p}/step"
         self.estop = f"{p}/estop"
+        self.estop_ack = f"{p}/estop_ack"
         self.alive = f"{p}/alive"
 
 
@@ -758,11 +760,30 @@ class BridgeEStop(Message):
     TYPE: ClassVar[str] = "bridge_estop"
     engage: bool
     reason: str
+    request: str = ""
+    """The sender's own tag, echoed in the bridge's BridgeEStopAck so it knows the answer is to it."""
+
+
+@dataclass
+class BridgeEStopAck(Message):
+    """A bridge's answer to a BridgeEStop, sent once it holds: for an e-stop, after the torque-off
+    went to every servo (`unreached`: those that did not answer it) or the stand-in's stop is
+    latched; for a re-arm, once the stop is released (the homing follows)."""
+
+    TYPE: ClassVar[str] = "bridge_estop_ack"
+    request: str
+    engage: bool
+    state: str
+    """The bridge's safety state after it (`estop`; `recovering` after a re-arm)."""
+    unreached: list
+    bridge: str
+    """Which process answered: its host and pid."""
 
 
 MESSAGES.update({
     cls.TYPE: cls
-    for cls in (BridgeSpecRequest, BridgeSpec, BridgeReset, BridgeStep, BridgeReply, BridgeEStop)
+    for cls in (BridgeSpecRequest, BridgeSpec, BridgeReset, BridgeStep, BridgeReply, BridgeEStop,
+                BridgeEStopAck)
 })
 
 
@@ -817,6 +838,8 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         Route(b.reset, QUERY, ("bridge",), ("actor",)),
         Route(b.step, QUERY, ("bridge",), ("actor",)),
         Route(b.estop, PUT, ("operator",), ("bridge",)),
+        # Only the bridge confirms an e-stop, and only the operator who sent it waits to hear it.
+        Route(b.estop_ack, PUT, ("bridge",), ("operator",)),
         # A bridge starting looks for one already serving its id.
         Route(b.alive, TOKEN, ("bridge",), ("actor", "bridge")),
     )

@@ -179,6 +179,44 @@ def test_only_the_learner_and_an_operator_stop_the_run(router: str, auth_dir: Pa
             sub.undeclare()
 
 
+def test_only_the_bridge_confirms_an_estop_and_only_the_operator_hears_it(
+        router: str, auth_dir: Path, monkeypatch) -> None:  # noqa: ANN001
+    """Under the ACL a bridge's acknowledgement reaches the operator's `estop`; an actor can neither
+    forge one for the operator nor hear the bridge's."""
+    from services.robot_bridge import operate
+    from services.robot_bridge.server import BridgeServer
+    from shared.gripper.sim import ValveSim
+
+    b = wire.BridgeKeys("g1")
+    forged = wire.encode(wire.BridgeEStopAck("x", True, "estop", [], "forger"))
+    at_operator: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    at_actor: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    monkeypatch.setenv("NASA_ZENOH_AUTH", str(auth_dir))
+    sim = ValveSim("gripper-valve", seed=0, image_size=32, render_quality="fast")
+    try:
+        with (login(router, auth_dir, "bridge") as bridge, login(router, auth_dir, "actor") as actor,
+              login(router, auth_dir, "actor") as listener, login(router, auth_dir, "operator") as operator):
+            server = BridgeServer(bridge, "g1", sim, "gripper-valve", log=lambda _: None)
+            with server.serve():
+                ack, deadline = None, time.monotonic() + 30.0
+                while ack is None:  # until the bridge's subscriber has reached the router
+                    assert time.monotonic() < deadline, "no acknowledgement reached the operator"
+                    ack = operate.send_estop("g1", True, "test", router, wait_s=1.0)
+                assert (ack.engage, ack.state, ack.unreached) == (True, "estop", []) and server.estopped
+                subs = [operator.declare_subscriber(b.estop_ack, into(at_operator)),
+                        listener.declare_subscriber(b.estop_ack, into(at_actor))]
+                wait_routed(bridge, b.estop_ack, at_operator)
+                actor.put(b.estop_ack, forged)
+                bridge.put(b.estop_ack, b"real")
+                # The forged one went through the router before the bridge's, which is all that came.
+                assert until(at_operator, (b.estop_ack, b"real")) == [(b.estop_ack, b"real")]
+                assert at_actor.empty()
+                for sub in subs:
+                    sub.undeclare()
+    finally:
+        sim.close()
+
+
 def test_an_actor_cannot_sample_the_replay(router: str, auth_dir: Path) -> None:
     k = wire.Keys(RUN)
 

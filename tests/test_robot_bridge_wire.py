@@ -14,6 +14,8 @@ BRIDGE_MESSAGES = [
     wire.BridgeReply(True, "", 2, 8, [3, 2, 2], b"f" * 12, -0.25, 1.0, False, True,
                      {"valve_angle": 1.5, "positions": [512, 600], "safety": {"state": "ready"}}),
     wire.BridgeEStop(True, "button"),
+    wire.BridgeEStop(False, "re-arm", request="0123abcd"),
+    wire.BridgeEStopAck("0123abcd", True, "estop", [3], "host pid 12"),
 ]
 
 

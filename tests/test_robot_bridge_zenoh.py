@@ -3,6 +3,7 @@
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -295,3 +296,88 @@ def test_a_stale_step_is_refused_and_leaves_the_live_episode_going() -> None:
         assert again.ok and not again.last and again.step == 1
     finally:
         sim.close()
+
+
+def estop_cli(bridge_id: str, endpoint: str, *extra: str,
+              command: str = "estop") -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.robot_bridge.operate", command, "--bridge-id", bridge_id,
+         "--connect", endpoint, *extra], capture_output=True, text=True, timeout=120,
+    )
+
+
+@pytest.fixture
+def emulated_bridge(sessions):
+    """The real gripper's code path (driver, interlocks) on the emulated bus, served as `e1`, reset
+    once so its servos hold torque."""
+    from services.robot_bridge.emulated import EmulatedGripper
+
+    bridge_session, actor_session = sessions
+    gripper = EmulatedGripper("gripper-valve", seed=0, image_size=32)
+    server = BridgeServer(bridge_session, "e1", gripper, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            BridgeEnv(actor_session, "e1", timeout_s=60.0).reset()
+            yield server, gripper
+    finally:
+        gripper.close()
+
+
+def torque(gripper) -> list[int]:  # noqa: ANN001
+    from services.robot_bridge import xl320
+
+    return [gripper.emulator.snapshot(sid, xl320.TORQUE_ENABLE) for sid in sorted(gripper.emulator.servos)]
+
+
+def test_an_estop_is_confirmed_by_its_bridge_once_torque_is_off(emulated_bridge, endpoint: str) -> None:
+    server, gripper = emulated_bridge
+    assert torque(gripper)[:4] == [1, 1, 1, 1]
+    result = estop_cli("e1", endpoint)
+    # The emulated servos are read right after the command said `confirmed`, before anything else
+    # could change them: torque was off when the bridge answered.
+    assert torque(gripper) == [0] * 5
+    assert result.returncode == 0, result.stderr
+    by = f"{socket.gethostname()} pid {os.getpid()}"
+    assert result.stdout.startswith(f"e-stop confirmed by bridge e1 ({by}): state estop, torque off")
+    assert server.estopped
+    rearmed = estop_cli("e1", endpoint, command="rearm")
+    assert rearmed.returncode == 0, rearmed.stderr
+    assert rearmed.stdout.startswith("re-arm confirmed by bridge e1") and "state recovering" in rearmed.stdout
+
+
+def test_an_estop_a_servo_did_not_hear_is_not_confirmed(emulated_bridge, endpoint: str) -> None:
+    server, gripper = emulated_bridge
+    gripper.emulator.kill(3)  # its cable cut: it holds torque, and cannot be told otherwise
+    result = estop_cli("e1", endpoint)
+    assert result.returncode == 1 and server.estopped
+    assert "is e-stopped (state estop), but its torque-off did not reach servos [3]" in result.stderr
+    assert "cut the servos' power" in result.stderr and torque(gripper) == [0, 0, 1, 0, 0]
+
+
+def test_an_estop_no_bridge_hears_is_not_confirmed(sessions, endpoint: str) -> None:
+    result = estop_cli("nobody", endpoint, "--wait-s", "1")
+    assert result.returncode == 1
+    assert result.stderr.startswith("NOT confirmed: estop went out, but no bridge nobody answered within 1 s")
+    assert "cut the servos' power" in result.stderr and "confirmed by" not in result.stdout
+    assert "Traceback" not in result.stderr
+
+
+def test_an_estop_to_another_id_is_not_confirmed_and_leaves_the_bridge_running(
+        emulated_bridge, endpoint: str) -> None:
+    server, gripper = emulated_bridge
+    result = estop_cli("e2", endpoint, "--wait-s", "1")
+    assert result.returncode == 1 and "no bridge e2 answered" in result.stderr
+    assert not server.estopped and torque(gripper)[:4] == [1, 1, 1, 1]
+
+
+def test_an_estop_ack_for_another_operator_is_not_taken(sessions, endpoint: str) -> None:
+    """Two operators pressing at once: each waits for the answer to its own request."""
+    bridge_session, _ = sessions
+    keys = wire.BridgeKeys("g7")
+    foreign = wire.BridgeEStopAck("someone-else", True, "estop", [], "elsewhere pid 1")
+
+    def answer_others(sample) -> None:  # noqa: ANN001
+        bridge_session.put(keys.estop_ack, wire.encode(foreign))
+
+    with bridge_session.declare_subscriber(keys.estop, answer_others):
+        assert operate.send_estop("g7", True, "test", endpoint, wait_s=1.0) is None

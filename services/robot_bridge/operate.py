@@ -4,6 +4,9 @@
     python -m services.robot_bridge.operate rearm --bridge-id 0
     python -m services.robot_bridge.operate calibrate --config gripper.toml
 
+`estop` and `rearm` wait for the bridge's acknowledgement and say who gave it; with none within
+--wait-s (no bridge of that id heard it) they exit 1.
+
 `calibrate` prints the raw angle reading (ArUco marker or valve servo) with the valve at the angle
 you want as 0: put that number in the config's `angle.zero_deg`.
 """
@@ -11,19 +14,65 @@ you want as 0: put that number in the config's `angle.zero_deg`.
 from __future__ import annotations
 
 import argparse
+import queue
+import secrets
 import statistics
 import sys
 
 from shared import wire
 from shared.zenoh_session import env_connect
 
+ACK_WAIT_S = 5.0
+"""How long `estop`/`rearm` wait for the bridge's acknowledgement: its torque-off goes to every
+servo, each with its reply timeout, and may wait for a step's bus transfer under way."""
 
-def send_estop(bridge_id: str, engage: bool, reason: str, connect: str) -> None:
+
+def send_estop(bridge_id: str, engage: bool, reason: str, connect: str,
+               wait_s: float = ACK_WAIT_S) -> wire.BridgeEStopAck | None:
+    """Send an e-stop (or, `engage` False, a re-arm) to the bridge of that id, then wait up to
+    `wait_s` for its acknowledgement; None if no bridge of that id answered."""
     from shared.zenoh_session import open_client
+
+    keys = wire.BridgeKeys(bridge_id)
+    request = secrets.token_hex(8)
+    acks: queue.Queue[wire.BridgeEStopAck] = queue.Queue()
+
+    def heard(sample) -> None:  # noqa: ANN001 (a zenoh.Sample)
+        try:
+            ack = wire.decode(sample.payload.to_bytes(), wire.BridgeEStopAck)
+        except wire.WireError:
+            return  # not an answer this command can read: as if unanswered
+        if ack.request == request:
+            acks.put(ack)
 
     # An operator waiting on an e-stop must hear within seconds that it did not go out.
     with open_client(connect, timeout_s=5.0, role="operator") as session:
-        session.put(wire.BridgeKeys(bridge_id).estop, wire.encode(wire.BridgeEStop(engage, reason)))
+        # Declared first, so the answer cannot pass before it; the stop goes out right after,
+        # and the wait below only reports.
+        with session.declare_subscriber(keys.estop_ack, heard):
+            session.put(keys.estop, wire.encode(wire.BridgeEStop(engage, reason, request)))
+            try:
+                return acks.get(timeout=wait_s)
+            except queue.Empty:
+                return None
+
+
+def report(command: str, bridge_id: str, ack: wire.BridgeEStopAck | None, wait_s: float) -> tuple[str, bool]:
+    """What the operator is told of an `estop`/`rearm`, and whether it took effect."""
+    if ack is None:
+        what = ("stop the bridge itself (Ctrl-C) or cut the servos' power" if command == "estop"
+                else "check that the bridge runs, then send the re-arm again")
+        return (f"NOT confirmed: {command} went out, but no bridge {bridge_id} answered within {wait_s:g} s "
+                f"(a wrong --bridge-id, a bridge that is down, or one older than this command): check "
+                f"the id; {what}", False)
+    if ack.unreached:
+        return (f"NOT confirmed: bridge {bridge_id} ({ack.bridge}) is e-stopped (state {ack.state}), but "
+                f"its torque-off did not reach servos {ack.unreached}: cut the servos' power", False)
+    if command == "estop":
+        return (f"e-stop confirmed by bridge {bridge_id} ({ack.bridge}): state {ack.state}, "
+                "torque off; it refuses steps and resets until re-armed", True)
+    return (f"re-arm confirmed by bridge {bridge_id} ({ack.bridge}): state {ack.state}; it homes, "
+            "then takes resets", True)
 
 
 def raw_reading(config_path: str, samples: int, source: str | None = None) -> float | None:
@@ -66,6 +115,8 @@ def main(argv: list[str] | None = None) -> None:
         p.add_argument("--bridge-id", default="0")
         p.add_argument("--reason", default=f"operator {name}")
         p.add_argument("--connect", default=env_connect())
+        p.add_argument("--wait-s", type=float, default=ACK_WAIT_S,
+                       help="how long to wait for the bridge's acknowledgement")
     p = sub.add_parser("calibrate")
     p.add_argument("--config", required=True)
     p.add_argument("--samples", type=int, default=15)
@@ -75,11 +126,14 @@ def main(argv: list[str] | None = None) -> None:
         from shared.zenoh_session import RouterUnreachable
 
         try:
-            send_estop(args.bridge_id, args.command == "estop", args.reason, args.connect)
+            ack = send_estop(args.bridge_id, args.command == "estop", args.reason, args.connect, args.wait_s)
         except RouterUnreachable as err:
             print(f"NOT sent: {args.command} to bridge {args.bridge_id}: {err}", file=sys.stderr, flush=True)
             sys.exit(1)
-        print(f"sent {args.command} to bridge {args.bridge_id}")
+        line, confirmed = report(args.command, args.bridge_id, ack, args.wait_s)
+        print(line, file=sys.stdout if confirmed else sys.stderr, flush=True)
+        if not confirmed:
+            sys.exit(1)
         return
     raw = raw_reading(args.config, args.samples, args.source)
     if raw is None:

@@ -8,7 +8,9 @@ For the real gripper, a second thread polls the watchdog.
 
 from __future__ import annotations
 
+import os
 import queue
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -54,14 +56,25 @@ class BridgeServer:
         re-arms racing each other end where the interlocks end), the server's for the stand-in."""
         return self._safety.estopped if self._safety is not None else self._estopped.is_set()
 
-    def estop(self, reason: str) -> None:
-        """Idempotent: the flag first, then the hardware's torque-off (which wins over a step)."""
+    def estop(self, reason: str) -> list[int]:
+        """Idempotent: the flag first, then the hardware's torque-off (which wins over a step).
+        Returns when it holds, with the servos the torque-off did not reach."""
         self.estop_reason = reason
+        unreached: list[int] = []
         if self._safety is not None:
-            self._safety.estop()
+            unreached = self._safety.estop()
         else:
             self._estopped.set()
-        self.log(f"e-stop: {reason}")
+        missed = f" (torque-off did not reach servos {unreached})" if unreached else ""
+        self.log(f"e-stop: {reason}{missed}")
+        return unreached
+
+    def safety_status(self) -> dict:
+        """The interlocks' snapshot (the stand-in's: ready or estop), `estop` whenever the flag is set."""
+        safety = self._safety.status() if self._safety is not None else {"state": "ready"}
+        if self.estopped:
+            safety["state"] = "estop"
+        return safety
 
     def rearm(self) -> None:
         """Clear the e-stop; the real gripper then recovers and homes (which takes a while)."""
@@ -139,9 +152,7 @@ class BridgeServer:
         )
 
     def _refusal(self, reason: str) -> wire.BridgeReply:
-        safety = self._safety.status() if self._safety is not None else {"state": "ready"}
-        if self.estopped:
-            safety["state"] = "estop"
+        safety = self.safety_status()
         return wire.BridgeReply(False, reason, self.episode, 0, list(self.frame_shape), b"", 0.0, 1.0,
                                 False, False, {"reason": reason, "safety": safety})
 
@@ -159,13 +170,21 @@ class BridgeServer:
             self.invalid += 1
             self.log(f"invalid e-stop message: {err}")
             return
+        unreached: list[int] = []
         if msg.engage:
-            self.estop(msg.reason)
+            unreached = self.estop(msg.reason)
         else:
             # Released here, in the order the messages came (an e-stop sent after it wins); the
             # homing takes time, so it runs on a thread of its own.
             self._release()
             threading.Thread(target=self._recover, name="rearm", daemon=True).start()
+        # Told only now, once the stop holds: an operator who hears nothing knows it may not.
+        ack = wire.BridgeEStopAck(msg.request, msg.engage, self.safety_status()["state"], unreached,
+                                  f"{socket.gethostname()} pid {os.getpid()}")
+        try:
+            self.session.put(self.keys.estop_ack, wire.encode(ack))
+        except Exception as err:  # noqa: BLE001 (the stop holds whether or not the answer goes out)
+            self.log(f"could not acknowledge the e-stop message: {type(err).__name__}: {err}")
 
     def _answer(self, query: zenoh.Query, kind: str, payload: bytes) -> None:
         try:
