@@ -381,3 +381,24 @@ def test_an_estop_ack_for_another_operator_is_not_taken(sessions, endpoint: str)
 
     with bridge_session.declare_subscriber(keys.estop, answer_others):
         assert operate.send_estop("g7", True, "test", endpoint, wait_s=1.0) is None
+
+
+def test_a_new_bridge_turns_off_the_torque_a_killed_one_left_on(sessions) -> None:
+    """What protects the servos after a containerised bridge dies (its guard dies with it) and
+    Docker starts it again: the new bridge's watchdog, with no client and no reset."""
+    import dataclasses
+
+    from services.robot_bridge.emulated import EmulatedGripper
+
+    bridge_session, _ = sessions
+    gripper = EmulatedGripper("gripper-valve", seed=0, image_size=32)
+    try:
+        for sid in gripper.emulator.servos:  # as the killed bridge left them
+            gripper.bus.set_torque(True, [sid])
+        assert torque(gripper) == [1] * 5
+        fingers = gripper.fingers
+        fingers.safety = dataclasses.replace(fingers.safety, watchdog_hold_s=0.2, watchdog_off_s=0.5)
+        with BridgeServer(bridge_session, "e3", gripper, "gripper-valve", log=lambda _: None).serve():
+            wait_until(lambda: torque(gripper) == [0] * 5)
+    finally:
+        gripper.close()
