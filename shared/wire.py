@@ -55,7 +55,7 @@ from shared.envs import ACTION_BOUND
 # 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
 # key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read.
 # A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures,
-# InsertAck.refused, ActorStatus.refused, BridgeEStop.request)
+# InsertAck.refused, ActorStatus.refused, BridgeEStop.request, TransitionBatch.launch, InsertAck.launch)
 # keeps the version: a receiver fills in the default where a sender has not the field, and ignores
 # fields it does not know, so either side of a rolling upgrade reads the other's messages.
 SCHEMA_VERSION = 3
@@ -163,6 +163,9 @@ class TransitionBatch(Message):
     discounts: bytes
     lasts: bytes
     policy_versions: bytes
+    launch: int = 0
+    """Drawn at random when the actor starts: two launches of one id that got the same incarnation
+    (started on two hosts in the same tenth of a second) differ here. 0: an actor older than it."""
 
 
 @dataclass
@@ -176,6 +179,8 @@ class InsertAck(Message):
     lasting: bool = False
     """The refusal holds for every later batch of this incarnation (an older incarnation of its id
     was superseded, an id the store cannot keep): its actor can only stop."""
+    launch: int = 0
+    """The batch's `launch`, so each of two launches that share an incarnation takes only its own."""
 
 
 @dataclass

@@ -191,6 +191,43 @@ def test_a_writer_whose_every_batch_the_replay_refuses_stops_its_actor_with_the_
             assert newer.refused == 0 and not newer.stop
 
 
+def test_two_launches_sharing_an_incarnation_are_told_apart_and_the_second_stops(tmp_path):
+    """One actor id started on two hosts in the same tenth of a second gets one incarnation on
+    both. Their batches carry each launch's random number: the replay keeps the launch it heard
+    first, refuses the other's batches for good (that writer stops its actor), and neither takes
+    the other's acknowledgements."""
+    from shared.replay.adder import REFUSALS_TO_STOP
+
+    frames = np.random.default_rng(0).integers(0, 256, (3, *SPEC.frame_shape), dtype=np.uint8)
+
+    def episode(writer: ZenohWriter) -> None:
+        writer.add_first(frames[0])
+        for t in (1, 2):
+            writer.add(np.zeros(2, np.float32), 0.0, 1.0, frames[t], t == 2, policy_version=0)
+
+    with Serving(tmp_path, warmup=100) as srv, open_client(srv.endpoint) as elsewhere:
+        svc = srv.svc
+        srv.start()
+        first = ZenohWriter(srv.session, svc.keys, actor_id=3, incarnation=5, frame_shape=SPEC.frame_shape,
+                            send_batch=1, max_in_flight=1, stop=StopFlag(), log=Log("test"), launch=11)
+        second = ZenohWriter(elsewhere, svc.keys, actor_id=3, incarnation=5, frame_shape=SPEC.frame_shape,
+                             send_batch=1, max_in_flight=1, stop=StopFlag(), log=Log("test"), launch=22)
+        with first, second:
+            assert first.wait_for_replay() and second.wait_for_replay()
+            episode(first)
+            wait_for(lambda: first.global_steps == 2, "the first launch's acks never came")
+            episodes = 0
+            while not second.stop:
+                assert episodes < 10 * REFUSALS_TO_STOP, "the second launch never gave up"
+                episode(second)
+                episodes += 1
+            assert "another launch's" in second.refused_for_good and "--actor-id" in second.refused_for_good
+            assert svc.store.num_inserted == 2  # nothing of the second launch
+            episode(first)  # the first goes on, untouched by the refusals it heard on its id's key
+            wait_for(lambda: first.global_steps == 4, "the first launch's acks never came")
+            assert first.refused == 0 and not first.stop and svc.store.num_inserted == 4
+
+
 def test_a_batch_of_another_frame_shape_is_acknowledged_as_refused_for_good_and_its_writer_stops(tmp_path):
     """Over real Zenoh: frames of a shape not the run's fail the batch's decode. The replay used to
     count it and answer nothing, so its actor waited on the acknowledgement for ever; now it answers

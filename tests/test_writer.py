@@ -249,6 +249,25 @@ def test_acks_of_another_incarnation_are_ignored():
     assert writer.window.in_flight == 0 and writer.global_steps == 100
 
 
+def test_acks_of_another_launch_of_the_same_incarnation_are_ignored_an_older_replays_are_not():
+    writer, pub = make_writer(max_in_flight=2)
+    writer.launch = 7
+    writer.window.acquire(writer.stop)
+    data = wire.encode(wire.InsertAck(4, 9, 100, launch=8))  # the twin launch's ack
+    writer._on_ack(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    assert writer.window.in_flight == 1 and writer.global_steps == 0
+    writer._on_ack(ack(4, 9, 100))  # an older replay's: no launch, 0
+    assert writer.window.in_flight == 0 and writer.global_steps == 100
+    f = frames(2)
+    writer.add_first(f[0])
+    writer.add(np.zeros(2, np.float32), 0.0, 1.0, f[1], True, 0)
+    assert pub.sent[-1].launch == 7
+    # A batch of an older actor, without the field, reads as launch 0.
+    body = msgpack.unpackb(wire.encode(pub.sent[-1]))
+    del body["launch"]
+    assert wire.decode(msgpack.packb(body), wire.TransitionBatch).launch == 0
+
+
 def test_a_broken_episode_sends_nothing_more_and_the_next_one_starts_clean():
     writer, pub = make_writer(send_batch=2)
     f = frames(6)

@@ -12,7 +12,10 @@
   limiter), and the replay's liveliness.
 - Identity: `actor_id` (stable for a slot) and a new incarnation at each start
   (tenths of a second since 2025, so it grows across restarts; past the last
-  one made for the id on this host, so two launches in one tenth differ). The env and
+  one made for the id on this host, so two launches in one tenth differ) and a
+  random `launch` number, which its batches carry: launches on two hosts in
+  one tenth share the incarnation, and the replay keeps the first it hears
+  and refuses the other for good (it stops, below). The env and
   exploration seeds derive from (config.seed, actor_id, incarnation). A
   liveliness token alive/actor/<id>/<incarnation> announces it; a status
   heartbeat every second carries the episodes finished since the last.
@@ -47,6 +50,7 @@ import fcntl
 import math
 import os
 import random
+import secrets
 import tempfile
 import threading
 import time
@@ -79,7 +83,8 @@ def new_incarnation(actor_id: int, folder: Path = INCARNATIONS) -> int:
     in the same tenth got the same one: neither stopped, and the replay took the two streams for one.
     The later of the two is the newer, so the older stops as when superseded. Not random low bits:
     31 bits hold the time alone, and a store keeps the newest incarnation it saw of each id, which
-    a new one must pass. Another host's launch in the same tenth is not seen (the time alone)."""
+    a new one must pass. Another host's launch in the same tenth is not seen here (the time alone):
+    the actor's random launch number tells the two apart at the replay."""
     stamp = wire.restart_stamp(10, 31)
     try:
         folder.mkdir(exist_ok=True)
@@ -181,6 +186,8 @@ class ActorService(MessageGuard):
         self.actor_id = (args.actor_id if args.actor_id >= 0
                          else random.SystemRandom().randrange(1000, MAX_ACTOR_ID))
         self.incarnation = new_incarnation(self.actor_id)
+        # Random: another host's launch of this id in the same tenth gets the same incarnation.
+        self.launch = secrets.randbelow(wire.MAX_INT - 1) + 1
         self.log = Log(f"actor {self.actor_id}")
         seeds = np.random.SeedSequence([c.seed, self.actor_id, self.incarnation]).generate_state(2)
         self.bridge: BridgePresence | None = None
@@ -203,7 +210,7 @@ class ActorService(MessageGuard):
         self.weights = WeightsSubscriber(self.agent, self._invalid, steps=c.steps)
         self.writer = ZenohWriter(session, self.keys, self.actor_id, self.incarnation, spec.frame_shape,
                                   args.send_batch, args.max_in_flight, stop, self.log,
-                                  budget=self.config.steps)
+                                  budget=self.config.steps, launch=self.launch)
         self.episodes = 0
         self.env_faults = 0  # episodes lost to a diverged simulation or a non-finite action
         # Never replaced, only drained: the status thread's swap of a list could drop an episode

@@ -155,6 +155,9 @@ class ReplayService(MessageGuard):
         # the id alone: a restarted actor's new incarnation replaces the entry (the store closes the
         # old episode too), so restarts in the middle of an episode leave nothing behind.
         self._episodes: dict[int, list[int]] = {}
+        # actor id -> (incarnation, launch) of the launch that holds it: of two launches of one id that
+        # got one incarnation, the first heard keeps it (one entry per id, as the store's incarnations).
+        self._launches: dict[int, tuple[int, int]] = {}
         self._forget_at = FORGET_EVERY
         self._inserts: queue.Queue[wire.TransitionBatch] = queue.Queue()
         self._queries: queue.Queue[tuple[zenoh.Query, wire.SampleRequest]] = queue.Queue()
@@ -186,8 +189,10 @@ class ReplayService(MessageGuard):
             if not named or str(sample.key_expr) != self.keys.insert(actor_id):
                 return
             lasting = isinstance(shape, list) and shape != list(self.frame_shape)
+            launch = body.get("launch", 0)
+            launch = launch if isinstance(launch, int) and not isinstance(launch, bool) else 0
             ack = wire.InsertAck(actor_id, incarnation, self.store.num_inserted, str(err)[:wire.MAX_TEXT],
-                                 lasting)
+                                 lasting, launch)
             self.session.put(self.keys.ack(actor_id), wire.encode(ack))
         except Exception:  # noqa: BLE001 -- not msgpack, not a map, no such fields: nobody to answer
             return
@@ -244,7 +249,7 @@ class ReplayService(MessageGuard):
             # Refused batches are acknowledged too, saying why: the actor must not wait on them, and
             # one whose every batch is refused stops instead of acting for nothing.
             ack = wire.InsertAck(msg.actor_id, msg.incarnation, self.store.num_inserted,
-                                 refused[:wire.MAX_TEXT], lasting)
+                                 refused[:wire.MAX_TEXT], lasting, msg.launch)
             self.session.put(self.keys.ack(msg.actor_id), wire.encode(ack), congestion_control=BLOCK)
 
     def _take(self, msg: wire.TransitionBatch) -> tuple[str, bool]:
@@ -266,6 +271,17 @@ class ReplayService(MessageGuard):
         # One reason for all of them: the actor logs each reason once.
         return "not the continuation of an episode begun here", False
 
+    def _check_launch(self, msg: wire.TransitionBatch) -> None:
+        """ActorRefused for a launch of an id whose incarnation another launch holds (two hosts that
+        started it in the same tenth of a second): their streams must not be taken for one."""
+        held = self._launches.get(msg.actor_id)
+        if held is not None and held[0] == msg.incarnation and held[1] != msg.launch:
+            raise ActorRefused(
+                f"actor {msg.actor_id} incarnation {msg.incarnation} is another launch's: this id was "
+                "started twice at the same moment; give each actor its own --actor-id")
+        if held is None or msg.incarnation > held[0]:
+            self._launches[msg.actor_id] = (msg.incarnation, msg.launch)
+
     def insert_batch(self, msg: wire.TransitionBatch) -> int:
         """Add a batch's transitions, unscored; returns how many were stored. The batch was decoded
         with this run's bounds (wire.check_transitions), so its arrays fit the store."""
@@ -275,6 +291,7 @@ class ReplayService(MessageGuard):
         frames, actions, rewards = arrays["frames"], arrays["action"], arrays["reward"]
         discounts, lasts, versions = arrays["discount"], arrays["last"], arrays["policy_version"]
         key = msg.actor_id
+        self._check_launch(msg)
         if self.store.num_inserted >= self.config.steps:
             self.dropped += n  # past the step budget: the actors stop once they hear of it
             return 0

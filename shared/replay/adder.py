@@ -202,7 +202,7 @@ class SendWindow:
 
 
 def transition_batch(actor_id: int, incarnation: int, episode: int, start: int,
-                     first: np.ndarray | None, steps: list[tuple]) -> wire.TransitionBatch:
+                     first: np.ndarray | None, steps: list[tuple], launch: int = 0) -> wire.TransitionBatch:
     """The message of consecutive steps (action, reward, discount, frame, last, policy_version)."""
     actions, rewards, discounts, frames, lasts, versions = zip(*steps, strict=True)
     return wire.TransitionBatch(
@@ -219,6 +219,7 @@ def transition_batch(actor_id: int, incarnation: int, episode: int, start: int,
         discounts=np.asarray(discounts, "<f4").tobytes(),
         lasts=np.asarray(lasts, "u1").tobytes(),
         policy_versions=np.asarray(versions, "<i8").tobytes(),
+        launch=launch,
     )
 
 
@@ -228,8 +229,9 @@ class ZenohWriter:
 
     def __init__(self, session, keys: wire.Keys, actor_id: int, incarnation: int,
                  frame_shape: tuple[int, int, int], send_batch: int, max_in_flight: int,
-                 stop: StopFlag, log: Log, budget: int | None = None) -> None:
+                 stop: StopFlag, log: Log, budget: int | None = None, launch: int = 0) -> None:
         self.session, self.keys, self.stop, self.log = session, keys, stop, log
+        self.launch = launch  # tells this launch from another that got the same incarnation
         self.budget = budget  # the run's step budget: an ack that reaches it ends the acting
         self.bounds = wire.Bounds(steps=budget)  # and a count far past it is refused
         self.actor_id, self.incarnation = actor_id, incarnation
@@ -304,7 +306,7 @@ class ZenohWriter:
         if not self.window.acquire(self.stop, len(steps)):
             return  # stopping, or the episode is broken: the loop abandons it
         msg = transition_batch(self.actor_id, self.incarnation, self._episode, self._start, self._first,
-                               steps)
+                               steps, self.launch)
         self._publisher.put(wire.encode(msg))
         self._start += len(steps)
         self._first = None
@@ -316,7 +318,9 @@ class ZenohWriter:
             ack = wire.decode(sample.payload.to_bytes(), wire.InsertAck, self.bounds)
         except wire.WireError as err:
             return self._invalid(f"ack: {err}")
-        if ack.actor_id == self.actor_id and ack.incarnation == self.incarnation:
+        # An ack without a launch (0) is an older replay's, which does not tell launches apart.
+        if (ack.actor_id == self.actor_id and ack.incarnation == self.incarnation
+                and ack.launch in (0, self.launch)):
             self._on_refusal(ack.refused, ack.lasting)  # first: a writer waiting on this ack sees the stop
             self.window.on_ack(ack.num_inserted)
 
