@@ -52,9 +52,13 @@ def test_the_actor_steps_the_emulated_gripper_through_a_bridge_and_its_safety_st
         assert got[("nasa_actor_env_step_duration_seconds_count", (("actor", "0"),))] >= 40
         # The operator's e-stop: the bridge refuses, the actor pauses and says why.
         bid = bridge_id(f"t{system.port}", 0)
-        operate.send_estop(bid, True, "test e-stop", system.endpoint)
+        ack = operate.send_estop(bid, True, "test e-stop", system.endpoint)
+        # Confirmed by the bridge process `nasa up` started, with every emulated servo's torque off.
+        assert ack is not None and (ack.state, ack.unreached) == ("estop", [])
+        assert ack.bridge.endswith(f"pid {system.sup.children['robot_bridge-0'].proc.pid}")
         system.wait_for("the e-stop in /status", lambda s: actor0(s).get("fault") == "estop", timeout=20)
-        operate.send_estop(bid, False, "test re-arm", system.endpoint)
+        ack = operate.send_estop(bid, False, "test re-arm", system.endpoint)
+        assert ack is not None and not ack.engage
         before = system.status()["env_steps"]
         system.wait_for("collection after the re-arm",
                         lambda s: actor0(s).get("fault") == "ok" and s["env_steps"] > before, timeout=30)
