@@ -362,6 +362,13 @@ def test_an_estop_no_bridge_hears_is_not_confirmed(sessions, endpoint: str) -> N
     assert "Traceback" not in result.stderr
 
 
+def test_a_wait_it_cannot_keep_is_refused_before_anything_is_sent() -> None:
+    for bad in ("-1.0", "nan"):
+        result = estop_cli("g1", "tcp/127.0.0.1:9", "--wait-s", bad)
+        assert result.returncode == 2 and f"--wait-s {bad}: seconds, from 0 to 3600" in result.stderr
+        assert "Traceback" not in result.stderr and "sent" not in result.stderr
+
+
 def test_an_estop_to_another_id_is_not_confirmed_and_leaves_the_bridge_running(
         emulated_bridge, endpoint: str) -> None:
     server, gripper = emulated_bridge

@@ -123,6 +123,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--source", default=None, help="a video file instead of the configured camera")
     args = parser.parse_args(argv)
     if args.command in ("estop", "rearm"):
+        if not 0.0 <= args.wait_s <= 3600.0:  # NaN too
+            parser.error(f"--wait-s {args.wait_s}: seconds, from 0 to 3600")
         from shared.zenoh_session import RouterUnreachable
 
         try:
