@@ -26,6 +26,9 @@ class AuthInit:
     """Limit the ACL to this run's keys (default `*`: every run on the router)."""
     force: bool = False
     """Replace existing credentials (rotation: restart the router and every service afterwards)."""
+    acl_only: bool = False
+    """Rewrite only DIR/acl.json, from this version's keys, and keep the passwords: for a folder
+    whose ACL a newer version refuses as made for an older wiring (restart the router afterwards)."""
 
 
 @dataclass
@@ -44,7 +47,7 @@ class AuthTls:
     """Issue every certificate anew (restart the router and every service afterwards)."""
 
 
-USAGE = ("usage: nasa auth init DIR [--run-id ID] [--force]\n"
+USAGE = ("usage: nasa auth init DIR [--run-id ID] [--force | --acl-only]\n"
          "       nasa auth tls DIR --host HOST [--host ...] [--force]")
 
 
@@ -59,6 +62,16 @@ def auth(argv: list[str]) -> None:
         tls(argv[1:])
         return
     cmd = read_flags(AuthInit, argv[1:], "nasa auth init")
+    if cmd.acl_only:
+        if cmd.force:
+            _fail("--acl-only keeps the passwords and --force replaces them: pass one of the two")
+        if not (cmd.folder / zenoh_auth.USERS_FILE).exists():
+            _fail(f"no {cmd.folder / zenoh_auth.USERS_FILE}: --acl-only rewrites the ACL of a folder "
+                  f"made before; make one with `nasa auth init {cmd.folder}`")
+        write(cmd.folder, lambda: zenoh_auth.write_acl(cmd.folder, cmd.run_id) or cmd.folder)
+        print(f"nasa auth: ACL for run {cmd.run_id!r} in {cmd.folder / zenoh_auth.ACL_FILE}; "
+              f"the passwords in {cmd.folder / zenoh_auth.USERS_FILE} are kept", flush=True)
+        return
     folder = write(cmd.folder, lambda: zenoh_auth.init(cmd.folder, cmd.run_id, cmd.force))
     roles = ", ".join(zenoh_auth.AUTH_ROLES)
     print(f"nasa auth: credentials for {roles} in {folder / zenoh_auth.USERS_FILE} (0600); "

@@ -123,7 +123,8 @@ def check_acl(folder: Path, run_id: str) -> None:
         held = None
     if held not in (acl(routes(run_id)), acl(routes(ANY))):
         raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
-                        f"`nasa auth init {folder} --run-id {run_id} --force` makes it anew")
+                        f"`nasa auth init {folder} --run-id {run_id} --acl-only` makes it anew "
+                        "and keeps the passwords")
 
 
 def _read(path: Path, folder: Path) -> str:

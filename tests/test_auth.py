@@ -78,6 +78,30 @@ def test_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: Path
     assert zenoh_auth.credentials(folder)["actor"] != creds["actor"]
 
 
+@pytest.mark.system  # `nasa` subprocesses
+def test_an_acl_from_an_older_wiring_is_remade_with_acl_only_keeping_the_passwords(tmp_path: Path) -> None:
+    def nasa(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "nasa.cli", *argv], cwd=REPO, capture_output=True,
+                              text=True)
+
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    creds = zenoh_auth.credentials(folder)
+    (folder / zenoh_auth.ACL_FILE).write_text("{}")  # as a version with other keys made it
+    with pytest.raises(zenoh_auth.AuthError, match="--acl-only") as refused:
+        zenoh_auth.check_acl(folder, RUN)
+    argv = str(refused.value).split("`")[1].split()  # the command the refusal names, as a user runs it
+    assert argv[:3] == ["nasa", "auth", "init"]
+    out = nasa(*argv[1:])
+    assert out.returncode == 0, out.stderr
+    zenoh_auth.check_acl(folder, RUN)
+    assert zenoh_auth.credentials(folder) == creds
+    both = nasa("auth", "init", str(folder), "--acl-only", "--force")
+    assert both.returncode == 2 and "one of the two" in both.stderr
+    assert zenoh_auth.credentials(folder) == creds
+    none = nasa("auth", "init", str(tmp_path / "new"), "--acl-only")
+    assert none.returncode == 2 and "no " in none.stderr and not (tmp_path / "new").exists()
+
+
 def test_router_refuses_a_wrong_or_missing_password(router: str, auth_dir: Path, tmp_path: Path) -> None:
     forged = tmp_path / "forged"
     forged.mkdir()
@@ -513,7 +537,7 @@ def test_a_client_with_an_unreadable_users_file_gets_an_auth_error(tmp_path: Pat
 def test_a_damaged_acl_is_refused_like_a_missing_one(tmp_path: Path) -> None:
     folder = zenoh_auth.init(tmp_path / "auth", RUN)
     (folder / zenoh_auth.ACL_FILE).write_text('{"enabled": tr')
-    with pytest.raises(zenoh_auth.AuthError, match="--force"):
+    with pytest.raises(zenoh_auth.AuthError, match="--acl-only"):
         zenoh_auth.check_acl(folder, RUN)
 
 
