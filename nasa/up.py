@@ -32,7 +32,9 @@ Children are stopped in order (actors, evaluator, learner, replay; a stop signal
 while they are being started starts no more of them), killed if
 they do not exit in time, or at once on a second Ctrl-C or SIGTERM (StopSignals),
 and get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG, set by each
-service at start), so no process is left.
+service at start), so no process is left. Started by a launcher of its own that
+names itself in NASA_PARENT_PID, `nasa up` gets SIGTERM in turn
+when that one dies, even by SIGKILL, and stops its services in order.
 """
 
 from __future__ import annotations
@@ -57,7 +59,14 @@ from shared import envs, run_config, wire
 from shared.config import DEFAULT_PRESET, EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.files import last_line
 from shared.run_config import RunConfig
-from shared.service import EXIT_BAD_INPUT, EXIT_LOGIN_REFUSED, given_flags, parse_with_preset, read_flags
+from shared.service import (
+    EXIT_BAD_INPUT,
+    EXIT_LOGIN_REFUSED,
+    die_with_parent,
+    given_flags,
+    parse_with_preset,
+    read_flags,
+)
 from shared.zenoh_auth import USERS_FILE
 
 RUN_AUTH = "run"
@@ -600,6 +609,7 @@ def service_argv(cmd: UpCommand, data: Path, lay: layout.Layout) -> dict[str, li
 
 
 def up(argv: list[str]) -> None:
+    die_with_parent()  # under a launcher: its death stops the run, not leaves it holding ports and cores
     from shared.device import resolve_device
 
     cmd, preset = parse_up(argv)

@@ -12,6 +12,7 @@ import stat
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -190,6 +191,63 @@ def test_a_ctrl_c_while_nasa_up_starts_its_services_starts_no_more_and_stops_tho
     assert "/status" not in out and "Traceback" not in out, out
     assert sorted(p.name for p in (data / "logs").iterdir()) == ["replay.log"]
     assert not Path(f"/proc/{replay}").exists()
+
+
+# A launcher (a benchmark, say) that starts `nasa up` naming itself in NASA_PARENT_PID, writes
+# nasa up's output to a file, and waits.
+LAUNCHER = """
+import os, subprocess, sys, time
+env = {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
+with open(sys.argv[1], "w") as log:
+    subprocess.Popen(sys.argv[2:], env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+time.sleep(600)
+"""
+
+
+@pytest.mark.timeout(240)
+def test_nasa_up_stops_its_services_in_order_when_its_launcher_is_killed(tmp_path):
+    # The launcher dies by SIGKILL, which it cannot pass on: nasa up gets SIGTERM (PR_SET_PDEATHSIG)
+    # and stops as on a Ctrl-C. Start-up is held after the replay (a test-only hook), so one
+    # service runs when it dies.
+    from bench.processes import processes_with
+
+    data, log, mark = tmp_path / "run", tmp_path / "up.log", uuid.uuid4().hex
+    cmd = [sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-balance", "--actors", "1",
+           "--steps", "100000", "--device", "cpu", "--data", str(data), "--port", str(free_port()),
+           "--router-port", "0", "--learner-threads", "1", "--logs", "--", *TINY]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "NASA_TEST_UP_MARK": mark, TEST_START_PAUSE: "600"}
+    launcher = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(log), *cmd], cwd=REPO, env=env)
+
+    def marked() -> list[tuple[int, list[str]]]:
+        return [p for p in processes_with("NASA_TEST_UP_MARK", mark) if p[0] != launcher.pid]
+
+    try:
+        replay_log = data / "logs" / "replay.log"
+        deadline = time.monotonic() + 150
+        while "serving run" not in (replay_log.read_text() if replay_log.exists() else ""):
+            assert time.monotonic() < deadline and launcher.poll() is None, log.read_text()
+            time.sleep(0.1)
+        assert any("services.replay" in argv for _, argv in marked())
+        launcher.kill()
+        launcher.wait()
+        deadline = time.monotonic() + 90
+        while (left := marked()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert left == [], f"left running: {left}\n{log.read_text()}"
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait()
+        for pid, _ in marked():  # not to leave them to the rest of the suite
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    lines = log.read_text().strip().splitlines()
+    assert lines[-3:] == [
+        "nasa up: SIGTERM while starting the services: learner, evaluator, actor-0 not started",
+        "nasa up: stopping in order (SIGTERM); Ctrl-C again kills what is left",
+        "nasa up: stopped",
+    ], lines
+    assert "stopping" in replay_log.read_text().split("serving run")[-1]
 
 
 @pytest.mark.timeout(180)
