@@ -254,7 +254,8 @@ def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> d
     cmd = [sys.executable, "-m", "nasa.cli", "up", *UP_ARGS, "--data", str(data / "run"),
            "--port", str(port), "--router-port", "0", "--logs"]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)  # fmt: skip
+                            errors="replace", start_new_session=True)  # fmt: skip
+    output = processes.Drain(proc.stdout)  # read all along, or nasa up stalls once the pipe is full
     samples, gpu, start = [], [], time.monotonic()
     window = UpWindow(proc.pid, port, data)
     try:
@@ -274,12 +275,11 @@ def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> d
         shutil.rmtree(data, ignore_errors=True)
         raise
     rc = stop_group(proc)
-    output = proc.stdout.read() if proc.stdout else ""
     out = {"seconds": round(time.monotonic() - start, 1), "args": UP_ARGS, **summarize_up(samples, gpu),
            "profile": profile}
     if exited_early or not samples:
         out["error"] = f"nasa up exited early (rc {rc})" if exited_early else "no /status answered"
-        out["tail"] = output[-1500:] + logs_tail(data / "run" / "logs")
+        out["tail"] = "".join(output.lines())[-1500:] + logs_tail(data / "run" / "logs")
     shutil.rmtree(data, ignore_errors=True)
     return out
 

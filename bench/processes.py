@@ -4,6 +4,9 @@ Python's default SIGTERM ends a process without running its `finally` blocks: th
 folders stay, and a child started in a session of its own (`nasa up`, `nasa train`, which no
 signal to the benchmark reaches) goes on holding its ports and cores. Standard library and
 nasa.stopping only, as bench.gpu imports it before its set-up step.
+
+A child whose output comes through a pipe must have it read all along (Drain): a pipe holds
+some 64 KiB, and a child that finds it full stops at its next line until someone reads.
 """
 
 from __future__ import annotations
@@ -12,8 +15,11 @@ import contextlib
 import os
 import signal
 import subprocess
-from collections.abc import Iterator
+import threading
+from collections import deque
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import IO
 
 from nasa.stopping import Terminated, interrupted, raise_terminated
 
@@ -80,3 +86,29 @@ def processes_with(variable: str, value: str) -> list[tuple[int, list[str]]]:
         except OSError:
             continue
     return found
+
+
+class Drain:
+    """Reads a child's output `stream` to its end in a thread of its own, so the child never blocks
+    on a full pipe, and keeps its last `keep` lines (after `first`, the lines read before) for an
+    error message. Open the stream with errors="replace": a line that cannot be decoded must not
+    end the reading."""
+
+    def __init__(self, stream: IO[str], first: Iterable[str] = (), keep: int = 200) -> None:
+        self._lines: deque[str] = deque(first, maxlen=keep)
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._read, args=(stream,), name="drain", daemon=True)
+        self._thread.start()
+
+    def _read(self, stream: IO[str]) -> None:
+        with contextlib.suppress(OSError, ValueError):  # the stream closed under it
+            for line in stream:
+                with self._lock:
+                    self._lines.append(line)
+
+    def lines(self, wait_s: float = 10.0) -> list[str]:
+        """The last lines kept, once the output has ended (or after `wait_s`: a process of the
+        child's may still hold the pipe open)."""
+        self._thread.join(wait_s)
+        with self._lock:
+            return list(self._lines)

@@ -38,7 +38,7 @@ import numpy as np
 
 from bench.args import task_name
 from bench.gil_profile import GilProfileError, Recording
-from bench.processes import processes_with, stop_group, stopped_cleanly
+from bench.processes import Drain, processes_with, stop_group, stopped_cleanly
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
@@ -143,9 +143,9 @@ def gil_result(recording: Recording | GilProfileError) -> dict:
         return {"error": str(err)}
 
 
-def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float, head: list[str]) -> None:
+def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float, output: Drain) -> None:
     """Until the learner has made an update; else one line: why nasa up ended (its last line of
-    output, `head` being the lines already read of it), or that it made none in time."""
+    output), or that it made none in time."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and proc.poll() is None:
         try:
@@ -156,7 +156,7 @@ def wait_learning(url: str, proc: subprocess.Popen, timeout_s: float, head: list
         time.sleep(1)
     if proc.poll() is None:
         raise SystemExit(f"bench.up_profile: nasa up made no update in {timeout_s:.0f} s")
-    lines = [line.strip() for line in [*head, *proc.stdout.read().splitlines()] if line.strip()]
+    lines = [line.strip() for line in output.lines() if line.strip()]
     why = lines[-1] if lines else "no output"
     print(f"bench.up_profile: nasa up ended (exit {proc.returncode}) before its first update: {why}",
           file=sys.stderr)
@@ -210,14 +210,15 @@ def main() -> None:
                 "--device", "cpu", "--data", str(data), "--port", str(port), "--router-port", "0",
                 "--logs", *args.up_args]
         proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                start_new_session=True)
+                                errors="replace", start_new_session=True)
         try:
             head = [proc.stdout.readline() for _ in range(2)]
+            output = Drain(proc.stdout, head)  # read on, or nasa up stalls once the pipe is full
             layout_line = head[1].strip()
             if layout_line:  # none where nasa up refused its flags: its error comes below
                 print(layout_line, flush=True)
             url = f"http://127.0.0.1:{port}"
-            wait_learning(url, proc, 600, head)
+            wait_learning(url, proc, 600, output)
             time.sleep(args.settle)
             pids = {"launcher+router": proc.pid, **service_pids(proc.pid)}
             first = snapshot(url, pids)

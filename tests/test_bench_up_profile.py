@@ -4,9 +4,28 @@ import os
 import subprocess
 import sys
 
+import pytest
 from prometheus_client import CollectorRegistry, Histogram, generate_latest
 
-from bench.up_profile import histogram_sums, measure, service_pids
+from bench.processes import Drain
+from bench.up_profile import histogram_sums, measure, service_pids, wait_learning
+from nasa.up import free_port
+
+# A launcher that says what a reader waits for, then far more than a pipe holds, then why it ends.
+LOUD = """
+import sys
+print("nasa up: preset cpu-small", flush=True)
+print("nasa up: 1 actor", flush=True)
+for i in range(20000):
+    print(f"nasa up: actor-0 was killed by SIGKILL: restarting it ({i})")
+print("nasa up: learner refused its input: bad checkpoint; not restarted")
+sys.exit(2)
+"""
+
+
+def loud() -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", LOUD], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, errors="replace")
 
 
 def test_histogram_sums_read_prometheus_text():
@@ -49,3 +68,36 @@ def test_a_services_own_children_are_not_counted_as_services():
         for p in (service, child):
             p.kill()
             p.wait()
+
+
+def test_drain_reads_a_childs_output_to_its_end_and_keeps_its_last_lines():
+    proc = loud()
+    try:
+        head = [proc.stdout.readline()]
+        output = Drain(proc.stdout, head, keep=3)
+        # Unread, the child would wait for good on its full pipe, long after the lines looked for.
+        assert proc.wait(timeout=120) == 2
+    finally:
+        proc.kill()
+        proc.wait()
+    assert output.lines() == ["nasa up: actor-0 was killed by SIGKILL: restarting it (19998)\n",
+                              "nasa up: actor-0 was killed by SIGKILL: restarting it (19999)\n",
+                              "nasa up: learner refused its input: bad checkpoint; not restarted\n"]
+    assert Drain(iter(["one\n", "two\n"]), ["zero\n"]).lines() == ["zero\n", "one\n", "two\n"]
+
+
+def test_up_profile_says_why_a_launcher_that_printed_much_ended(capsys):
+    # bench.up_profile reads nasa up's first two lines, then waits for the learner's first update:
+    # a launcher printing on meanwhile must still end, and its last line be the reason given.
+    proc = loud()
+    try:
+        head = [proc.stdout.readline() for _ in range(2)]
+        with pytest.raises(SystemExit) as ended:
+            wait_learning(f"http://127.0.0.1:{free_port()}", proc, 120, Drain(proc.stdout, head))
+    finally:
+        proc.kill()
+        proc.wait()
+    assert ended.value.code == 2  # its input refused: so is the benchmark's
+    assert capsys.readouterr().err.strip() == ("bench.up_profile: nasa up ended (exit 2) before its first "
+                                               "update: nasa up: learner refused its input: bad checkpoint; "
+                                               "not restarted")
