@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -239,7 +241,7 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
     from fastapi.testclient import TestClient
 
     from services.learner.health import degraded_reasons
-    from services.learner.learner import FINAL_STATUS
+    from services.learner.learner import STATUS_FILE
     from services.learner.metrics import LearnerMetrics
     from services.learner.status_api import make_app
     from shared import files
@@ -264,7 +266,7 @@ def test_files_the_disk_refuses_at_the_end_are_logged_counted_and_the_learner_st
     err = capsys.readouterr().err
     assert learner.stop.reason == "done" and "stopping" in err
     assert "status.json not written" in err and "history.json not written" in err
-    assert (tmp_path / CHECKPOINT).exists() and not (tmp_path / FINAL_STATUS).exists()
+    assert (tmp_path / CHECKPOINT).exists() and not (tmp_path / STATUS_FILE).exists()
     client = TestClient(app)
     writes = client.get("/status").json()["writes"]
     assert writes["failed"] == {"history.json": 1, "status.json": 1, "tensorboard": 1}
@@ -285,6 +287,34 @@ def test_a_periodic_checkpoint_leaves_the_dashboard_series_a_killed_learner_resu
     # No clean stop follows (SIGKILL): the next learner finds the checkpoint and the series beside it.
     assert (tmp_path / CHECKPOINT).exists()
     assert load(tmp_path) == learner.history.points() and len(load(tmp_path)) == 3
+
+
+def test_a_periodic_checkpoint_leaves_the_status_of_that_checkpoint_for_a_killed_learner(tmp_path):
+    from services.learner.learner import STATUS_FILE
+
+    learner = bare_learner(tmp_path)  # what a checkpoint in the update loop uses
+    core = learner.core
+
+    def learn(updates: int, env_steps: int) -> None:
+        for _ in range(updates):
+            core.train_on(core.scorer.client.sample(16))
+        core.board.seen_env_steps(env_steps)
+        learner.wall_s += 1.0
+
+    learn(2, 40)
+    learner.save_checkpoint()
+    # No clean stop follows (SIGKILL): `nasa status --data` reads the checkpoint's figures.
+    learn(2, 50)  # after the checkpoint: not in it, nor in status.json
+    saved = torch.load(tmp_path / CHECKPOINT, weights_only=True)
+    status = json.loads((tmp_path / STATUS_FILE).read_text())
+    assert (status["updates"], status["env_steps"], status["wall_s"]) == (2, 40, 2.0)
+    assert (saved["agent"]["num_updates"], saved["env_steps"], saved["wall_s"]) == (2, 40, 2.0)
+    # A checkpoint refused (a tensor not finite) leaves both as they were.
+    with torch.no_grad():
+        next(core.agent.actor.parameters()).fill_(float("nan"))
+    learner.save_checkpoint()
+    assert json.loads((tmp_path / STATUS_FILE).read_text()) == status
+    assert torch.load(tmp_path / CHECKPOINT, weights_only=True)["env_steps"] == 40
 
 
 def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
+import subprocess
+import sys
+import time
 
 import pytest
 import torch
-from system_harness import System
+from system_harness import REPO, System
 
 from nasa.up import free_port
 
@@ -143,4 +147,35 @@ def test_a_second_replay_or_learner_of_a_run_refuses_to_serve_it(tmp_path):
         assert all(system.sup.children[r].exited is None for r in ("replay", "learner", "actor-0"))
     finally:
         system.close()
+    assert system.leftover_pids() == []
+
+
+@pytest.mark.timeout(300)
+def test_a_learner_killed_after_a_checkpoint_leaves_that_checkpoints_status(tmp_path):
+    # No clean stop (SIGKILL, out of memory): `nasa status --data DIR` shows the figures of the last
+    # checkpoint, which the run resumes from. The next checkpoint is far off when the kill lands.
+    data = tmp_path / "run"
+    system = System(data, actors=1, steps=1_000_000, evaluator=False,
+                    extra=["--checkpoint-every", "300", "--eval-every", "100000"])
+    checkpoint, saved_status = data / "learner" / "checkpoint.pt", data / "learner" / "status.json"
+    try:
+        system.wait_for("a checkpoint", lambda s: checkpoint.exists(), timeout=200)
+        deadline = time.monotonic() + 60
+        while not saved_status.exists():  # written just after the checkpoint
+            assert time.monotonic() < deadline, f"no status.json beside the checkpoint\n{system.logs()}"
+            time.sleep(0.05)
+        learner = system.sup.children["learner"]
+        os.kill(learner.proc.pid, signal.SIGKILL)  # and not restarted: the supervisor is not polled
+        learner.proc.wait()
+        saved = torch.load(checkpoint, weights_only=True)
+        status = json.loads(saved_status.read_text())
+        out = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--data", str(data),
+                              "--url", system.url], cwd=REPO, capture_output=True, text=True, timeout=60)
+    finally:
+        system.close()
+    assert saved["env_steps"] >= 300
+    assert (status["updates"], status["env_steps"]) == (saved["agent"]["num_updates"], saved["env_steps"])
+    assert out.returncode == 0, out.stderr
+    assert "the learner is not running" in out.stderr
+    assert json.loads(out.stdout)["env_steps"] == saved["env_steps"]
     assert system.leftover_pids() == []

@@ -14,7 +14,7 @@
 - Records: evaluations from the evaluator become eval.csv rows (or, with
   --eval-between-updates, the learner plays them itself between updates),
   episodes the actors report become train.csv rows; a checkpoint every checkpoint_every env
-  steps, at the end and on SIGTERM/SIGINT; the last /status is left in
+  steps, at the end and on SIGTERM/SIGINT; with each, the /status of that moment is left in
   <data>/learner/status.json.
 - The run ends when the replay's step budget is reached and the learner has
   done G * (steps - warmup) updates (or the limiter allows no more); it then
@@ -52,7 +52,7 @@ from shared.replay.client import Prefetcher, ZenohReplayClient
 from shared.service import Log, StopFlag
 
 BLOCK = zenoh.CongestionControl.BLOCK
-FINAL_STATUS = "learner/status.json"
+STATUS_FILE = "learner/status.json"
 # At the end, how long the learner waits for an evaluator to (re)appear before it stops waiting for
 # the last evaluation: a restarted evaluator takes a while to join the run.
 EVALUATOR_GRACE_S = 30.0
@@ -192,8 +192,9 @@ class Learner:
         s, k = self.session, self.keys
         if not faults.claim_run_role(s, k, "learner", self.stop, self.log):
             return
-        # An earlier session's last status would read as this one's if this one does not stop cleanly.
-        (Path(self.args.data) / FINAL_STATUS).unlink(missing_ok=True)
+        # An earlier session's last status would read as this one's if this one dies before its first
+        # checkpoint.
+        (Path(self.args.data) / STATUS_FILE).unlink(missing_ok=True)
         try:
             self.history.restore(self.args.data, self.wall_s)
         except HistoryError as err:
@@ -325,7 +326,7 @@ class Learner:
             elif (target := self.between.due(core.env_steps, final=True)) is not None:
                 self._evaluate(target)
         core.save_checkpoint(self.wall_s)
-        self._leave("status.json", self.write_final_status)
+        self._leave("status.json", self.write_status)
         self.history.add(self.status())
         self._leave("history.json", lambda: self.history.save(self.args.data))
         self._write(None, lambda: core.scalars.status(self.status()))
@@ -338,10 +339,12 @@ class Learner:
         self.stop.set("done")
 
     def save_checkpoint(self) -> None:
-        """A checkpoint, and the dashboard's series beside it: a learner killed later (SIGKILL, out of
-        memory) and restarted resumes both from here, where only a clean stop used to leave the
-        series."""
-        self.core.save_checkpoint(self.wall_s)
+        """A checkpoint, and beside it the dashboard's series and the /status of that moment: a
+        learner killed later (SIGKILL, out of memory) leaves `nasa status --data` the checkpoint's
+        figures, and its restart resumes the series from here, where only a clean stop used to
+        leave them."""
+        if self.core.save_checkpoint(self.wall_s):  # else the last status.json stays the last checkpoint's
+            self._leave("status.json", self.write_status)
         self._leave("history.json", lambda: self.history.save(self.args.data))
 
     def _leave(self, name: str, write: Callable[[], None]) -> None:
@@ -444,9 +447,9 @@ class Learner:
         status["invalid_messages"] += self.client.invalid  # the replay's replies it refused, too
         return status
 
-    def write_final_status(self) -> None:
-        """The last /status, in the run folder (atomically: a reader never sees half of it)."""
-        path = Path(self.args.data) / FINAL_STATUS
+    def write_status(self) -> None:
+        """The /status of now, in the run folder (atomically: a reader never sees half of it)."""
+        path = Path(self.args.data) / STATUS_FILE
         path.parent.mkdir(parents=True, exist_ok=True)
         replace_text(path, json.dumps(self.status(), indent=2) + "\n")
 
