@@ -18,6 +18,7 @@ package's own format. Every point's step is the env step. Tags:
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -30,6 +31,7 @@ TENSORBOARD_DIR = "tensorboard"
 ROW_SKIP = {"step", "episode", "return", "length", "updates", "wall_s", "steps_per_s"}
 RETRY_S = 60.0
 """After a write the disk refused, points are dropped this long before a new event file is tried."""
+EVENT_FILES = "events.out.tfevents.*"
 
 
 def _number(v: object) -> float | None:
@@ -58,6 +60,17 @@ def status_scalars(s: dict) -> dict[str, float | None]:
     }
 
 
+def _holds_points(path: Path) -> bool:
+    """Whether an event file holds a point (a scalar or an image), not only the header every new
+    file starts with; a record cut short ends the reading."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    try:
+        return any(event.HasField("summary") for event in EventFileLoader(str(path)).Load())
+    except Exception:  # noqa: BLE001 -- a file it cannot read is kept, not judged empty
+        return True
+
+
 def _quiet_writer_threads() -> None:
     """Keep an OSError in tensorboard's writing thread (a full disk) from printing a traceback:
     the writer raises it again at the next add, flush or close, where the runner reports it."""
@@ -81,6 +94,7 @@ class Scalars:
         self.logdir, self.flush_secs = Path(logdir), flush_secs
         self.purge_step: int | None = None  # a resumed run: events from this step on are dropped
         self._writer = None
+        self._file: Path | None = None  # the event file the writer made
         self._refused_at: float | None = None  # when the disk last refused a write
         self.refused = 0  # writes the disk refused, each raised once
 
@@ -95,14 +109,33 @@ class Scalars:
             from torch.utils.tensorboard import SummaryWriter
 
             _quiet_writer_threads()
-            self._writer = SummaryWriter(str(self.logdir), flush_secs=self.flush_secs,
-                                         purge_step=self.purge_step)
+            before = self._event_files()
+            try:
+                self._writer = SummaryWriter(str(self.logdir), flush_secs=self.flush_secs,
+                                             purge_step=self.purge_step)
+            finally:  # made even where the disk refused its first record
+                self._file = next(iter(self._event_files() - before), None)
         return self._writer
+
+    def _event_files(self) -> set[Path]:
+        try:
+            return set(self.logdir.glob(EVENT_FILES))
+        except OSError:
+            return set()
+
+    def _drop_file_without_points(self) -> None:
+        """Remove the event file of a writer given up on if it holds no point: each retry on a disk
+        still refusing makes a file, and a long spell of them would leave a file a minute."""
+        path, self._file = self._file, None
+        if path is not None and not _holds_points(path):
+            with contextlib.suppress(OSError):
+                path.unlink()
 
     def _write(self, write: Callable[[object], None]) -> None:
         """`write(writer)`. The OSError of a refused write (a full disk) is raised once, for the
         runner to stop or go on: the writer's thread ended with it and would raise it at every later
-        call, so the writer is dropped, points are dropped for RETRY_S, and then a new file is tried."""
+        call, so the writer is dropped (and its file, if it took no point), points are dropped for
+        RETRY_S, and then a new file is tried."""
         if self._refused_at is not None and time.monotonic() - self._refused_at < RETRY_S:
             return
         self._refused_at = None
@@ -111,6 +144,7 @@ class Scalars:
         except OSError:
             self._writer, self._refused_at = None, time.monotonic()
             self.refused += 1
+            self._drop_file_without_points()
             raise
 
     def add(self, values: dict[str, object], step: int) -> None:

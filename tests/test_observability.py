@@ -594,6 +594,38 @@ def test_a_tensorboard_write_the_disk_refuses_is_raised_once_and_a_new_file_is_t
 
 
 
+def test_retries_on_a_disk_still_refusing_leave_no_event_file_each(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from tensorboard.compat.tensorflow_stub.io import gfile
+
+    from shared import scalars as scalars_module
+    from tests.test_train import FullFile
+
+    tb = scalars_module.Scalars(tmp_path / "tb")
+    tb.add({"x": 1.0}, 1)
+    tb.flush()
+    first = sorted((tmp_path / "tb").iterdir())
+    # The disk fills: every write of an event file fails (the file itself can still be made).
+    real_io = gfile.io
+    monkeypatch.setattr(gfile, "io", SimpleNamespace(open=lambda *a, **k: FullFile(open(*a, **k))))
+    with pytest.raises(OSError, match="No space"):
+        tb.add({"x": 2.0}, 2)
+        tb.flush()
+    monkeypatch.setattr(scalars_module, "RETRY_S", 0.0)  # a retry at every point, as over many minutes
+    for step in range(3, 8):
+        with pytest.raises(OSError, match="No space"):
+            tb.add({"x": float(step)}, step)
+    assert sorted((tmp_path / "tb").iterdir()) == first  # the one with a point stays; no empty ones
+    monkeypatch.setattr(gfile, "io", real_io)  # the disk has room again
+    tb.add({"x": 9.0}, 9)
+    tb.close()
+    assert len(list((tmp_path / "tb").iterdir())) == 2
+    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc.Reload()
+    assert sorted(e.step for e in acc.Scalars("x")) == [1, 9]
+
+
 def _serve(app, monkeypatch, **limits):  # noqa: ANN001, ANN202 (a started StatusServer, its port)
     from nasa.up import free_port
     from services.learner import status_api
