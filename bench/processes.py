@@ -7,6 +7,9 @@ nasa.stopping only, as bench.gpu imports it before its set-up step.
 
 A child whose output comes through a pipe must have it read all along (Drain): a pipe holds
 some 64 KiB, and a child that finds it full stops at its next line until someone reads.
+
+A benchmark killed by SIGKILL runs no `finally` block: a `nasa up` it started with `followed()`
+stops its run then too.
 """
 
 from __future__ import annotations
@@ -66,6 +69,12 @@ def stop_group(proc: subprocess.Popen, steps: tuple[tuple[int, float], ...] = ST
     if proc.poll() is None:
         _kill_group(proc)
     return proc.returncode
+
+
+def followed() -> dict[str, str]:
+    """This process's environment naming it in NASA_PARENT_PID: a `nasa up` started with it gets
+    SIGTERM when this process dies, even by SIGKILL, and stops its services in order."""
+    return {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
 
 
 def processes_with(variable: str, value: str) -> list[tuple[int, list[str]]]:

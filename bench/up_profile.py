@@ -38,7 +38,7 @@ import numpy as np
 
 from bench.args import task_name
 from bench.gil_profile import GilProfileError, Recording
-from bench.processes import Drain, processes_with, stop_group, stopped_cleanly
+from bench.processes import Drain, followed, processes_with, stop_group, stopped_cleanly
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
@@ -210,7 +210,7 @@ def main() -> None:
                 "--device", "cpu", "--data", str(data), "--port", str(port), "--router-port", "0",
                 "--logs", *args.up_args]
         proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                errors="replace", start_new_session=True)
+                                errors="replace", start_new_session=True, env=followed())
         try:
             head = [proc.stdout.readline() for _ in range(2)]
             output = Drain(proc.stdout, head)  # read on, or nasa up stalls once the pipe is full

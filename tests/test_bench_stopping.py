@@ -92,6 +92,23 @@ def test_bench_up_profile_stops_nasa_up_on_sigterm(tmp_path):
     stop_and_check(bench, signal.SIGTERM, mark, tmp)
 
 
+def test_bench_up_profile_killed_by_sigkill_leaves_no_process_of_its_run(tmp_path):
+    # SIGKILL runs no `finally` block: nasa up follows the benchmark's death itself (NASA_PARENT_PID).
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    bench = start(["bench.up_profile", "--task", "cartpole-balance", "--seconds", "600", "--",
+                   "--actors", "1", "--learner-threads", "1", "--", *TINY], mark, tmp)
+    wait_for("replay service", running(mark, "services.replay"), bench)
+    bench.kill()
+    bench.communicate()
+    deadline = time.monotonic() + 90  # nasa up stopping its services in order
+    while (left := marked(mark)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for pid, _ in left:  # not to leave them to the rest of the suite
+        os.kill(pid, signal.SIGKILL)
+    assert left == [], f"left running: {left}"
+
+
 def test_bench_system_removes_its_folders_on_sigterm(tmp_path):
     mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
     tmp.mkdir()
