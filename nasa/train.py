@@ -28,6 +28,7 @@ from shared.replay.client import LocalReplay
 from shared.replay.store import SNAPSHOT_EVERY, open_store
 from shared.runlog import checkpointed_step
 from shared.scalars import TENSORBOARD_DIR, Scalars
+from shared.schedule import step_updates
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -198,8 +199,7 @@ class Trainer:
             n.env_steps += 1
             if self.scorer is not None:
                 self.scorer.score_new()
-            if n.env_steps > c.warmup_steps:
-                self.update()
+            self.update(step_updates(n.env_steps, c))
             n.wall_s = wall0 + time.monotonic() - started
             if is_eval_step(n.env_steps, c):
                 self.run_evaluation()
@@ -224,9 +224,9 @@ class Trainer:
         if failed:
             raise failed[0]
 
-    def update(self) -> None:
-        """G updates on batches from the replay."""
-        for _ in range(self.config.updates_per_step):
+    def update(self, count: int) -> None:
+        """`count` updates on batches from the replay."""
+        for _ in range(count):
             batch = self.replay.sample(self.config.batch_size, wait_s=0.0)
             if self.scorer is not None:  # a no-op while score_new keeps up, as it does in process
                 self.scorer.score_batch(batch)

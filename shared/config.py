@@ -120,9 +120,11 @@ SAC_AE_OVERRIDES: dict[str, object] = {
     "tau": 0.01,
 }
 # SAC-AE's training loop where it differs from NaSA-TD3's reference: one update per env step
-# (G = 5 is NaSA-TD3's), its buffer draws with replacement, and it bootstraps through the time limit.
+# (G = 5 is NaSA-TD3's) after a burst as many as the warm-up's steps, its buffer draws with
+# replacement, and it bootstraps through the time limit.
 SAC_AE_TRAIN_OVERRIDES: dict[str, object] = {
     "updates_per_step": 1,
+    "warmup_burst": True,
     "env.time_limit": "bootstrap",
     "sample_without_replacement": False,
 }
@@ -174,6 +176,10 @@ class TrainConfig:
     """Uniform random steps before learning starts."""
     updates_per_step: int = 5
     """G: gradient updates per environment step after warm-up."""
+    warmup_burst: bool = False
+    """SAC-AE's warm-up burst: the first step after warm-up makes `warmup_steps` updates in place of
+    its G, as SAC-AE's reference does (the default of `--algo sac_ae`). Off, the NaSA-TD3
+    reference's way: G updates from the first step after warm-up on."""
     batch_size: int = 128
     sample_without_replacement: bool = True
     """Draw each batch without repeated rows, as the NaSA-TD3 reference does; off draws rows

@@ -11,6 +11,7 @@ from shared.agents import Agent
 from shared.config import TrainConfig
 from shared.env_loop import EnvLoop
 from shared.envs import PixelEnv
+from shared.schedule import total_updates
 
 
 def evaluate(agent: Agent, env: PixelEnv, episodes: int,
@@ -57,11 +58,6 @@ def newest_eval_step(env_steps: int, config: TrainConfig) -> int:
     if env_steps >= config.steps:
         return config.steps
     return (env_steps // config.eval_every) * config.eval_every
-
-
-def total_updates(config: TrainConfig) -> int:
-    """The run's updates: G a step after warm-up."""
-    return config.updates_per_step * max(0, config.steps - config.warmup_steps)
 
 
 def final_eval_waits(step: int, config: TrainConfig, updates: int, final: bool) -> bool:

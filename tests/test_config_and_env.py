@@ -9,6 +9,7 @@ import pytest
 
 from shared import envs
 from shared.config import (
+    ALGOS,
     PRESETS,
     ConfigError,
     TrainConfig,
@@ -145,6 +146,20 @@ def test_sac_ae_makes_one_update_per_env_step_as_its_training_loop_does():
     assert cmd.config.updates_per_step == 1
     cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", "--updates-per-step", "5"])
     assert cmd.config.updates_per_step == 5
+
+
+def test_only_sac_ae_makes_the_warm_up_burst_by_default_and_the_flag_sets_it():
+    """SAC-AE's train.py bursts at the end of its warm-up; NaSA-TD3's train_loop.py makes G updates
+    from the first step after it, and so do the algorithms run in its loop."""
+    from nasa.cli import parse_train
+
+    for algo in ALGOS:
+        for preset in PRESETS:
+            assert default_config(algo, preset).warmup_burst == (algo == "sac_ae"), (algo, preset)
+    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", "--no-warmup-burst"])
+    assert not cmd.config.warmup_burst
+    cmd, _, _ = parse_train(["--algo", "nasa_td3", "--preset", "paper", "--warmup-burst"])
+    assert cmd.config.warmup_burst
 
 
 def test_presets_touch_only_existing_fields_and_round_trip():

@@ -115,6 +115,24 @@ def test_the_budgets_own_eval_step_gets_the_weights_of_the_runs_last_update(tmp_
     assert not core.eval_weights_due(final=True)
 
 
+def test_a_sac_ae_learner_aims_at_its_references_updates_and_reports_g_after_the_burst(tmp_path):
+    """--algo sac_ae makes SAC-AE's warm-up burst: the learner's target is its reference's count (the
+    updates its train.py has made by the run's end), and /status's ratio, without the burst's updates
+    beyond G, shows G when it holds."""
+    from tests.test_reference_loop import sac_ae_reference_counts
+
+    client = LocalReplay(filled_store(60), np.random.default_rng(0))
+    run = tiny_run("sac_ae", steps=230, warmup_steps=4)
+    core = LearnerCore(run, tmp_path, client, torch.device("cpu"))
+    warmup = run.config.warmup_steps
+    assert core.target_updates == sac_ae_reference_counts(230, warmup)[-1]
+    steps = warmup + 3
+    for _ in range(sac_ae_reference_counts(steps, warmup)[-1]):
+        core.train_on(client.sample(16))
+    core.board.seen_env_steps(steps)
+    assert core.status("r", 1.0)["updates_per_env_step"] == run.config.updates_per_step == 1
+
+
 def test_between_updates_the_budgets_step_waits_for_the_last_update(tmp_path):
     from services.learner.evaluation import BetweenUpdates
 

@@ -26,6 +26,7 @@ from shared.envs import EnvSpec, FrameStack
 from shared.replay.adder import StoreAdder, ZenohWriter
 from shared.replay.store import ReplayStore
 from shared.run_config import RunConfig
+from shared.schedule import total_updates, updates_due
 from shared.service import Log, StopFlag
 from tests.tiny import WARMUP, tiny_config, tiny_run
 
@@ -100,6 +101,62 @@ def test_nasa_train_acts_uniformly_for_the_warm_up_then_scores_and_updates_g_tim
     # The reference's done at the time limit, which ends the 20th step's episode.
     np.testing.assert_array_equal(np.flatnonzero(rows["discount"] == 0.0), [19])
     assert np.all((rows["discount"] == 0.0) | (rows["discount"] == 1.0))
+
+
+def sac_ae_reference_counts(steps: int, init_steps: int) -> list[int]:
+    """The updates SAC-AE's reference (denisyarats/pytorch_sac_ae, `train.py`) has made at the top
+    of each of its steps 0..steps - 1, where it has stored that many transitions and its logging and
+    evaluation of that step run, and, last, at the end of a run of `steps` steps. Its loop, written
+    out: from `init_steps` on, each step updates before it steps the environment, `init_steps` times
+    at the step that ends the warm-up, once at every later one."""
+    counts, made = [], 0
+    for step in range(steps):
+        counts.append(made)
+        if step >= init_steps:
+            made += init_steps if step == init_steps else 1
+    return [*counts, made]
+
+
+def sac_ae_run(out, steps: int) -> Trainer:  # noqa: ANN001
+    """A tiny `nasa train --algo sac_ae` run of 20-step episodes, with no evaluation on the way."""
+    config = tiny_config("sac_ae", steps=steps, eval_at_start=False, eval_every=1_000, eval_episodes=1)
+    config.env.action_repeat = 50
+    return Trainer.create(config, out)
+
+
+def test_nasa_train_makes_sac_aes_warm_up_burst_as_its_reference_counts_updates(tmp_path, monkeypatch):
+    steps = WARMUP + 3
+    trainer = sac_ae_run(tmp_path, steps)
+    assert trainer.config.warmup_burst and trainer.config.updates_per_step == 1  # --algo sac_ae's
+    agent, store = trainer.agent, trainer.store
+    seen: list[tuple[int, int]] = []  # (stored, updates made) as each step's action is chosen
+    real_collect = actor_module.collect_action
+
+    def collect(agent_, obs, warming_up, rng, action_dim):  # noqa: ANN001, ANN202
+        seen.append((store.num_inserted, agent.num_updates))
+        return real_collect(agent_, obs, warming_up, rng, action_dim)
+
+    monkeypatch.setattr("nasa.train.collect_action", collect)
+    trainer.run()
+    reference = sac_ae_reference_counts(steps, WARMUP)
+    assert seen == list(enumerate(reference[:-1]))
+    assert agent.num_updates == reference[-1]
+    # The count the learner aims at and the replay's limiter allows in nasa up, step by step.
+    assert [updates_due(n, trainer.config) for n in range(steps + 1)] == reference
+    assert total_updates(trainer.config) == reference[-1]
+
+
+def test_a_resumed_sac_ae_run_makes_the_burst_once(tmp_path):
+    """Resumed from a checkpoint at the end of the warm-up, the run makes the burst; from one past
+    it, not again."""
+    steps = 2 * WARMUP + 3
+    for checkpointed in (WARMUP, 2 * WARMUP):  # each an episode's end, where nasa train checkpoints
+        out = tmp_path / str(checkpointed)
+        sac_ae_run(out, checkpointed).run()
+        resumed = Trainer.resume(out, steps=steps)
+        assert resumed.counters.env_steps == checkpointed
+        resumed.run()
+        assert resumed.agent.num_updates == sac_ae_reference_counts(steps, WARMUP)[-1]
 
 
 class LaggingAcks:

@@ -121,11 +121,13 @@ def test_rejects_window_that_could_deadlock() -> None:
         SampleToInsertRatio(samples_per_insert=3.0, min_size_to_sample=10, error_buffer=1.5)
 
 
+@pytest.mark.parametrize("extra", [0, 7, -4])  # a warm-up burst's samples beyond the ratio, or fewer
 @pytest.mark.parametrize("spi", [0.5, 1.0, 2.0, 3.0, 5.0])
-def test_no_window_it_accepts_blocks_both_sides(spi: float) -> None:
+def test_no_window_it_accepts_blocks_both_sides(spi: float, extra: int) -> None:
     rng = np.random.default_rng(0)
     eb = (spi + 1.0) / 2  # the narrowest accepted
-    rl = SampleToInsertRatio(samples_per_insert=spi, min_size_to_sample=3, error_buffer=eb)
+    rl = SampleToInsertRatio(samples_per_insert=spi, min_size_to_sample=3, error_buffer=eb,
+                             extra_samples=extra)
     for _ in range(3000):
         ops = [op for op, ok in (("insert", rl.can_insert()), ("sample", rl.can_sample())) if ok]
         assert ops, f"both sides blocked at {rl.stats()}"
@@ -145,3 +147,20 @@ def test_restore_sets_the_counts_of_a_restarted_run() -> None:
     assert rl.can_sample(2) and not rl.can_sample(3)  # diff 20 - 20 = 22 - 4 + 2: two samples of slack
     with pytest.raises(ValueError, match="counts"):
         rl.restore(-1, 0)
+
+
+def test_extra_samples_may_be_drawn_at_once_at_min_size_while_inserts_wait() -> None:
+    # SAC-AE's warm-up burst: at min size the learner may draw the extra samples with no insert
+    # between, inserts wait for them, and from there the ratio holds as without them.
+    plain = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=2.0)
+    burst = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=2.0,
+                                extra_samples=10)
+    for rl in (plain, burst):
+        rl.insert(5)
+    assert plain.can_insert() and not burst.can_insert()
+    drawn = {id(rl): sum(rl.take_sample(timeout=0) for _ in range(30)) for rl in (plain, burst)}
+    assert drawn[id(burst)] - drawn[id(plain)] == 10
+    for rl in (plain, burst):
+        assert rl.await_insert(timeout=0)
+        rl.insert()
+        assert rl.take_sample(timeout=0) and not rl.can_sample()  # one insert, G = 1 sample

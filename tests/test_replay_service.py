@@ -16,6 +16,7 @@ from shared.config import ConfigError, default_config
 from shared.envs import EnvSpec
 from shared.replay.client import decode_reply
 from shared.run_config import RunConfig
+from shared.schedule import burst_extra, updates_due
 from shared.service import StopFlag, parse
 
 SHAPE = (3, 16, 16)
@@ -23,9 +24,10 @@ SPEC = EnvSpec(SHAPE, 3, 2)
 
 
 def make_service(tmp_path, warmup=4, steps=100, session=None, stop=None, without_replacement=False,
-                 no_rate_limit=False, max_abs_reward=wire.Bounds.max_abs_reward):
+                 no_rate_limit=False, max_abs_reward=wire.Bounds.max_abs_reward, warmup_burst=False):
     config = default_config("nasa_td3", "cpu-small")
     config.env.image_size, config.warmup_steps, config.steps = 16, warmup, steps
+    config.warmup_burst = warmup_burst
     config.sample_without_replacement = without_replacement
     args = ReplayArgs(config=config, data=tmp_path, error_buffer=4, no_rate_limit=no_rate_limit,
                       max_abs_reward=max_abs_reward)
@@ -104,6 +106,26 @@ def test_a_restarted_replay_restores_its_rate_limiter_from_the_store(tmp_path):
     # G samples per insert past warm-up count as done: inserts 9, samples G * (9 - 4)
     g = again.config.updates_per_step
     assert again.limiter.stats()["inserts"] == 9 and again.limiter.stats()["samples"] == g * 5
+    again.store.close()
+
+
+def test_the_rate_limit_lets_the_learner_make_the_warm_up_burst_at_once_then_keeps_g_a_step(tmp_path):
+    """With --warmup-burst the learner may make the burst's updates as soon as the step after the
+    warm-up is stored, without more inserts, and the actors wait for it meanwhile; then the limiter
+    holds G a step as without it. Restarted, the replay counts the burst as made."""
+    warmup, req = 6, wire.SampleRequest(2, wait_s=0.0)
+    served, inserts_wait = {}, {}
+    for burst in (False, True):
+        svc = make_service(tmp_path / str(burst), warmup=warmup, warmup_burst=burst)
+        assert svc.insert_batch(batch(n=warmup + 1)[0]) == warmup + 1
+        inserts_wait[burst] = not svc.limiter.can_insert()
+        served[burst] = sum(svc.sample(req).ok for _ in range(3 * warmup))
+        assert svc.limiter.can_insert()  # the learner has drawn what it may: the actors go on
+        svc.store.close()
+    assert served[True] - served[False] == burst_extra(svc.config) > 0
+    assert inserts_wait == {False: False, True: True}
+    again = make_service(tmp_path / "True", warmup=warmup, warmup_burst=True)
+    assert again.limiter.samples == updates_due(warmup + 1, again.config) == warmup  # G = 1: the burst
     again.store.close()
 
 

@@ -21,11 +21,12 @@ from services.learner.status import StatusBoard
 from shared import checkpoint, wire
 from shared.agents import batch_to_device, make_agent
 from shared.agents.base import nonfinite_skips
-from shared.evaluation import final_eval_waits, is_eval_step, newest_eval_step, total_updates
+from shared.evaluation import final_eval_waits, is_eval_step, newest_eval_step
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
 from shared.scalars import TENSORBOARD_DIR, Scalars
+from shared.schedule import burst_extra, total_updates
 from shared.scoring import IntrinsicScorer, collect_scoring
 from shared.service import Log
 
@@ -231,6 +232,8 @@ class LearnerCore:
         fleet = self.board.snapshot()
         updates = self.agent.num_updates
         learning_steps = fleet["env_steps"] - c.warmup_steps
+        # The burst's updates beyond G are no step's, so the ratio shows G when it holds.
+        paced = max(0, updates - burst_extra(c)) if learning_steps > 0 else 0
         return {
             "run_id": run_id,
             "algo": c.algo,
@@ -242,7 +245,7 @@ class LearnerCore:
             "warmup_steps": c.warmup_steps,
             "updates": updates,
             "updates_target_per_env_step": c.updates_per_step,
-            "updates_per_env_step": updates / learning_steps if learning_steps > 0 else 0.0,
+            "updates_per_env_step": paced / learning_steps if learning_steps > 0 else 0.0,
             "policy_version": self.policy_version,
             "eval": dict(self.eval),
             "intrinsic": self.scorer.status() if self.scorer else

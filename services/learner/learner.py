@@ -17,7 +17,8 @@
   steps, at the end and on SIGTERM/SIGINT; with each, the /status of that moment is left in
   <data>/learner/status.json.
 - The run ends when the replay's step budget is reached and the learner has
-  done G * (steps - warmup) updates (or the limiter allows no more); it then
+  done the schedule's updates (shared.schedule.total_updates: G * (steps - warmup),
+  and the warm-up burst's beyond G with it) or the limiter allows no more; it then
   scores the last arrivals, waits for the last evaluation, checkpoints and
   publishes Stop.
 - One learner per run: before serving it looks for the run's learner token and

@@ -30,8 +30,10 @@
   scores back on `replay/intrinsic`.
 - Rate limit: `SampleToInsertRatio` with samples_per_insert = G (one sample =
   one batch = one update), min size warmup_steps + 1 (the trainer's first
-  update follows step warmup + 1). On restart its counts are restored from the
-  store: inserts = num_inserted, samples = G * (num_inserted - warmup).
+  update follows step warmup + 1), and with --warmup-burst the burst's
+  updates beyond G allowed at once after it. On restart its counts are
+  restored from the store: inserts = num_inserted, samples = the updates the
+  schedule makes by that step (shared.schedule.updates_due).
 - Persistence: the store logs every add in its data directory and is
   snapshotted every `snapshot_every` inserts; the run's step budget
   (config.steps) caps inserts.
@@ -60,6 +62,7 @@ from shared.replay.log import MANIFEST
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import SNAPSHOT_EVERY, ActorRefused, OpenStopped, open_store
 from shared.run_config import RunConfig
+from shared.schedule import burst_extra, updates_due
 from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
 
@@ -141,9 +144,9 @@ class ReplayService(MessageGuard):
         if not args.no_rate_limit:
             g = c.updates_per_step
             error_buffer = args.error_buffer or default_error_buffer(g)
-            self.limiter = SampleToInsertRatio(g, c.warmup_steps + 1, error_buffer)
+            self.limiter = SampleToInsertRatio(g, c.warmup_steps + 1, error_buffer, burst_extra(c))
             n = self.store.num_inserted
-            self.limiter.restore(inserts=n, samples=g * max(0, n - c.warmup_steps))
+            self.limiter.restore(inserts=n, samples=updates_due(n, c))
         self.replace = not c.sample_without_replacement
         # Sampling through the client's in-process side; each sampler thread has its own rng.
         self.local = LocalReplay(self.store, np.random.default_rng(0), self.limiter, self.replace)

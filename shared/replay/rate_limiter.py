@@ -5,7 +5,9 @@ inserts, samples may proceed while diff stays >= spi * min_size - error_buffer
 and inserts while diff stays <= spi * min_size + error_buffer; whichever side
 runs ahead blocks. Before min_size, inserts never block and samples always do.
 With G updates per env step, count one sample per update and one insert per env
-step (over all writers) and set samples_per_insert = G.
+step (over all writers) and set samples_per_insert = G. `extra_samples` moves the window by a
+schedule's samples beyond the ratio (SAC-AE's warm-up burst, shared.schedule.burst_extra): once
+min_size is reached samples may run that many further ahead, and inserts wait for them.
 
 Inserts check and commit in separate calls (await_insert then insert), so
 concurrent writers can overshoot the bound by one call each; the error buffer
@@ -27,7 +29,8 @@ class RateLimiterClosed(RuntimeError):
 
 class SampleToInsertRatio:
     def __init__(
-        self, samples_per_insert: float, min_size_to_sample: int, error_buffer: float
+        self, samples_per_insert: float, min_size_to_sample: int, error_buffer: float,
+        extra_samples: int = 0,
     ) -> None:
         if samples_per_insert <= 0:
             raise ValueError(f"samples_per_insert must be > 0, got {samples_per_insert}")
@@ -43,7 +46,8 @@ class SampleToInsertRatio:
         self.samples_per_insert = float(samples_per_insert)
         self.min_size_to_sample = int(min_size_to_sample)
         self.error_buffer = float(error_buffer)
-        center = self.samples_per_insert * self.min_size_to_sample
+        # The window keeps its width, so the bound above still rules out both sides blocking.
+        center = self.samples_per_insert * self.min_size_to_sample - extra_samples
         self.min_diff = center - self.error_buffer
         self.max_diff = center + self.error_buffer
         self.inserts = 0
