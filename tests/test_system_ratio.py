@@ -68,3 +68,23 @@ def test_a_learner_that_has_made_every_update_waits_for_the_replays_last_step_an
         assert final["updates"] == steps - WARMUP, system.logs()
     finally:
         system.close()
+
+
+@pytest.mark.timeout(300)
+def test_a_run_with_the_warm_up_burst_ends_with_as_many_updates_as_sac_aes_loop_makes(tmp_path):
+    # The burst's updates (far more than the limiter's error buffer) are made at once after the
+    # warm-up, the actor held back meanwhile; then G a step. The run ends with SAC-AE's count: a
+    # learner aiming past it would wait forever, one the limiter held below it would end short.
+    from tests.test_reference_loop import sac_ae_reference_counts
+
+    data, steps = tmp_path / "run", 100
+    system = System(data, actors=1, steps=steps, evaluator=False,
+                    extra=["--eval-every", "100000", "--warmup-burst"])
+    try:
+        system.wait_exit(timeout=240)
+        final = json.loads((data / "learner" / "status.json").read_text())
+        assert final["env_steps"] == steps
+        assert final["updates"] == sac_ae_reference_counts(steps, WARMUP)[-1], system.logs()
+        assert final["updates_per_env_step"] == final["updates_target_per_env_step"] == 1
+    finally:
+        system.close()
