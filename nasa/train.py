@@ -28,7 +28,7 @@ from shared.replay.client import LocalReplay
 from shared.replay.store import SNAPSHOT_EVERY, open_store
 from shared.runlog import checkpointed_step
 from shared.scalars import TENSORBOARD_DIR, Scalars
-from shared.schedule import step_updates
+from shared.schedule import burst_updates, step_updates
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -56,6 +56,7 @@ class Trainer:
         self.run_config = run_config.RunConfig(c, self.env.spec)
         spec = self.env.spec
         self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)
+        self.agent.burst_updates = burst_updates(c)
         self.rng = np.random.default_rng(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
         self.scalars = Scalars(self.out / TENSORBOARD_DIR / "train")  # the learner's tags too

@@ -35,3 +35,9 @@ def updates_due(env_steps: int, config: TrainConfig) -> int:
 def total_updates(config: TrainConfig) -> int:
     """The run's updates."""
     return updates_due(config.steps, config)
+
+
+def burst_updates(config: TrainConfig) -> int:
+    """How many of the run's first updates the warm-up burst makes (0 without it): an updating
+    agent's `burst_updates`."""
+    return config.warmup_steps if config.warmup_burst else 0

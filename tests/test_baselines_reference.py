@@ -167,6 +167,23 @@ def test_sac_ae_updates_are_the_references():
         torch.testing.assert_close(agent.log_alpha, ref.log_alpha.detach(), rtol=0, atol=1e-6)
 
 
+def test_sac_ae_warm_up_bursts_updates_step_the_actor_as_the_bursts_env_step_says():
+    """train.py passes its env step to each update: every update of the burst gets the burst's step,
+    so they all step the actor, alpha and the targets (an even warm-up) or none do (an odd one)."""
+    for burst in (4, 3):
+        agent = make("sac_ae")
+        agent.burst_updates = burst
+        ref = SacAeReference(agent)
+        for update in range(1, burst + 4):
+            b = batch(update)
+            torch.manual_seed(100 + update)
+            agent.update(b)
+            torch.manual_seed(100 + update)
+            ref.update(b, burst if update <= burst else update)
+            assert_same_modules(agent, ref, SAC_MODULES, update)
+            torch.testing.assert_close(agent.log_alpha, ref.log_alpha.detach(), rtol=0, atol=1e-6)
+
+
 def test_sac_ae_defaults_are_train_pys():
     """train.py's argument defaults, which the reference's published runs use."""
     c = agent_defaults("sac_ae")

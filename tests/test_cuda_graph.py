@@ -221,6 +221,26 @@ def test_the_graphed_agent_trains_exactly_as_the_eager_one(monkeypatch, variant)
     assert _same(_weights(graphed), _weights(eager))
 
 
+@pytest.mark.parametrize("burst", [3, 4])
+def test_a_warm_up_bursts_updates_run_eagerly_then_the_graphs_train_as_the_eager_agent(monkeypatch, burst):
+    """SAC-AE's burst takes one path at every phase (its env step's): no graph of another phase
+    may replay it."""
+    torch.manual_seed(1)
+    eager = agent_of("sac_ae")
+    eager.burst_updates = burst
+    batches = [random_batch(seed=i) for i in range(burst + 8)]
+    eager_losses = _train(eager, batches)
+    torch.manual_seed(1)
+    graphed = agent_of("sac_ae", cuda_graph=True)
+    graphed.burst_updates = burst
+    emulator = Emulator(graphed)
+    emulator.install(monkeypatch)
+    graphed_losses = _train(graphed, batches)
+    assert emulator.replays == len(batches) - burst - graphed._graphed.warmup
+    assert graphed_losses == eager_losses
+    assert _same(_weights(graphed), _weights(eager))
+
+
 def test_loading_a_state_drops_the_graphs_and_captures_again(monkeypatch):
     batches = [random_batch(seed=i) for i in range(16)]
     torch.manual_seed(2)

@@ -126,6 +126,7 @@ def test_a_sac_ae_learner_aims_at_its_references_updates_and_reports_g_after_the
     core = LearnerCore(run, tmp_path, client, torch.device("cpu"))
     warmup = run.config.warmup_steps
     assert core.target_updates == sac_ae_reference_counts(230, warmup)[-1]
+    assert core.agent.burst_updates == warmup  # its actor steps by the burst's env step
     steps = warmup + 3
     for _ in range(sac_ae_reference_counts(steps, warmup)[-1]):
         core.train_on(client.sample(16))

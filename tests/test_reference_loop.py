@@ -128,6 +128,7 @@ def test_nasa_train_makes_sac_aes_warm_up_burst_as_its_reference_counts_updates(
     steps = WARMUP + 3
     trainer = sac_ae_run(tmp_path, steps)
     assert trainer.config.warmup_burst and trainer.config.updates_per_step == 1  # --algo sac_ae's
+    assert trainer.agent.burst_updates == WARMUP  # its actor steps by the burst's env step
     agent, store = trainer.agent, trainer.store
     seen: list[tuple[int, int]] = []  # (stored, updates made) as each step's action is chosen
     real_collect = actor_module.collect_action

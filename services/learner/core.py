@@ -26,7 +26,7 @@ from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
 from shared.scalars import TENSORBOARD_DIR, Scalars
-from shared.schedule import burst_extra, total_updates
+from shared.schedule import burst_extra, burst_updates, total_updates
 from shared.scoring import IntrinsicScorer, collect_scoring
 from shared.service import Log
 
@@ -43,6 +43,7 @@ class LearnerCore:
         # the same in both runners and from one launch to the next.
         torch.manual_seed(c.seed)
         self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
+        self.agent.burst_updates = burst_updates(c)
         self.rng = np.random.default_rng(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
         self.scorer = (IntrinsicScorer(self.agent, client, c.warmup_steps, c.batch_size)

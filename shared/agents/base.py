@@ -20,6 +20,7 @@ class Agent(Protocol):
     device: torch.device
     uses_intrinsic: bool
     num_updates: int
+    burst_updates: int  # shared.schedule.burst_updates: set by the runner that makes the updates
 
     def act(self, obs: np.ndarray, explore: bool, rng: np.random.Generator) -> np.ndarray:
         """One action in [-1, 1] for one (C, H, W) uint8 observation."""
@@ -186,6 +187,9 @@ class ModuleStateMixin:
     num_updates: int
     config: AgentConfig
     _graphed: GraphedUpdate | None = None
+    # The run's first updates that a warm-up burst makes at one env step (shared.schedule): SAC-AE
+    # steps its actor and targets by the env step, so those take that step's path all alike.
+    burst_updates: int = 0
 
     def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         raise NotImplementedError

@@ -49,6 +49,10 @@ class GraphedUpdate:
     def __call__(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         if self.failed:
             return self.agent.update_step(batch)
+        if self.agent.num_updates < self.agent.burst_updates:
+            # A warm-up burst's updates may all take one path whatever their phase (SAC-AE's):
+            # eager, once per run, rather than a graph captured for another phase.
+            return self._on_side_stream(batch)
         if self.eager_updates < self.warmup:
             self.eager_updates += 1
             return self._on_side_stream(batch)

@@ -134,7 +134,7 @@ class SACAE(ModuleStateMixin):
         optimizer_step([self.critic_opt], critic_loss)
         metrics["critic_loss"] = critic_loss.detach()
 
-        if self.num_updates % c.policy_delay == 0:
+        if self._steps_actor(self.num_updates):
             pi, log_pi = self.actor(self.actor_encoder(obs, detach_conv=True))
             self.critic.requires_grad_(False)
             with torch.no_grad():
@@ -155,6 +155,13 @@ class SACAE(ModuleStateMixin):
         optimizer_step([self.encoder_opt, self.decoder_opt], ae_loss)
         metrics["ae_loss"] = ae_loss.detach()
         return metrics
+
+    def _steps_actor(self, update: int) -> bool:
+        """Whether update number `update` also steps the actor, alpha and the targets. SAC-AE's
+        train.py decides by the env step it passes to each update, which is the update's number
+        after its warm-up burst and the burst's own step for each update of the burst."""
+        step = self.burst_updates if update <= self.burst_updates else update
+        return step % self.config.policy_delay == 0
 
     def _modules(self) -> dict[str, torch.nn.Module]:
         return {
