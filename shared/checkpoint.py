@@ -129,11 +129,15 @@ def rng_state(rng: np.random.Generator) -> dict:
 
 
 def restore_rng_state(rng: np.random.Generator, state: dict) -> None:
+    """The random states of `rng_state`, from a checkpoint loaded onto any device: torch takes a
+    generator's state only as a CPU tensor, and `load` maps the checkpoint's tensors, these too,
+    to the run's device. CUDA states go back to the devices this machine has."""
     rng.bit_generator.state = _decode_numpy_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
+    torch.set_rng_state(state["torch"].cpu())
     random.setstate((state["python_version"], tuple(state["python"]), state["python_gauss"]))
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        for device, cuda_state in zip(range(torch.cuda.device_count()), state["cuda"], strict=False):
+            torch.cuda.set_rng_state(cuda_state.cpu(), device)
 
 
 def _encode_numpy_state(state: dict) -> dict:

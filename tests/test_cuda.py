@@ -143,6 +143,23 @@ def test_checkpoints_move_between_devices(tmp_path, source, target):
     moved.update(batch(target))  # the optimizers step on the new device
 
 
+def test_a_checkpoints_random_states_restore_when_it_is_loaded_onto_cuda(tmp_path):
+    # A learner or a resumed `nasa train` on CUDA loads its checkpoint onto the GPU, the random
+    # states with the rest; torch takes a generator's state only from the CPU.
+    rng = np.random.default_rng(0)
+    state = checkpoint.rng_state(rng)
+    state["cuda"] = [*state["cuda"], state["cuda"][0]]  # saved on a machine with one GPU more
+    checkpoint.save(tmp_path / "checkpoint.pt", {"rng": state})
+    expected = rng.random(), torch.rand(3), torch.rand(3, device=CUDA).cpu()
+    loaded = checkpoint.load(tmp_path / "checkpoint.pt", CUDA)["rng"]
+    assert loaded["torch"].device.type == "cuda"
+    rng = np.random.default_rng(1)
+    checkpoint.restore_rng_state(rng, loaded)
+    assert rng.random() == expected[0]
+    torch.testing.assert_close(torch.rand(3), expected[1], rtol=0, atol=0)
+    torch.testing.assert_close(torch.rand(3, device=CUDA).cpu(), expected[2], rtol=0, atol=0)
+
+
 def test_the_prefetcher_stages_in_pinned_memory_and_copies_to_cuda():
     host = {k: v.numpy() for k, v in batch(CPU).items()}
     with DevicePrefetcher(lambda: host, CUDA, depth=2) as prefetch:
