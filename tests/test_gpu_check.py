@@ -294,3 +294,23 @@ def test_a_step_that_raises_is_an_error_in_the_json_line(monkeypatch, capsys):
     assert exit_.value.code == 1
     line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert line["ok"] is False and line["tests"] == {"error": "RuntimeError: nvidia-smi vanished"}
+
+
+def test_the_json_line_comes_when_the_gpu_cannot_be_named_after_the_steps(monkeypatch, capsys):
+    # A step that takes the GPU down (an Xid) leaves the driver refusing the check's own last call
+    # into CUDA; the line must still come, with the steps' results.
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+
+    def lost(_i=0):  # noqa: ANN001, ANN202
+        raise RuntimeError("CUDA error: unspecified launch failure")
+
+    monkeypatch.setattr(torch.cuda, "get_device_name", lost)
+    monkeypatch.setattr(gpu, "step_tests", lambda budget, reserve: {"rc": 0, "passed": 3})
+    with pytest.raises(SystemExit) as exit_:
+        gpu.main(["--skip", "learner,profile,up"])
+    assert exit_.value.code == 1
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert line["tests"] == {"rc": 0, "passed": 3} and line["ok"] is False
+    assert line["gpu"] is None and "unspecified launch failure" in line["gpu_error"]
