@@ -59,8 +59,7 @@ def _ssim(x: torch.Tensor, y: torch.Tensor, x_scale: float, y_logits: bool = Fal
         raise ValueError(f"ssim needs images of at least {WIN}x{WIN}, got {tuple(x.shape[2:])}")
     y = y.detach()
     if x.device.type != "cpu":
-        y = y.float()
-        return ssim_torch(x.float() * x_scale, torch.sigmoid(y) if y_logits else y)
+        return _ssim_in_torch(x, y, x_scale, y_logits)
     if x.dtype != torch.uint8:
         x = x.float()
     bf16 = y.dtype == torch.bfloat16
@@ -69,6 +68,12 @@ def _ssim(x: torch.Tensor, y: torch.Tensor, x_scale: float, y_logits: bool = Fal
         torch.get_num_threads(), y_bf16=bf16, y_logits=y_logits,
     )
     return torch.from_numpy(values).float()
+
+
+def _ssim_in_torch(x: torch.Tensor, y: torch.Tensor, x_scale: float, y_logits: bool = False) -> torch.Tensor:
+    """`_ssim` off the CPU: the same arguments, in torch ops (`ssim_torch`)."""
+    y = y.float()
+    return ssim_torch(x.float() * x_scale, torch.sigmoid(y) if y_logits else y)
 
 
 def ssim_torch(

@@ -1,7 +1,8 @@
 """`agent.cuda_graph`: what can be tested without a GPU.
 
 - Capture needs an update that never waits for the device: every agent's `update_step`
-  is run under a dispatch mode that sees each read of a device value by the host.
+  is run under modes that see each read of a device value by the host (ops and copies to
+  the host), taking the GPU's code where it has its own (SSIM, random_shift's crop).
 - `GraphedUpdate`'s bookkeeping (warm-up, one graph per phase, static inputs and
   outputs, the update count, capturing again after a load) runs against an emulator of
   torch.cuda's graph API: capture runs the Python once and leaves no trace (as a capture
@@ -17,8 +18,10 @@ import copy
 
 import pytest
 import torch
+from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from shared import augment, intrinsic
 from shared.agents import AGENTS, make_agent
 from shared.agents.cuda_graph import GraphedUpdate, capturable
 from shared.config import ConfigError, agent_defaults
@@ -32,20 +35,46 @@ VARIANTS = {
     "nasa_td3+fresh": ("nasa_td3", {"intrinsic_timing": "fresh"}),
     "nasa_td3+shared_encoder_pass": ("nasa_td3", {"shared_encoder_pass": True}),
     "nasa_td3+ensemble_every_3": ("nasa_td3", {"ensemble_every": 3}),
+    "nasa_td3+random_shift": ("nasa_td3", {"random_shift": 2}),
     "td3_ae": ("td3_ae", {}),
     "pixel_td3": ("pixel_td3", {}),
     "sac_ae": ("sac_ae", {}),
 }
 
 
+# Tensor methods that copy a tensor to the host: on the CPU they reach no op the dispatch mode sees
+# (`tolist` reads the memory itself, `cpu` returns the tensor), on a GPU each waits for the device.
+HOST_METHODS = {"tolist", "numpy", "cpu"}
+
+
 class HostReads(TorchDispatchMode):
     def __init__(self) -> None:
         super().__init__()
         self.seen: list[str] = []
+        self._methods = _HostMethods(self.seen)
+
+    def __enter__(self) -> HostReads:
+        self._methods.__enter__()
+        return super().__enter__()
+
+    def __exit__(self, *exc: object) -> None:
+        super().__exit__(*exc)
+        self._methods.__exit__(*exc)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
         if func.overloadpacket.__name__ in HOST_READS:
             self.seen.append(str(func))
+        return func(*args, **(kwargs or {}))
+
+
+class _HostMethods(TorchFunctionMode):
+    def __init__(self, seen: list[str]) -> None:
+        super().__init__()
+        self.seen = seen
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
+        if getattr(func, "__name__", "") in HOST_METHODS:
+            self.seen.append(f"Tensor.{func.__name__}")
         return func(*args, **(kwargs or {}))
 
 
@@ -58,14 +87,26 @@ def agent_of(variant: str, **more):  # noqa: ANN003, ANN201
     return AGENTS[algo](OBS_SHAPE, ACTION_DIM, config, torch.device("cpu"))
 
 
-def test_the_host_read_detector_sees_item_and_bool():
+def test_the_host_read_detector_sees_item_and_bool_and_copies_to_the_host():
     with HostReads() as reads:
         x = torch.ones(3)
         x.sum().item()
         bool(x.any())
-    assert len(reads.seen) == 2
+        x.tolist()
+        x.cpu()
+    assert len(reads.seen) == 4 and reads.seen[2:] == ["Tensor.tolist", "Tensor.cpu"]
 
 
+@pytest.fixture
+def gpu_paths(monkeypatch):  # noqa: ANN001, ANN201
+    """The update's GPU code where it has its own: the torch SSIM (the CPU's kernel reads the
+    frames as numpy arrays) and random_shift's one-gather crop (the CPU's reads each offset)."""
+    monkeypatch.setattr(intrinsic, "_ssim", lambda x, y, x_scale, y_logits=False:
+                        intrinsic._ssim_in_torch(x, y.detach(), x_scale, y_logits))
+    monkeypatch.setattr(augment, "crops_by_copy", augment.crops_by_index)
+
+
+@pytest.mark.usefixtures("gpu_paths")
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_no_update_step_reads_a_device_value(variant):
     torch.manual_seed(0)
@@ -77,6 +118,7 @@ def test_no_update_step_reads_a_device_value(variant):
         assert all(isinstance(v, torch.Tensor) and v.dim() == 0 for v in losses.values())
 
 
+@pytest.mark.usefixtures("gpu_paths")
 def test_a_skipped_step_reads_no_device_value_either():
     torch.manual_seed(0)
     agent = agent_of("nasa_td3")
