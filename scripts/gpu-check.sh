@@ -14,12 +14,24 @@
 # then the machine's python3; only when none does is one set up.
 #
 # Everything is bounded: the whole script by TOTAL_TIMEOUT_S (default 540 s, setup included),
-# setup by SETUP_TIMEOUT_S, and each step of the check by its own timeout, so it ends in time
-# even when something hangs.
+# setup by SETUP_TIMEOUT_S, nvidia-smi by SMI_TIMEOUT_S (a stuck driver: one line, exit 1), and
+# each step of the check by its own timeout, so it ends in time even when something hangs.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
-if ! command -v nvidia-smi >/dev/null 2>&1 || ! nvidia-smi -L >/dev/null 2>&1; then
+SMI_TIMEOUT_S=${SMI_TIMEOUT_S:-30}  # a stuck driver leaves nvidia-smi waiting for ever
+smi() { timeout -k 5 "$SMI_TIMEOUT_S" nvidia-smi "$@"; }
+GPU_LINE=""
+if command -v nvidia-smi >/dev/null 2>&1; then
+    GPU_LINE=$(smi -L 2>/dev/null)
+    rc=$?
+    if [ $rc -eq 124 ] || [ $rc -eq 137 ]; then
+        echo "gpu-check: nvidia-smi did not answer within ${SMI_TIMEOUT_S} s (a stuck GPU driver?); nothing was run" >&2
+        exit 1
+    fi
+    [ $rc -eq 0 ] || GPU_LINE=""
+fi
+if [ -z "$GPU_LINE" ]; then
     echo "gpu-check: needs a machine with an NVIDIA GPU (no nvidia-smi or no GPU here); nothing was run"
     exit 0
 fi
@@ -63,7 +75,7 @@ if [ -z "$PY" ]; then
     fi
 fi
 
-echo "gpu-check: $PY, torch $("$PY" -c 'import torch; print(torch.__version__)'), $(nvidia-smi -L | head -1)"
+echo "gpu-check: $PY, torch $("$PY" -c 'import torch; print(torch.__version__)'), $(echo "$GPU_LINE" | head -1)"
 CHECK_TIMEOUT_S=$((TOTAL_TIMEOUT_S - SECONDS - 20))
 if [ "$CHECK_TIMEOUT_S" -lt 120 ]; then
     echo "gpu-check: setup took ${SECONDS} s; too little of the ${TOTAL_TIMEOUT_S} s is left for the check" >&2

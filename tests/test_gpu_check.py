@@ -47,6 +47,18 @@ def test_with_an_nvidia_smi_that_finds_no_gpu_the_script_runs_nothing(tmp_path):
     assert_says_it_needs_a_gpu(run_script([tmp_path]))
 
 
+def test_an_nvidia_smi_that_hangs_ends_the_script_in_its_time_with_one_line(tmp_path):
+    # A stuck driver leaves nvidia-smi waiting for ever: the script must still end, and say why.
+    fake = tmp_path / "nvidia-smi"
+    fake.write_text("#!/bin/sh\nexec sleep 600\n")
+    fake.chmod(0o755)
+    env = {**os.environ, "PATH": f"{tmp_path}:/usr/bin:/bin", "SMI_TIMEOUT_S": "1"}
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.splitlines() == [
+        "gpu-check: nvidia-smi did not answer within 1 s (a stuck GPU driver?); nothing was run"]
+
+
 def test_missing_requirements_names_the_pins_whose_module_does_not_import(tmp_path):
     pyproject = tmp_path / "pyproject.toml"
     pyproject.write_text(
