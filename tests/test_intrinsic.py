@@ -56,11 +56,14 @@ def test_novelty_matches_scikit_image_on_rendered_frames_and_reconstructions(ren
     np.testing.assert_allclose(ours, expected, atol=1e-4)
 
 
+@pytest.mark.parametrize("path", ["cpu_kernel", "device"])
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
-def test_novelty_of_the_decoders_logits_matches_scikit_image_on_their_sigmoid(rendered_stacks, precision):
+def test_novelty_of_the_decoders_logits_matches_scikit_image_on_their_sigmoid(
+    rendered_stacks, precision, path
+):
     """Scoring hands the kernel the decoder's logits as computed (bfloat16 under bf16), and the
     kernel takes their sigmoid as it reads them: the same novelty as the reference's call on
-    the sigmoid of those logits."""
+    the sigmoid of those logits. `device`: the branch a GPU takes (torch ops), run here."""
     config = agent_defaults("nasa_td3")
     config.pixel_precision = precision
     agent = make_agent("nasa_td3", (9, 84, 84), 6, config, torch.device("cpu"))
@@ -68,7 +71,10 @@ def test_novelty_of_the_decoders_logits_matches_scikit_image_on_their_sigmoid(re
     with torch.no_grad():
         logits = agent.decoder.logits(agent.encoder(obs), keep_precision=True)
     assert logits.dtype == (torch.bfloat16 if precision == "bf16" else torch.float32)
-    ours = intrinsic.novelty_of_logits(obs, logits).numpy()
+    if path == "cpu_kernel":
+        ours = intrinsic.novelty_of_logits(obs, logits).numpy()
+    else:
+        ours = (1.0 - intrinsic._ssim_in_torch(obs, logits, 1.0 / 255.0, y_logits=True)).numpy()
     reconstruction = torch.sigmoid(logits.double()).numpy()
     pairs = zip(rendered_stacks.astype(np.float64), reconstruction, strict=True)
     expected = [reference_novelty(o, r) for o, r in pairs]
