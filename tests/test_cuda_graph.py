@@ -164,8 +164,8 @@ class Emulator:
     the update count back as they were: a real capture runs no kernel. A replay runs the step
     again on the graph's static inputs and writes the outputs the capture returned."""
 
-    def __init__(self, agent, fail: bool = False) -> None:  # noqa: ANN001
-        self.agent, self.fail = agent, fail
+    def __init__(self, agent, fail: bool = False, fail_in_actor_step: bool = False) -> None:  # noqa: ANN001
+        self.agent, self.fail, self.fail_in_actor_step = agent, fail, fail_in_actor_step
         self.captures = 0
         self.replays = 0
 
@@ -185,12 +185,17 @@ class Emulator:
         tensors = self.tensors()
         saved = [t.detach().clone() for t in tensors]
         rng = torch.get_rng_state()  # the update count: GraphedUpdate puts it back itself
-        yield
-        with torch.no_grad():
-            for t, s in zip(tensors, saved, strict=True):
-                t.copy_(s)
-        torch.set_rng_state(rng)
-        self.captures += 1
+        if self.fail_in_actor_step:  # a capture that stops midway, once the actor's step is reached
+            self.agent.actor_opt.step = _refused
+        try:
+            yield
+        finally:
+            self.agent.actor_opt.__dict__.pop("step", None)
+            with torch.no_grad():
+                for t, s in zip(tensors, saved, strict=True):
+                    t.copy_(s)
+            torch.set_rng_state(rng)
+            self.captures += 1
         if self.fail:
             raise RuntimeError("operation not permitted when stream is capturing")
 
@@ -217,6 +222,10 @@ class Emulator:
         monkeypatch.setattr(torch.cuda, "current_stream", lambda device=None: _Stream())
         monkeypatch.setattr(torch.cuda, "CUDAGraph", self.make_graph)
         monkeypatch.setattr(torch.cuda, "graph", self.graph)
+
+
+def _refused(*args: object, **kwargs: object) -> None:
+    raise RuntimeError("operation not permitted when stream is capturing")
 
 
 class _Stream:
@@ -328,4 +337,23 @@ def test_a_failed_capture_leaves_the_run_eager_with_a_warning(monkeypatch):
     assert emulator.captures == 1 and emulator.replays == 0  # tried once, then eager for good
     assert "operation not permitted" in graphed._graphed.failed
     assert graphed.num_updates == 9 and graphed_losses == eager_losses
+    assert _same(_weights(graphed), _weights(eager))
+
+
+def test_a_capture_that_stops_inside_the_actors_step_leaves_every_network_training(monkeypatch):
+    # The actor's step freezes the critic's parameters while it runs; a capture that fails there
+    # must not leave them frozen, or the eager update that takes its place trains no critic head.
+    torch.manual_seed(4)
+    eager = agent_of("td3_ae")
+    batches = [random_batch(seed=i) for i in range(10)]
+    _train(eager, batches)
+    torch.manual_seed(4)
+    graphed = agent_of("td3_ae", cuda_graph=True)
+    emulator = Emulator(graphed, fail_in_actor_step=True)
+    emulator.install(monkeypatch)
+    with pytest.warns(RuntimeWarning, match="CUDA graph capture failed; updates run eagerly"):
+        _train(graphed, batches)
+    assert emulator.captures == 2 and emulator.replays == 1  # the actor's phase failed, then eager
+    assert all(p.requires_grad for p in graphed.critic.parameters())
+    assert graphed.num_updates == eager.num_updates == 10
     assert _same(_weights(graphed), _weights(eager))

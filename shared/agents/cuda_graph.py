@@ -19,7 +19,8 @@ is the same.
   to: the agent then drops its graphs (`ModuleStateMixin.load_state_dict`) and
   captures again.
 - A capture that fails (a GPU, driver or torch version that cannot capture some
-  step) leaves the run eager, with a warning, rather than ending it.
+  step) leaves the run eager, with a warning, rather than ending it; the update
+  count and which parameters take gradients are as they were before it.
 """
 
 from __future__ import annotations
@@ -97,6 +98,9 @@ class GraphedUpdate:
     def _capture(self) -> tuple[torch.cuda.CUDAGraph, dict[str, torch.Tensor]]:
         graph = torch.cuda.CUDAGraph()
         count = self.agent.num_updates
+        # A step may freeze a network while it runs (the actor's step, the critic's parameters): a
+        # capture that stops inside it must not leave it frozen for the eager updates after it.
+        grads = [(p, p.requires_grad) for m in self.agent._modules().values() for p in m.parameters()]
         try:
             # The warm-up's stream: libraries cache their handles and workspaces per stream, and
             # creating one mid-capture fails. thread_local: the learner's prefetch thread keeps
@@ -106,6 +110,8 @@ class GraphedUpdate:
                 losses = self.agent.update_step(self.static)
         finally:
             self.agent.num_updates = count  # capture ran no kernel: the update is the replay's
+            for param, requires_grad in grads:
+                param.requires_grad_(requires_grad)
         return graph, losses
 
 
