@@ -20,10 +20,9 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 
 SMI_TIMEOUT_S=${SMI_TIMEOUT_S:-30}  # a stuck driver leaves nvidia-smi waiting for ever
-smi() { timeout -k 5 "$SMI_TIMEOUT_S" nvidia-smi "$@"; }
 GPU_LINE=""
 if command -v nvidia-smi >/dev/null 2>&1; then
-    GPU_LINE=$(smi -L 2>/dev/null)
+    GPU_LINE=$(timeout -k 5 "$SMI_TIMEOUT_S" nvidia-smi -L 2>/dev/null)
     rc=$?
     if [ $rc -eq 124 ] || [ $rc -eq 137 ]; then
         echo "gpu-check: nvidia-smi did not answer within ${SMI_TIMEOUT_S} s (a stuck GPU driver?); nothing was run" >&2
