@@ -123,7 +123,9 @@ def rng_state(rng: np.random.Generator) -> dict:
         "python_version": random.getstate()[0],
         "python_gauss": random.getstate()[2],
     }
-    if torch.cuda.is_available():
+    # A run that never touched CUDA has drawn nothing there, and reading the states would open a
+    # CUDA context (GPU memory; an error on a GPU held exclusively by another process).
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
 

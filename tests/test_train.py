@@ -705,3 +705,23 @@ def test_a_sigterm_while_a_resume_reads_the_replay_log_is_one_line_and_the_run_r
     Trainer.create(tiny_config(steps=80), tmp_path / "straight").run()
     for name in ("train.csv", "eval.csv"):
         assert stable_rows(run / name) == stable_rows(tmp_path / "straight" / name)
+
+
+def test_a_checkpoint_reads_cuda_random_states_only_where_the_run_touched_cuda(monkeypatch):
+    """On a GPU machine a CPU run must not open a CUDA context at each checkpoint to save states it
+    never drew from (reading them initialises CUDA)."""
+    import torch
+
+    from shared import checkpoint
+
+    def opens_a_context() -> list:
+        raise AssertionError("read the CUDA random states of a run that never used CUDA")
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: False)
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", opens_a_context)
+    assert "cuda" not in checkpoint.rng_state(np.random.default_rng(0))
+    states = [torch.zeros(16, dtype=torch.uint8)]
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: states)
+    assert checkpoint.rng_state(np.random.default_rng(0))["cuda"] is states
