@@ -3,6 +3,7 @@
 import os
 import random
 import select
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -370,3 +371,24 @@ def test_an_adapter_unplugged_and_plugged_back_is_reopened(tmp_path) -> None:
         first.close()
     with pytest.raises(BusError, match="closed"):
         bus.read_state()  # a bus closed on purpose stays closed
+
+
+def test_a_second_opener_of_a_held_port_is_refused_and_the_first_runs_on(rig) -> None:
+    """Two programs on one bus would interleave their packets: the second is refused, one line
+    naming the port and the process that holds it, before it sends a byte or changes a setting."""
+    emu, bus = rig
+    settings = termios.tcgetattr(bus.port.ser.fileno())
+    seen = emu.packets_seen
+    for baud in (1000000, 57600):  # the same rate, and another one, which would change the port's
+        with pytest.raises(BusError) as refused:
+            ServoBus(emu.port, baud, IDS, latency_ms=LATENCY_MS)
+        message = str(refused.value)
+        assert message.startswith(f"cannot open {emu.port}: in use by another") and "\n" not in message
+        assert f"pid {os.getpid()}: " in message, message
+    assert emu.packets_seen == seen
+    assert termios.tcgetattr(bus.port.ser.fileno()) == settings
+    bus.write_goals({1: 310, 2: 410, 3: 510, 4: 610})
+    assert list(bus.read_state().position) == [300, 400, 500, 600]  # torque off: goals set, nothing moves
+    assert [bus.read(sid, xl320.GOAL_POSITION, 2) for sid in IDS] == [310, 410, 510, 610]
+    bus.close()  # let go: the port is free for the next opener
+    ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS).close()

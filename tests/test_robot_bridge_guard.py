@@ -122,6 +122,28 @@ def test_a_clean_stop_turns_torque_off_and_stands_the_guard_down(bridge) -> None
     assert "e-stop: SIGTERM" in text and "[torque guard]" not in text, text
 
 
+def test_a_second_bridge_on_the_same_port_is_refused_and_the_first_runs_on(
+    bridge, sessions, endpoint: str, tmp_path: Path  # noqa: F811 (fixtures)
+) -> None:
+    """A bridge launched twice by mistake, under another id (its Zenoh claim would not stop it):
+    it exits 1 with one line naming the port and the bridge holding it, and the first steps on."""
+    emu, proc, _ = bridge
+    argv = ["--bridge-id", "g2", "--task", "gripper-valve", "--config", str(tmp_path / "gripper.toml"),
+            "--connect", endpoint]
+    second = subprocess.run([sys.executable, "-c", BRIDGE, video(tmp_path / "cam2.avi"), *argv],
+                            capture_output=True, text=True, timeout=120)
+    assert second.returncode == 1, second.stderr
+    lines = second.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"robot_bridge: error: cannot open {emu.port}: in use by another"), lines
+    assert f"pid {proc.pid}: " in lines[0], lines[0]
+    assert proc.poll() is None
+    env = BridgeEnv(sessions[1], "g1", timeout_s=60.0)
+    env.reset()
+    env.step(np.zeros(4, np.float32))
+    assert env.fault() == "ok" and torque(emu, IDS) == [1, 1, 1, 1]
+
+
 def test_a_guard_ignores_sigterm_and_stood_down_exits_without_writing(tmp_path: Path) -> None:
     with BusEmulator(IDS) as emu:
         bus = ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS)

@@ -11,17 +11,24 @@ reply behind line noise that looks like a header (a short length failed the tran
 long one waited out the timeout for bytes that were the reply) and handed a sync read a status
 packet without data (a servo refusing the read), which it then indexed past its end, and took a
 late answer to an earlier instruction for the reply (a ping's model number read as a position).
+
+The port is locked (`flock`) as it opens: a second program on the bus (a bridge launched twice,
+a calibration while a bridge runs) is refused with `PortHeld`, naming the holder.
 """
 
 from __future__ import annotations
 
+import errno
+import os
 import select
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import serial
 from dynamixel_sdk import (
     COMM_RX_CORRUPT,
     COMM_RX_TIMEOUT,
@@ -47,6 +54,34 @@ class BusError(RuntimeError):
     def __init__(self, message: str, servo_ids: Sequence[int]) -> None:
         super().__init__(message)
         self.servo_ids = tuple(servo_ids)
+
+
+class PortHeld(OSError):
+    """Another process holds the port's lock: its packets and ours would interleave on the bus."""
+
+
+def _lock_holders(port: str) -> list[str]:
+    """The processes holding a lock on the port's device (pid and command line), as /proc/locks
+    lists them; none where this system does not."""
+    try:
+        node = os.stat(port)
+        table = Path("/proc/locks").read_text()
+    except OSError:
+        return []
+    device = f"{os.major(node.st_dev):02x}:{os.minor(node.st_dev):02x}:{node.st_ino}"
+    holders = []
+    for line in table.splitlines():
+        fields = [f for f in line.split() if f != "->"]  # "->" marks a lock still waited for
+        if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == device and fields[4].isdigit():
+            pid = int(fields[4])
+            try:
+                argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                argv = ""
+            command = " ".join(argv.replace("\0", " ").split())  # one line: `python -c` code has newlines
+            command = command if len(command) <= 100 else command[:97] + "..."
+            holders.append(f"pid {pid}: {command}" if command else f"pid {pid}")
+    return holders
 
 
 @dataclass(frozen=True)
@@ -91,6 +126,28 @@ class _Port(PortHandler):
         left_ms = self.packet_timeout - self.getTimeSinceStart()
         if left_ms > 0:
             select.select([self.ser.fileno()], [], [], left_ms / 1000.0)
+
+    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 (the SDK's name)
+        """The SDK's, with the port locked as it opens (pyserial takes the lock before it touches
+        the port's settings or buffers, so a refused opener changes nothing for the holder). A new
+        rate on an open port is set in place: closing it would hand the lock to anyone waiting."""
+        if self.is_open:
+            self.ser.baudrate = self.baudrate
+        else:
+            try:
+                self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate,
+                                         bytesize=serial.EIGHTBITS, timeout=0, exclusive=True)
+            except serial.SerialException as err:
+                if err.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
+                    raise
+                holders = _lock_holders(self.port_name)
+                held = f" ({'; '.join(holders)})" if holders else ""
+                raise PortHeld(f"in use by another process{held}; a second program on one servo bus "
+                               "would interleave its packets with that one's: stop it first") from err
+            self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
 
 
 _HEADER = bytes((0xFF, 0xFF, 0xFD, 0x00))
@@ -210,13 +267,12 @@ class ServoBus:
         self.port = _Port(port, latency_ms)
         self.packet = _Packets()
         try:
-            opened = self.port.openPort()
-        except _PORT_FAILURES as err:  # no such device, or no access to it
+            # Opened once, at its rate: opened at the SDK's default first and set after, it was
+            # closed and opened again in between, when another process could take its lock.
+            opened = self.port.setBaudRate(baud)
+        except _PORT_FAILURES as err:  # no such device, no access to it, or held by another process
             raise BusError(f"cannot open {port}: {err}", self.ids) from err
-        if not opened:
-            raise BusError(f"cannot open {port}", self.ids)
-        if not self.port.setBaudRate(baud):
-            self.port.closePort()
+        if not opened:  # a rate the SDK has no setting for: the port is not opened
             raise BusError(f"cannot set {port} to {baud} baud", self.ids)
         self._goals = GroupSyncWrite(self.port, self.packet, xl320.GOAL_POSITION, 2)
         self._reads: dict[tuple[int, ...], GroupSyncRead] = {}
