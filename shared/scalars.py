@@ -92,7 +92,9 @@ class Scalars:
 
     def __init__(self, logdir: Path, flush_secs: int = 10) -> None:
         self.logdir, self.flush_secs = Path(logdir), flush_secs
-        self.purge_step: int | None = None  # a resumed run: events from this step on are dropped
+        # A resumed run: events from this step on are dropped; written by the first writer whose
+        # file keeps a point, not again.
+        self.purge_step: int | None = None
         self._writer = None
         self._file: Path | None = None  # the event file the writer made
         self._refused_at: float | None = None  # when the disk last refused a write
@@ -127,7 +129,13 @@ class Scalars:
         """Remove the event file of a writer given up on if it holds no point: each retry on a disk
         still refusing makes a file, and a long spell of them would leave a file a minute."""
         path, self._file = self._file, None
-        if path is not None and not _holds_points(path):
+        if path is None:
+            return
+        if _holds_points(path):
+            # It holds the resumed run's purge marker, written ahead of its points: a later writer's
+            # marker would hide the points written since. A file dropped takes its marker with it.
+            self.purge_step = None
+        else:
             with contextlib.suppress(OSError):
                 path.unlink()
 

@@ -626,6 +626,51 @@ def test_retries_on_a_disk_still_refusing_leave_no_event_file_each(tmp_path, mon
     assert sorted(e.step for e in acc.Scalars("x")) == [1, 9]
 
 
+def test_a_resumed_runs_purge_marker_is_written_once_across_a_full_disk_spell(tmp_path, monkeypatch):
+    """The marker hides every point from its step on: written again by the writer that follows a
+    refused write, it would hide the points written between the resume and the full disk. A writer
+    whose file kept no point took its marker with it: the next one writes it."""
+    from types import SimpleNamespace
+
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+    from tensorboard.compat.proto.event_pb2 import SessionLog
+    from tensorboard.compat.tensorflow_stub.io import gfile
+
+    from shared import scalars as scalars_module
+    from tests.test_train import FullFile
+
+    def markers() -> list[int]:
+        return sorted(event.step for path in (tmp_path / "tb").iterdir()
+                      for event in EventFileLoader(str(path)).Load()
+                      if event.HasField("session_log") and event.session_log.status == SessionLog.START)
+
+    real_io = gfile.io
+    full = SimpleNamespace(open=lambda *a, **k: FullFile(open(*a, **k)))
+    monkeypatch.setattr(scalars_module, "RETRY_S", 0.0)  # a retry at every point, as over many minutes
+    tb = scalars_module.Scalars(tmp_path / "tb")
+    tb.purge_step = 5  # resumed from a checkpoint at step 5
+    monkeypatch.setattr(gfile, "io", full)  # full from the start: the first writer's file is dropped
+    with pytest.raises(OSError, match="No space"):
+        tb.add({"x": 5.0}, 5)
+        tb.flush()
+    monkeypatch.setattr(gfile, "io", real_io)
+    tb.add({"x": 6.0}, 6)
+    tb.flush()
+    assert markers() == [5]  # the marker the dropped file lost
+    monkeypatch.setattr(gfile, "io", full)  # the disk fills
+    for step in (7, 8):
+        with pytest.raises(OSError, match="No space"):
+            tb.add({"x": float(step)}, step)
+            tb.flush()
+    monkeypatch.setattr(gfile, "io", real_io)  # room again
+    tb.add({"x": 9.0}, 9)
+    tb.close()
+    assert markers() == [5]
+    points = sorted(event.step for path in (tmp_path / "tb").iterdir()
+                    for event in EventFileLoader(str(path)).Load() if event.HasField("summary"))
+    assert points == [6, 9]
+
+
 def _serve(app, monkeypatch, **limits):  # noqa: ANN001, ANN202 (a started StatusServer, its port)
     from nasa.up import free_port
     from services.learner import status_api
