@@ -19,6 +19,7 @@ import os
 import signal
 import subprocess
 import threading
+import time
 from collections import deque
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -44,29 +45,56 @@ def stopped_cleanly(prog: str) -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+GROUP_POLL_S = 0.1
+"""How often a group whose leader has exited is looked at, while the rest of it stops."""
+
+
 def _kill_group(proc: subprocess.Popen) -> None:
     with contextlib.suppress(ProcessLookupError, PermissionError):
         os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
 
 
+def _group_gone(proc: subprocess.Popen) -> bool:
+    """Whether the leader has exited and no process is left in its group (the group's id stays
+    taken while one is, so it cannot name another group meanwhile)."""
+    if proc.poll() is None:
+        return False
+    try:
+        os.killpg(proc.pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # a member this process may not signal: still there
+        return False
+    return False
+
+
+def _wait_group(proc: subprocess.Popen, grace: float) -> None:
+    """Wait up to `grace` seconds for the leader to exit, then for the rest of its group."""
+    deadline = time.monotonic() + grace
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.wait(timeout=grace)
+    while not _group_gone(proc) and time.monotonic() < deadline:
+        time.sleep(GROUP_POLL_S)
+
+
 def stop_group(proc: subprocess.Popen, steps: tuple[tuple[int, float], ...] = STOP_STEPS) -> int:
     """Stop `proc`, started with start_new_session=True, and its process group: each signal of
-    `steps` in turn, waiting its grace for the leader to exit, then SIGKILL. A Ctrl-C or SIGTERM
-    while it waits (the user insisting) kills the group at once and is raised again. Returns the
-    leader's exit code."""
+    `steps` in turn to the whole group, waiting its grace for the leader to exit and the rest of
+    the group with it, then SIGKILL to whatever is left, members the leader left behind too. A
+    Ctrl-C or SIGTERM while it waits (the user insisting) kills the group at once and is raised
+    again. Returns the leader's exit code."""
     try:
         for sig, grace in steps:
-            if proc.poll() is not None:
+            if _group_gone(proc):
                 break
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, sig)
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(timeout=grace)
+            _wait_group(proc, grace)
     except (KeyboardInterrupt, Terminated):
         _kill_group(proc)
         raise
-    if proc.poll() is None:
+    if not _group_gone(proc):
         _kill_group(proc)
     return proc.returncode
 
@@ -89,9 +117,11 @@ def processes_with(variable: str, value: str) -> list[tuple[int, list[str]]]:
         try:
             if entry not in (proc / "environ").read_bytes().split(b"\0"):
                 continue
-            if (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+            # Bytes: a process's name, argv or environment need not be UTF-8.
+            if (proc / "stat").read_bytes().rsplit(b")", 1)[1].split()[0] == b"Z":
                 continue
-            found.append((int(proc.name), (proc / "cmdline").read_bytes().decode().split("\0")))
+            argv = (proc / "cmdline").read_bytes().decode(errors="replace").split("\0")
+            found.append((int(proc.name), argv))
         except OSError:
             continue
     return found

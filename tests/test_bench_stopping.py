@@ -7,6 +7,7 @@ the mark once the benchmark has exited was left behind.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -19,7 +20,7 @@ from pathlib import Path
 import pytest
 from system_harness import REPO, TINY
 
-from bench.processes import processes_with
+from bench.processes import processes_with, stop_group
 
 pytestmark = pytest.mark.system
 
@@ -69,6 +70,94 @@ def start(argv: list[str], mark: str, tmp: Path) -> subprocess.Popen:
 
 def running(mark: str, needle: str) -> Callable[[], bool]:
     return lambda: any(needle in cmd for _, cmd in marked(mark))
+
+
+def gone(pid: int) -> bool:
+    """Exited (a zombie counts: its parent has yet to reap it)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_bytes().rsplit(b")", 1)[1].split()[0] == b"Z"
+    except FileNotFoundError:
+        return True
+
+
+def wait_gone(pid: int, deadline_s: float = 60.0) -> None:
+    """Wait for `pid` to exit; the deadline only stops a hung test."""
+    end = time.monotonic() + deadline_s
+    while not gone(pid):
+        assert time.monotonic() < end, f"process {pid} still running"
+        time.sleep(0.05)
+
+
+def test_processes_with_reads_processes_whose_name_argv_and_environment_are_not_utf8(tmp_path):
+    # It scans every process of the machine: one with odd bytes must not end the scan.
+    mark = uuid.uuid4().hex
+    odd_name = os.path.join(os.fsencode(tmp_path), b"py\xff")  # the process's name, in /proc/PID/stat
+    os.symlink(os.fsencode(os.path.realpath(sys.executable)), odd_name)
+    env = {"BENCH_TEST_MARK": mark, "ODD": b"\xfe\xfd"}
+    child = subprocess.Popen([odd_name, "-c", "import time; time.sleep(600)", b"arg\xfc"], env=env)
+    try:
+        end = time.monotonic() + 60  # until it runs python: before, it is a copy of this process
+        while not (found := processes_with("BENCH_TEST_MARK", mark)):
+            assert time.monotonic() < end, "the child never showed up"
+            time.sleep(0.05)
+        [(pid, argv)] = found
+        assert pid == child.pid and argv[1:4] == ["-c", "import time; time.sleep(600)", "arg\ufffd"]
+    finally:
+        child.kill()
+        child.wait()
+
+
+# A member of the leader's group that ignores SIGINT and stops on SIGTERM, saying so in a file.
+MEMBER = (
+    "import signal, sys, time\n"
+    "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+    "def stopped(*_):\n"
+    "    open(sys.argv[1], 'w').write('SIGTERM')\n"
+    "    sys.exit(0)\n"
+    "signal.signal(signal.SIGTERM, stopped)\n"
+    "print('up', flush=True)\n"
+    "time.sleep(600)\n"
+)
+# The leader: starts the member, prints its pid, then exits at once or waits for SIGINT.
+LEADER = (
+    "import subprocess, sys, time\n"
+    "member = subprocess.Popen([sys.executable, '-c', sys.argv[1], sys.argv[2]], stdout=subprocess.PIPE)\n"
+    "assert member.stdout.readline() == b'up\\n'\n"
+    "print(member.pid, flush=True)\n"
+    "if sys.argv[3] == 'wait':\n"
+    "    time.sleep(600)\n"
+)
+
+
+def start_group(tmp_path: Path, then: str) -> tuple[subprocess.Popen, int]:
+    leader = subprocess.Popen([sys.executable, "-c", LEADER, MEMBER, str(tmp_path / "member"), then],
+                              stdout=subprocess.PIPE, text=True, start_new_session=True)
+    return leader, int(leader.stdout.readline())
+
+
+def test_stop_group_stops_the_members_a_leader_that_exited_left_behind(tmp_path):
+    leader, member = start_group(tmp_path, "exit")
+    try:
+        assert leader.wait(timeout=120) == 0  # exited by itself, its member still running
+        assert not gone(member)
+        stop_group(leader, ((signal.SIGINT, 0.5), (signal.SIGTERM, 60.0)))  # the member ignores SIGINT
+        wait_gone(member)
+        assert (tmp_path / "member").read_text() == "SIGTERM"  # stopped, not killed, as it asks
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(member, signal.SIGKILL)
+
+
+def test_stop_group_goes_on_with_the_members_a_leader_stopped_by_its_first_signal_left(tmp_path):
+    leader, member = start_group(tmp_path, "wait")
+    try:
+        # The leader ends on SIGINT within its grace; the member, ignoring it, waits out the rest.
+        assert stop_group(leader, ((signal.SIGINT, 5.0), (signal.SIGTERM, 60.0))) != 0
+        wait_gone(member)
+        assert (tmp_path / "member").read_text() == "SIGTERM"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(member, signal.SIGKILL)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
