@@ -55,9 +55,10 @@ from shared.envs import ACTION_BOUND
 # 2: policy weights' fc layers index conv features in (h, w, c) order; 3: unscored rows on their own
 # key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read.
 # A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures,
-# InsertAck.refused, ActorStatus.refused, BridgeEStop.request, TransitionBatch.launch, InsertAck.launch)
-# keeps the version: a receiver fills in the default where a sender has not the field, and ignores
-# fields it does not know, so either side of a rolling upgrade reads the other's messages.
+# InsertAck.refused, ActorStatus.refused, BridgeEStop.request, TransitionBatch.launch, InsertAck.launch,
+# BridgeEStopAck.stand_in) keeps the version: a receiver fills in the default where a sender has not
+# the field, and ignores fields it does not know, so either side of a rolling upgrade reads the
+# other's messages.
 SCHEMA_VERSION = 3
 PREFIX = "nasa"
 _EPOCH_2025 = 1_735_689_600.0
@@ -783,6 +784,9 @@ class BridgeEStopAck(Message):
     unreached: list
     bridge: str
     """Which process answered: its host and pid."""
+    stand_in: bool = False
+    """The bridge serves the stand-in, which has no servos: its e-stop is a latched stop, not a
+    torque-off (an older bridge never says so)."""
 
 
 MESSAGES.update({

@@ -9,6 +9,7 @@ import sys
 import time
 from collections.abc import Callable
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -343,6 +344,28 @@ def test_an_estop_is_confirmed_by_its_bridge_once_torque_is_off(emulated_bridge,
     rearmed = estop_cli("e1", endpoint, command="rearm")
     assert rearmed.returncode == 0, rearmed.stderr
     assert rearmed.stdout.startswith("re-arm confirmed by bridge e1") and "state recovering" in rearmed.stdout
+
+
+def test_an_estop_of_the_stand_in_is_confirmed_as_stopped_not_as_torque_off(sessions, endpoint: str) -> None:
+    """The stand-in has no servos: its confirmation must not tell the operator of a torque-off."""
+    bridge_session, _ = sessions
+    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
+    server = BridgeServer(bridge_session, "s1", sim, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            result = estop_cli("s1", endpoint)
+            assert result.returncode == 0, result.stderr
+            by = f"{socket.gethostname()} pid {os.getpid()}"
+            confirmed = f"e-stop confirmed by bridge s1 ({by}): state estop, stopped (the stand-in"
+            assert result.stdout.startswith(confirmed), result.stdout
+            assert "torque" not in result.stdout and server.estopped
+    finally:
+        sim.close()
+    # A bridge older than the field does not say: it is taken for one with servos, as before.
+    ack = wire.BridgeEStopAck("r", True, "estop", [], "h pid 1", stand_in=True)
+    older = msgpack.unpackb(wire.encode(ack))
+    del older["stand_in"]
+    assert wire.decode(msgpack.packb(older), wire.BridgeEStopAck).stand_in is False
 
 
 def test_an_estop_a_servo_did_not_hear_is_not_confirmed(emulated_bridge, endpoint: str) -> None:

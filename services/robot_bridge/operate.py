@@ -69,8 +69,9 @@ def report(command: str, bridge_id: str, ack: wire.BridgeEStopAck | None, wait_s
         return (f"NOT confirmed: bridge {bridge_id} ({ack.bridge}) is e-stopped (state {ack.state}), but "
                 f"its torque-off did not reach servos {ack.unreached}: cut the servos' power", False)
     if command == "estop":
+        stopped = "stopped (the stand-in: no servos)" if ack.stand_in else "torque off"
         return (f"e-stop confirmed by bridge {bridge_id} ({ack.bridge}): state {ack.state}, "
-                "torque off; it refuses steps and resets until re-armed", True)
+                f"{stopped}; it refuses steps and resets until re-armed", True)
     return (f"re-arm confirmed by bridge {bridge_id} ({ack.bridge}): state {ack.state}; it homes, "
             "then takes resets", True)
 

@@ -180,7 +180,7 @@ class BridgeServer:
             threading.Thread(target=self._recover, name="rearm", daemon=True).start()
         # Told only now, once the stop holds: an operator who hears nothing knows it may not.
         ack = wire.BridgeEStopAck(msg.request, msg.engage, self.safety_status()["state"], unreached,
-                                  f"{socket.gethostname()} pid {os.getpid()}")
+                                  f"{socket.gethostname()} pid {os.getpid()}", stand_in=self._safety is None)
         try:
             self.session.put(self.keys.estop_ack, wire.encode(ack))
         except Exception as err:  # noqa: BLE001 (the stop holds whether or not the answer goes out)
