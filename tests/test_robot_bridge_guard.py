@@ -127,7 +127,7 @@ def test_a_second_bridge_on_the_same_port_is_refused_and_the_first_runs_on(
 ) -> None:
     """A bridge launched twice by mistake, under another id (its Zenoh claim would not stop it):
     it exits 1 with one line naming the port and the bridge holding it, and the first steps on."""
-    emu, proc, _ = bridge
+    emu, proc, log = bridge
     argv = ["--bridge-id", "g2", "--task", "gripper-valve", "--config", str(tmp_path / "gripper.toml"),
             "--connect", endpoint]
     second = subprocess.run([sys.executable, "-c", BRIDGE, video(tmp_path / "cam2.avi"), *argv],
@@ -142,6 +142,12 @@ def test_a_second_bridge_on_the_same_port_is_refused_and_the_first_runs_on(
     env.reset()
     env.step(np.zeros(4, np.float32))
     assert env.fault() == "ok" and torque(emu, IDS) == [1, 1, 1, 1]
+    # A clean stop, its guard stood down: killed, the bridge would leave its guard retrying the
+    # port by name, which the next test's pty may take.
+    pid = guard_pid(log)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    wait_until(lambda: gone(pid), deadline_s=60.0)
 
 
 def test_a_guard_ignores_sigterm_and_stood_down_exits_without_writing(tmp_path: Path) -> None:
