@@ -150,6 +150,25 @@ def test_a_second_bridge_on_the_same_port_is_refused_and_the_first_runs_on(
     wait_until(lambda: gone(pid), deadline_s=60.0)
 
 
+def test_a_calibration_on_a_port_a_bridge_holds_is_refused_in_one_line(tmp_path: Path) -> None:
+    with BusEmulator(ALL) as emu:
+        config = tmp_path / "gripper.toml"
+        config.write_text(CONFIG.format(port=emu.port, latency_ms=LATENCY_MS))
+        bus = ServoBus(emu.port, 1000000, ALL, latency_ms=LATENCY_MS)  # the bridge's
+        try:
+            seen = emu.packets_seen
+            done = subprocess.run([sys.executable, "-m", "services.robot_bridge.operate", "calibrate",
+                                   "--config", str(config), "--samples", "1"],
+                                  capture_output=True, text=True, timeout=120)
+            assert done.returncode == 1, done.stderr
+            lines = done.stderr.strip().splitlines()
+            assert len(lines) == 1, lines
+            assert lines[0].startswith(f"calibrate: error: cannot open {emu.port}: in use"), lines
+            assert f"pid {os.getpid()}: " in lines[0] and emu.packets_seen == seen
+        finally:
+            bus.close()
+
+
 def test_a_guard_ignores_sigterm_and_stood_down_exits_without_writing(tmp_path: Path) -> None:
     with BusEmulator(IDS) as emu:
         bus = ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS)

@@ -138,7 +138,19 @@ def main(argv: list[str] | None = None) -> None:
         if not confirmed:
             sys.exit(1)
         return
-    raw = raw_reading(args.config, args.samples, args.source)
+    from services.robot_bridge.camera import CameraUnavailable
+    from services.robot_bridge.config import GripperConfigError
+    from services.robot_bridge.dynamixel import BusError
+    from shared.service import EXIT_BAD_INPUT
+
+    try:
+        raw = raw_reading(args.config, args.samples, args.source)
+    except GripperConfigError as err:
+        print(f"calibrate: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_BAD_INPUT)
+    except (BusError, CameraUnavailable) as err:  # a port another process holds, a missing adapter or camera
+        print(f"calibrate: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(1)
     if raw is None:
         print("the valve angle was never read: is the marker in view (or the valve servo answering)?")
         sys.exit(1)
