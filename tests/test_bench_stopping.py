@@ -172,22 +172,24 @@ def test_bench_learning_stops_its_run_on_a_signal(tmp_path, signum):
     stop_and_check(bench, signum, mark, tmp)
 
 
-def test_bench_up_profile_stops_nasa_up_on_sigterm(tmp_path):
+def up_profile_running(tmp_path: Path) -> tuple[subprocess.Popen, str, Path]:
+    """bench.up_profile on a tiny run, once its nasa up has started the replay."""
     mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
     tmp.mkdir()
     bench = start(["bench.up_profile", "--task", "cartpole-balance", "--seconds", "600", "--",
                    "--actors", "1", "--learner-threads", "1", "--", *TINY], mark, tmp)
     wait_for("replay service", running(mark, "services.replay"), bench)
+    return bench, mark, tmp
+
+
+def test_bench_up_profile_stops_nasa_up_on_sigterm(tmp_path):
+    bench, mark, tmp = up_profile_running(tmp_path)
     stop_and_check(bench, signal.SIGTERM, mark, tmp)
 
 
 def test_bench_up_profile_killed_by_sigkill_leaves_no_process_of_its_run(tmp_path):
     # SIGKILL runs no `finally` block: nasa up follows the benchmark's death itself (NASA_PARENT_PID).
-    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
-    tmp.mkdir()
-    bench = start(["bench.up_profile", "--task", "cartpole-balance", "--seconds", "600", "--",
-                   "--actors", "1", "--learner-threads", "1", "--", *TINY], mark, tmp)
-    wait_for("replay service", running(mark, "services.replay"), bench)
+    bench, mark, _ = up_profile_running(tmp_path)
     bench.kill()
     bench.communicate()
     deadline = time.monotonic() + 90  # nasa up stopping its services in order

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from fastapi.testclient import TestClient
 
@@ -28,11 +29,16 @@ def test_each_read_parses_only_the_rows_appended_since_the_last(tmp_path):
     assert series() and series.lines_read == 503  # nothing new: nothing parsed
 
 
-def test_a_file_cut_back_or_replaced_is_read_again(tmp_path):
+def five_rows(tmp_path: Path) -> tuple[Recorder, EvalSeries]:
+    """An eval.csv of steps 0-4 (returns 0-4) and a reader of it."""
     recorder = Recorder(tmp_path, eval_episodes=1)
     for i in range(5):
         recorder.eval_row(i, [float(i)], updates=0)
-    series = EvalSeries(tmp_path / "eval.csv")
+    return recorder, EvalSeries(tmp_path / "eval.csv")
+
+
+def test_a_file_cut_back_or_replaced_is_read_again(tmp_path):
+    recorder, series = five_rows(tmp_path)
     assert [e["step"] for e in series()] == [0, 1, 2, 3, 4]
     recorder.eval_log.truncate(2)  # a resume drops the rows after its checkpoint
     assert [e["step"] for e in series()] == [0, 1]
@@ -82,10 +88,7 @@ def test_a_file_cut_and_grown_past_its_old_size_between_reads_is_read_again(tmp_
 def test_a_file_cut_and_grown_back_to_its_old_size_between_reads_is_read_again(tmp_path):
     # A resume drops rows after its checkpoint and its evaluations write them again: rows of the
     # same length leave the file at the size last read, with other returns in it.
-    recorder = Recorder(tmp_path, eval_episodes=1)
-    for i in range(5):
-        recorder.eval_row(i, [float(i)], updates=0)
-    series = EvalSeries(tmp_path / "eval.csv")
+    recorder, series = five_rows(tmp_path)
     assert [e["mean"] for e in series()] == [0.0, 1.0, 2.0, 3.0, 4.0]
     size = os.path.getsize(tmp_path / "eval.csv")
     recorder.eval_log.truncate(3)

@@ -1,5 +1,6 @@
 """The bridge over real Zenoh on loopback: the stand-in behind it, BridgeEnv in front."""
 
+import contextlib
 import math
 import os
 import signal
@@ -7,7 +8,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import msgpack
 import numpy as np
@@ -31,6 +32,18 @@ def wait_until(condition: Callable[[], bool], deadline_s: float = 20.0) -> None:
     while not condition():
         assert time.monotonic() < end, "condition never held"
         time.sleep(0.02)
+
+
+@contextlib.contextmanager
+def stand_in_bridge(session, bridge_id: str) -> Iterator[BridgeServer]:  # noqa: ANN001
+    """A bridge serving the gripper stand-in on `session`, closed after the block."""
+    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
+    server = BridgeServer(session, bridge_id, sim, "gripper-valve", log=lambda _: None)
+    try:
+        with server.serve():
+            yield server
+    finally:
+        sim.close()
 
 
 @pytest.fixture
@@ -118,32 +131,27 @@ def test_a_reply_it_cannot_read_pauses_the_client_instead_of_crashing_it(session
 
 def test_estop_ends_the_episode_and_refuses_resets_until_rearmed(sessions, endpoint: str) -> None:
     bridge_session, actor_session = sessions
-    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
-    server = BridgeServer(bridge_session, "g2", sim, "gripper-valve", log=lambda _: None)
-    try:
-        with server.serve():
-            env = BridgeEnv(actor_session, "g2", timeout_s=30.0)
+    with stand_in_bridge(bridge_session, "g2") as server:
+        env = BridgeEnv(actor_session, "g2", timeout_s=30.0)
+        env.reset()
+        env.step(np.zeros(4))
+        keys = wire.BridgeKeys("g2")
+        actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "test button")))
+        wait_until(lambda: server.estopped)
+        actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "pressed twice")))  # idempotent
+        with pytest.raises(BridgeUnavailable, match="refused a step: e-stop"):
+            env.step(np.zeros(4))  # not executed: no transition for the replay
+        assert env.info["safety"]["state"] == "estop" and "e-stop" in env.info["reason"]
+        with pytest.raises(BridgeUnavailable, match="e-stop"):
             env.reset()
-            env.step(np.zeros(4))
-            keys = wire.BridgeKeys("g2")
-            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "test button")))
-            wait_until(lambda: server.estopped)
-            actor_session.put(keys.estop, wire.encode(wire.BridgeEStop(True, "pressed twice")))  # idempotent
-            with pytest.raises(BridgeUnavailable, match="refused a step: e-stop"):
-                env.step(np.zeros(4))  # not executed: no transition for the replay
-            assert env.info["safety"]["state"] == "estop" and "e-stop" in env.info["reason"]
-            with pytest.raises(BridgeUnavailable, match="e-stop"):
-                env.reset()
-            operate.send_estop("g2", False, "operator re-arm", endpoint)  # the operator's command
-            wait_until(lambda: not server.estopped)
-            env.reset()
-            _, _, _, last = env.step(np.zeros(4))
-            assert not last
-            # A malformed request gets an error reply, not silence, and is counted.
-            replies = list(actor_session.get(keys.step, payload=b"\x01garbage", timeout=10.0))
-            assert replies and replies[0].err is not None and server.invalid == 1
-    finally:
-        sim.close()
+        operate.send_estop("g2", False, "operator re-arm", endpoint)  # the operator's command
+        wait_until(lambda: not server.estopped)
+        env.reset()
+        _, _, _, last = env.step(np.zeros(4))
+        assert not last
+        # A malformed request gets an error reply, not silence, and is counted.
+        replies = list(actor_session.get(keys.step, payload=b"\x01garbage", timeout=10.0))
+        assert replies and replies[0].err is not None and server.invalid == 1
 
 
 def test_the_bridge_process_serves_and_estops_on_sigterm(sessions, endpoint: str) -> None:
@@ -349,18 +357,13 @@ def test_an_estop_is_confirmed_by_its_bridge_once_torque_is_off(emulated_bridge,
 def test_an_estop_of_the_stand_in_is_confirmed_as_stopped_not_as_torque_off(sessions, endpoint: str) -> None:
     """The stand-in has no servos: its confirmation must not tell the operator of a torque-off."""
     bridge_session, _ = sessions
-    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
-    server = BridgeServer(bridge_session, "s1", sim, "gripper-valve", log=lambda _: None)
-    try:
-        with server.serve():
-            result = estop_cli("s1", endpoint)
-            assert result.returncode == 0, result.stderr
-            by = f"{socket.gethostname()} pid {os.getpid()}"
-            confirmed = f"e-stop confirmed by bridge s1 ({by}): state estop, stopped (the stand-in"
-            assert result.stdout.startswith(confirmed), result.stdout
-            assert "torque" not in result.stdout and server.estopped
-    finally:
-        sim.close()
+    with stand_in_bridge(bridge_session, "s1") as server:
+        result = estop_cli("s1", endpoint)
+        assert result.returncode == 0, result.stderr
+        by = f"{socket.gethostname()} pid {os.getpid()}"
+        confirmed = f"e-stop confirmed by bridge s1 ({by}): state estop, stopped (the stand-in"
+        assert result.stdout.startswith(confirmed), result.stdout
+        assert "torque" not in result.stdout and server.estopped
     # A bridge older than the field does not say: it is taken for one with servos, as before.
     ack = wire.BridgeEStopAck("r", True, "estop", [], "h pid 1", stand_in=True)
     older = msgpack.unpackb(wire.encode(ack))
