@@ -66,7 +66,7 @@ def requirement_name(requirement: str) -> str:
 # files, TLS certificates, and the dev tools for linting, the browser and deployment files. An
 # offline GPU machine can then be set up from a small carried folder (docs/benchmarks-reference.md).
 NOT_USED_BY_THE_CHECK = frozenset({
-    "opencv-contrib-python-headless", "dynamixel-sdk", "imageio-ffmpeg", "cryptography",
+    "opencv-contrib-python-headless", "dynamixel-sdk", "pyserial", "imageio-ffmpeg", "cryptography",
     "ruff", "playwright", "kubernetes-validate", "compose-spec",
     "py-spy",  # used where present (the learner's lock profile), never needed
 })  # fmt: skip
