@@ -795,6 +795,20 @@ MESSAGES.update({
                 BridgeEStopAck)
 })
 
+MAX_SERVO_ID = 252
+"""Dynamixel Protocol 2.0's highest servo id (253 and up are reserved or broadcast)."""
+
+
+def check_bridge_estop_ack(m: BridgeEStopAck, b: Bounds) -> None:
+    # The operator is told these: a state is a short name, and `unreached` names servos.
+    _need(0 < len(m.state) <= MAX_FAULT_TEXT, "state: not a state name")
+    _need(len(m.unreached) <= MAX_SERVO_ID + 1 and all(
+        isinstance(i, int) and not isinstance(i, bool) and 0 <= i <= MAX_SERVO_ID for i in m.unreached),
+        f"unreached: not servo ids (0..{MAX_SERVO_ID})")
+
+
+CHECKS[BridgeEStopAck] = check_bridge_estop_ack
+
 
 # -- who may do what on each key (the access-control list is made from this) -----------------------
 

@@ -47,3 +47,15 @@ def test_bridge_keys_name_the_bridge() -> None:
     )
     with pytest.raises(ValueError):
         wire.BridgeKeys("a/b")
+
+
+def test_an_estop_ack_names_a_state_and_servo_ids_or_is_refused() -> None:
+    """The operator is told what an e-stop's answer holds: one whose servos are no servo ids or whose
+    state is no state name is refused as malformed, not printed."""
+    good = msgpack.unpackb(wire.encode(wire.BridgeEStopAck("r", True, "estop", [3, 252], "h pid 1")))
+    assert wire.decode(msgpack.packb(good), wire.BridgeEStopAck).unreached == [3, 252]
+    for field, bad in (("unreached", [[1.0]]), ("unreached", ["3"]), ("unreached", [-1]),
+                       ("unreached", [253]), ("unreached", [True]), ("unreached", list(range(254)) + [0]),
+                       ("state", ""), ("state", "x" * 65)):
+        with pytest.raises(wire.WireError, match=field):
+            wire.decode(msgpack.packb({**good, field: bad}), wire.BridgeEStopAck)

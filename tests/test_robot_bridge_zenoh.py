@@ -7,12 +7,14 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 
 from nasa.up import free_port
 from services.robot_bridge import operate
@@ -414,6 +416,69 @@ def test_an_estop_ack_for_another_operator_is_not_taken(sessions, endpoint: str)
 
     with bridge_session.declare_subscriber(keys.estop, answer_others):
         assert operate.send_estop("g7", True, "test", endpoint, wait_s=1.0) is None
+
+
+def test_an_answer_that_does_not_say_the_command_held_confirms_nothing() -> None:
+    """A confirmation needs the bridge's state to say the command held: an e-stop answered with
+    another state, or a re-arm answered `estop`, is not confirmed (exit 1)."""
+    for command, state in (("estop", "ready"), ("estop", "recovering"), ("rearm", "estop")):
+        ack = wire.BridgeEStopAck("r", command == "estop", state, [], "h pid 1")
+        line, confirmed = operate.report(command, "g1", ack, 5.0)
+        assert not confirmed, line
+        answered = f"NOT confirmed: bridge g1 (h pid 1) answered the {command} with state {state}"
+        assert line.startswith(answered), line
+    for command, state in (("estop", "estop"), ("rearm", "recovering"), ("rearm", "ready")):
+        ack = wire.BridgeEStopAck("r", command == "estop", state, [], "h pid 1")
+        assert operate.report(command, "g1", ack, 5.0)[1]
+
+
+def test_bad_estop_messages_and_answers_are_refused_and_change_nothing(sessions, endpoint: str) -> None:
+    """The wire fuzzer's variants (tests/test_fuzz.py) of the e-stop's two messages: a bridge counts
+    each malformed e-stop or re-arm, is neither stopped nor re-armed by one, and answers the operator
+    after them; an operator takes no malformed answer as its confirmation, nor one to another
+    command or one that says the bridge is not stopped, though each carries its own request."""
+    from tests.test_fuzz import refused, variants
+
+    bridge_session, rogue = sessions
+    block = zenoh.CongestionControl.BLOCK
+    with stand_in_bridge(bridge_session, "g8") as server:
+        keys = wire.BridgeKeys("g8")
+        for engage in (True, False):  # garbled e-stops while it runs, garbled re-arms while it is stopped
+            bad = [p for p in variants(wire.BridgeEStop(engage, "fuzz", "tag"))
+                   if refused(p, wire.BridgeEStop, wire.Bounds())]
+            expected = server.invalid + len(bad)
+            for p in bad:
+                rogue.put(keys.estop, p, congestion_control=block)
+            wait_until(lambda n=expected: server.invalid == n)
+            assert len(bad) >= 30 and server.estopped is not engage
+            ack = operate.send_estop("g8", engage, "test", endpoint, wait_s=10.0)  # the real command
+            assert operate.report("estop" if engage else "rearm", "g8", ack, 10.0)[1]
+            assert server.estopped is engage
+    keys = wire.BridgeKeys("g9")  # no bridge: only the rogue answers
+    forged: list[bytes] = []
+    senders: list[threading.Thread] = []
+
+    def forge(request: str) -> None:
+        ack = wire.BridgeEStopAck(request, True, "estop", [], "rogue pid 1")
+        body = msgpack.unpackb(wire.encode(ack))
+        forged.extend(msgpack.packb({**body, **spoilt}) for spoilt in (
+            {"state": "ready"}, {"engage": False, "state": "recovering"}, {"state": "x"},
+            {"unreached": [[1.0]]}, {"unreached": [-1]}))
+        forged.extend(p for p in variants(ack) if refused(p, wire.BridgeEStopAck, wire.Bounds()))
+        for p in forged:
+            rogue.put(keys.estop_ack, p, congestion_control=block)
+
+    def answer(sample) -> None:  # noqa: ANN001 -- sent from a thread: a callback must not block
+        request = wire.decode(sample.payload.to_bytes(), wire.BridgeEStop).request
+        senders.append(threading.Thread(target=forge, args=(request,)))
+        senders[-1].start()
+
+    with rogue.declare_subscriber(keys.estop, answer):
+        ack = operate.send_estop("g9", True, "test", endpoint, wait_s=2.0)
+    for sender in senders:
+        sender.join(timeout=60)
+    assert len(senders) == 1 and len(forged) >= 30
+    assert ack is None or not operate.report("estop", "g9", ack, 2.0)[1], ack
 
 
 def test_a_new_bridge_turns_off_the_torque_a_killed_one_left_on(sessions) -> None:

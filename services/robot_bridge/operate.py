@@ -42,7 +42,7 @@ def send_estop(bridge_id: str, engage: bool, reason: str, connect: str,
             ack = wire.decode(sample.payload.to_bytes(), wire.BridgeEStopAck)
         except wire.WireError:
             return  # not an answer this command can read: as if unanswered
-        if ack.request == request:
+        if ack.request == request and ack.engage == engage:  # the answer to this very command
             acks.put(ack)
 
     # An operator waiting on an e-stop must hear within seconds that it did not go out.
@@ -65,6 +65,12 @@ def report(command: str, bridge_id: str, ack: wire.BridgeEStopAck | None, wait_s
         return (f"NOT confirmed: {command} went out, but no bridge {bridge_id} answered within {wait_s:g} s "
                 f"(a wrong --bridge-id, a bridge that is down, or one older than this command): check "
                 f"the id; {what}", False)
+    # Only an answer that says the bridge is stopped confirms a stop; a re-arm, one that it is not.
+    if (ack.state == "estop") != (command == "estop"):
+        what = ("it is not e-stopped: stop the bridge itself (Ctrl-C) or cut the servos' power"
+                if command == "estop" else "it is still e-stopped: send the re-arm again")
+        return (f"NOT confirmed: bridge {bridge_id} ({ack.bridge}) answered the {command} with state "
+                f"{ack.state}: {what}", False)
     if ack.unreached:
         return (f"NOT confirmed: bridge {bridge_id} ({ack.bridge}) is e-stopped (state {ack.state}), but "
                 f"its torque-off did not reach servos {ack.unreached}: cut the servos' power", False)
