@@ -481,6 +481,13 @@ def test_bad_estop_messages_and_answers_are_refused_and_change_nothing(sessions,
     assert ack is None or not operate.report("estop", "g9", ack, 2.0)[1], ack
 
 
+def test_a_bridge_id_that_is_no_id_is_refused_before_anything_is_sent(capsys) -> None:
+    with pytest.raises(SystemExit) as exited:
+        operate.main(["estop", "--bridge-id", "a/b", "--connect", "tcp/127.0.0.1:9"])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and "--bridge-id 'a/b': an id may hold only letters" in err, err
+
+
 def test_a_new_bridge_turns_off_the_torque_a_killed_one_left_on(sessions) -> None:
     """What protects the servos after a containerised bridge dies (its guard dies with it) and
     Docker starts it again: the new bridge's watchdog, with no client and no reset."""

@@ -132,6 +132,11 @@ def main(argv: list[str] | None = None) -> None:
     if args.command in ("estop", "rearm"):
         if not 0.0 <= args.wait_s <= 3600.0:  # NaN too
             parser.error(f"--wait-s {args.wait_s}: seconds, from 0 to 3600")
+        try:
+            wire.check_run_id(args.bridge_id)  # a bridge's id follows a run id's rule
+        except ValueError:
+            parser.error(f"--bridge-id {args.bridge_id!r}: an id may hold only letters, digits, "
+                         "'_', '.', '-'")
         from shared.zenoh_session import RouterUnreachable
 
         try:
