@@ -56,17 +56,19 @@ def _kill_group(proc: subprocess.Popen) -> None:
 
 
 def _group_gone(proc: subprocess.Popen) -> bool:
-    """Whether the leader has exited and no process is left in its group (the group's id stays
-    taken while one is, so it cannot name another group meanwhile)."""
+    """Whether the leader has exited and no live process is left in its group (the group's id stays
+    taken while one is, so it cannot name another group meanwhile). A member that exited but was
+    not reaped stays in the group as a zombie, and one whose parent never reaps it (an orphan where
+    a container's first process reaps nothing) would stay for ever: zombies do not count."""
     if proc.poll() is None:
         return False
     try:
         os.killpg(proc.pid, 0)
     except ProcessLookupError:
         return True
-    except PermissionError:  # a member this process may not signal: still there
-        return False
-    return False
+    except PermissionError:  # a member this process may not signal: the scan below sees it
+        pass
+    return not _live_members(proc.pid)
 
 
 def _wait_group(proc: subprocess.Popen, grace: float) -> None:
@@ -105,20 +107,42 @@ def followed() -> dict[str, str]:
     return {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
 
 
+def _stat(proc: Path) -> list[bytes]:
+    """A /proc/<pid>/stat's fields after the process's name (state, ppid, pgrp, ...); bytes: a
+    process's name need not be UTF-8, and it may hold spaces and parentheses."""
+    return (proc / "stat").read_bytes().rsplit(b")", 1)[1].split()
+
+
+def _processes() -> Iterator[Path]:
+    return (proc for proc in Path("/proc").iterdir() if proc.name.isdigit())
+
+
+def _live_members(pgid: int) -> list[int]:
+    """The processes of group `pgid` that are not zombies."""
+    members = []
+    for proc in _processes():
+        try:
+            fields = _stat(proc)
+            state, pgrp = fields[0], int(fields[2])
+        except (OSError, IndexError, ValueError):  # gone meanwhile
+            continue
+        if pgrp == pgid and state != b"Z":
+            members.append(int(proc.name))
+    return members
+
+
 def processes_with(variable: str, value: str) -> list[tuple[int, list[str]]]:
     """The live processes (pid, argv) whose environment holds `variable`=`value`, which every
     process they start inherits, whatever its session; zombies and processes gone meanwhile are
     left out."""
     entry = f"{variable}={value}".encode()
     found = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
+    for proc in _processes():
         try:
             if entry not in (proc / "environ").read_bytes().split(b"\0"):
                 continue
-            # Bytes: a process's name, argv or environment need not be UTF-8.
-            if (proc / "stat").read_bytes().rsplit(b")", 1)[1].split()[0] == b"Z":
+            # Bytes: a process's argv or environment need not be UTF-8.
+            if _stat(proc)[0] == b"Z":
                 continue
             argv = (proc / "cmdline").read_bytes().decode(errors="replace").split("\0")
             found.append((int(proc.name), argv))

@@ -160,6 +160,25 @@ def test_stop_group_goes_on_with_the_members_a_leader_stopped_by_its_first_signa
             os.kill(member, signal.SIGKILL)
 
 
+@pytest.mark.timeout(60)  # only stops a hung test: the grace below is far longer
+def test_stop_group_takes_a_group_left_with_only_zombies_for_stopped():
+    """A member that exited but is not reaped stays in its group as a zombie; one whose parent
+    never reaps it (an orphan where a container's first process reaps nothing) stays for ever, and
+    stop_group waited out its whole grace on it. Here the member is this test's own child, which
+    it does not reap until the end."""
+    sleep = [sys.executable, "-c", "import time; time.sleep(600)"]
+    leader = subprocess.Popen(sleep, process_group=0)
+    member = subprocess.Popen(sleep, process_group=leader.pid)
+    try:
+        stop_group(leader, ((signal.SIGTERM, 3600.0),))
+        assert gone(member.pid) and member.returncode is None  # a zombie, still in the group
+    finally:
+        member.kill()
+        member.wait()
+        leader.kill()
+        leader.wait()
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_bench_learning_stops_its_run_on_a_signal(tmp_path, signum):
     # nasa train runs in a session of its own: no signal to the benchmark reaches it but through it.
