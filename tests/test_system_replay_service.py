@@ -251,3 +251,24 @@ def test_a_batch_of_another_frame_shape_is_acknowledged_as_refused_for_good_and_
         watchdog.cancel()
         assert writer.refused_for_good is not None and "shape" in writer.refused_for_good
         assert svc.store.num_inserted == 0 and svc.invalid == writer.refused
+
+
+def test_a_batch_refused_for_its_launch_number_is_answered_with_an_ack_its_writers_can_read(tmp_path):
+    """A batch whose launch number is outside the wire's range does not decode; the replay echoed
+    that number in its refusal, an ack no writer can decode, so its sender never heard why. It
+    echoes 0 then, which every launch of the incarnation takes."""
+    import msgpack
+
+    with Serving(tmp_path, warmup=100) as srv:
+        svc = srv.svc
+        srv.start()
+        acks: list[bytes] = []
+        body = msgpack.unpackb(wire.encode(batch(actor=6, inc=2)[0]), raw=False)
+        # Declared on the session that sends the batches: the router has it before their refusals.
+        with srv.session.declare_subscriber(svc.keys.ack(6), lambda s: acks.append(s.payload.to_bytes())):
+            for launch in (-1, 2**63):
+                srv.session.put(svc.keys.insert(6), msgpack.packb({**body, "launch": launch}))
+            wait_for(lambda: len(acks) == 2, "the refusals never came")
+        for ack in [wire.decode(a, wire.InsertAck) for a in acks]:
+            assert (ack.actor_id, ack.incarnation, ack.launch) == (6, 2, 0) and "launch" in ack.refused
+        assert svc.store.num_inserted == 0
