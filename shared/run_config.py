@@ -48,10 +48,22 @@ class ConfigMismatch(ConfigError):
         self.fields = fields
         mine, run = flatten(ours), flatten(theirs)
         detail = ", ".join(f"{f} ({mine[f]!r} here, {run[f]!r} in the run)" for f in fields)
+        flags = " ".join(_flag_of(f, run[f]) for f in fields)
         super().__init__(
             f"settings differ from the run's ({where}): {detail}; "
-            "start it with the run's settings, or start a new run in another folder"
+            f"start it with the run's settings ({flags}), or start a new run in another folder"
         )
+
+
+def _flag_of(field: str, value: object) -> str:
+    """The command-line flag that sets dotted config field `field` to `value`: a run's settings
+    come from flags named after the field alone (`agent.latent_dim`: `--latent-dim`), a bool's
+    as --name / --no-name. A default that changed since a run began (SAC-AE's warm-up burst) is
+    refused at its relaunch, and this names what restores the run's."""
+    name = field.rsplit(".", 1)[-1].replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {value}"
 
 
 @dataclass(frozen=True)

@@ -212,8 +212,30 @@ def test_nasa_up_refuses_a_resumed_folder_started_with_other_flags(tmp_path, cap
     assert code == 2
     assert "nasa up: error: settings differ from the run's" in err
     assert "batch_size (16 here, 64 in the run), env.image_size (48 here, 32 in the run)" in err
+    assert "start it with the run's settings (--batch-size 64 --image-size 32)" in err
     assert started == [] and sorted(p.name for p in data.iterdir() if p.name != ".lock") == ["config.json"]
     assert (data / "config.json").read_bytes() == before
+
+
+def test_an_older_sac_ae_run_relaunched_is_refused_naming_the_flag_that_restores_its_settings(
+        tmp_path, capsys, monkeypatch):
+    """A SAC-AE run begun before --warmup-burst existed (its config.json lacks the field: no burst)
+    is refused at its relaunch with its own command, as --algo sac_ae now bursts by default; the
+    refusal names the flag that gives the run's setting back, and with it the run goes on."""
+    data = tmp_path / "run"
+    argv = ["--algo", "sac_ae", "--preset", "cpu-small", "--image-size", "32", "--data", str(data)]
+    cmd, _ = parse_up(argv)
+    prepare(cmd, data)
+    body = json.loads((data / "config.json").read_text())
+    del body["warmup_burst"]  # as a version before the burst wrote it
+    (data / "config.json").write_text(json.dumps(body))
+    started = []
+    monkeypatch.setattr("nasa.up.Supervisor.add", lambda *a, **k: started.append(a))
+    code, err = up_in_process(argv, capsys)
+    assert code == 2 and "warmup_burst (True here, False in the run)" in err and started == []
+    assert "start it with the run's settings (--no-warmup-burst)" in err, err
+    cmd, _ = parse_up([*argv, "--no-warmup-burst"])
+    assert prepare(cmd, data).config.warmup_burst is False
 
 
 def test_nasa_up_rejects_an_unknown_task_before_writing_anything(tmp_path, capsys):

@@ -66,6 +66,7 @@ def test_a_mismatch_names_the_fields_and_is_a_bad_input_error():
         run_config.check_same(small(agent__latent_dim=3), small(), "here")
     assert err.value.fields == ["agent.latent_dim"]
     assert "agent.latent_dim (3 here, 50 in the run)" in str(err.value)
+    assert "start it with the run's settings (--latent-dim 50)" in str(err.value)
     assert isinstance(err.value, bad_input_errors())
     run_config.check_same(small(device="cuda", steps=9), small(), "here", may_change=("steps",))
 
