@@ -202,12 +202,21 @@ def die_with_parent() -> None:
     parent = os.environ.get("NASA_PARENT_PID")
     if not parent:
         return
+    if not parent.isdigit():
+        _stop_at_start(f"NASA_PARENT_PID={parent!r} names no process")
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         return
     if os.getppid() != int(parent):  # the launcher died before prctl took effect
-        sys.exit(1)
+        _stop_at_start(f"its launcher (pid {parent}, NASA_PARENT_PID) is not its parent process: it has "
+                       "exited, or another program started this one")
+
+
+def _stop_at_start(why: str) -> None:
+    """Exit 1 with one line: a launcher reading the output learns why, a user who set the variable too."""
+    print(f"not started: {why}", file=sys.stderr, flush=True)
+    sys.exit(1)
 
 
 def _device_type(name: str) -> str:

@@ -354,6 +354,21 @@ def test_nasa_train_under_a_launcher_that_is_gone_does_not_start(tmp_path):
     done = subprocess.run([sys.executable, "-m", "nasa.cli", "train", "--task", "cartpole-nope", "--out",
                            str(tmp_path / "run")], env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 1 and "unknown task" not in done.stderr  # it stopped before reading its flags
+    assert done.stderr == ("not started: its launcher (pid 1, NASA_PARENT_PID) is not its parent process: "
+                           "it has exited, or another program started this one\n")
+
+
+@pytest.mark.parametrize(("parent", "says"), [
+    ("1", "its launcher (pid 1, NASA_PARENT_PID) is not its parent process"),
+    ("not-a-pid", "NASA_PARENT_PID='not-a-pid' names no process"),
+])
+def test_nasa_up_under_a_launcher_that_is_not_its_parent_says_so_and_does_not_start(tmp_path, parent, says):
+    """It used to exit 1 silently (or with a ValueError's traceback for a value that is no pid)."""
+    env = {**os.environ, "NASA_PARENT_PID": parent}
+    done = subprocess.run([sys.executable, "-m", "nasa.cli", "up", "--task", "cartpole-nope", "--data",
+                           str(tmp_path / "run")], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 1 and done.stderr.startswith(f"not started: {says}"), done.stderr
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize(("argv", "says"), [
