@@ -857,12 +857,13 @@ def routes(run_id: str = ANY, bridge_id: str = ANY) -> tuple[Route, ...]:
         Route(k.alive("learner", "**"), TOKEN, ("learner",), ("learner",)),
         # The learner waits for the last evaluation only while an evaluator is alive.
         Route(k.alive("evaluator", "**"), TOKEN, ("evaluator",), ("learner", "evaluator")),
-        Route(b.spec, QUERY, ("bridge",), ("actor",)),
-        Route(b.reset, QUERY, ("bridge",), ("actor",)),
-        Route(b.step, QUERY, ("bridge",), ("actor",)),
+        # `nasa up --bridge stand-in|emulator` gives the evaluator a bridge of its own to play on.
+        Route(b.spec, QUERY, ("bridge",), ("actor", "evaluator")),
+        Route(b.reset, QUERY, ("bridge",), ("actor", "evaluator")),
+        Route(b.step, QUERY, ("bridge",), ("actor", "evaluator")),
         Route(b.estop, PUT, ("operator",), ("bridge",)),
         # Only the bridge confirms an e-stop, and only the operator who sent it waits to hear it.
         Route(b.estop_ack, PUT, ("bridge",), ("operator",)),
         # A bridge starting looks for one already serving its id.
-        Route(b.alive, TOKEN, ("bridge",), ("actor", "bridge")),
+        Route(b.alive, TOKEN, ("bridge",), ("actor", "evaluator", "bridge")),
     )

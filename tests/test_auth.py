@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from fastapi.testclient import TestClient
@@ -237,6 +238,30 @@ def test_only_the_bridge_confirms_an_estop_and_only_the_operator_hears_it(
                 assert at_actor.empty()
                 for sub in subs:
                     sub.undeclare()
+    finally:
+        sim.close()
+
+
+def test_an_evaluator_plays_on_a_bridge_of_its_own_under_the_acl(router: str, auth_dir: Path) -> None:
+    """`nasa up --bridge stand-in` (logins on by default) starts a bridge for the evaluator: logged in
+    as the evaluator, it sees the bridge's token and asks its spec, resets and steps."""
+    from services.robot_bridge.client import BridgeEnv, BridgePresence
+    from services.robot_bridge.server import BridgeServer
+    from shared.gripper.sim import ValveSim
+
+    sim = ValveSim("gripper-valve", seed=0, image_size=32, render_quality="fast")
+    try:
+        with (login(router, auth_dir, "bridge") as bridge, login(router, auth_dir, "evaluator") as evaluator,
+              BridgeServer(bridge, "g1", sim, "gripper-valve", log=lambda _: None).serve(),
+              BridgePresence(evaluator, "g1") as presence):
+            deadline = time.monotonic() + 10.0
+            while not presence.present:
+                assert time.monotonic() < deadline, "the evaluator never saw its bridge's token"
+                time.sleep(0.05)
+            env = BridgeEnv(evaluator, "g1", timeout_s=10.0)
+            frame, *_ = env.reset()
+            frame, reward, _, _ = env.step(np.zeros(env.action_dim, np.float32))
+            assert frame.shape == (3, 32, 32) and -1.0 <= reward <= 0.0
     finally:
         sim.close()
 
