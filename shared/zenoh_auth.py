@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from shared.files import replace_text
-from shared.wire import ANY, PUT, QUERY, ROLES, TOKEN, Route, routes
+from shared.wire import ANY, PREFIX, PUT, QUERY, ROLES, TOKEN, Route, routes
 
 if TYPE_CHECKING:
     import zenoh
@@ -112,19 +112,43 @@ def write_acl(folder: Path, run_id: str = ANY) -> None:
     replace_text(path, json.dumps(acl(routes(run_id)), indent=1) + "\n", tmp=path.with_suffix(".tmp"))
 
 
-def check_acl(folder: Path, run_id: str) -> None:
+def check_acl(folder: Path, run_id: str | None = None) -> None:
     """AuthError unless the folder's acl.json is the one `init` makes today for `run_id` or every run:
-    an ACL for another run, or from an older wiring, would deny this run's messages."""
+    an ACL for another run, or from an older wiring, would deny this run's messages without a word.
+    `run_id` None (a router of its own, which serves runs it is not told of): for any run it names."""
     path = folder / ACL_FILE
     text = _read(path, folder) if path.exists() else "null"
     try:
         held = json.loads(text)
     except ValueError:  # a damaged one: made anew by the same command
         held = None
-    if held not in (acl(routes(run_id)), acl(routes(ANY))):
+    named = sorted(_runs_named(held))
+    runs = [ANY, run_id] if run_id is not None else [ANY, *named]
+    if not any(held == _acl_of(run) for run in runs):
+        run = run_id or (named[0] if len(named) == 1 else "RUN_ID")
         raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
-                        f"`nasa auth init {folder} --run-id {run_id} --acl-only` makes it anew "
+                        f"`nasa auth init {folder} --run-id {run} --acl-only` makes it anew "
                         "and keeps the passwords")
+
+
+def _acl_of(run_id: str) -> dict | None:
+    """The ACL `init` makes today for `run_id`; None for a name no run can have."""
+    try:
+        return acl(routes(run_id))
+    except ValueError:
+        return None
+
+
+def _runs_named(held: object) -> set[str]:
+    """The runs whose stop key (`nasa/<run_id>/control/stop`) an ACL's rules name, wildcards left out."""
+    rules = held.get("rules") if isinstance(held, dict) else None
+    runs: set[str] = set()
+    for rule in rules if isinstance(rules, list) else []:
+        for expr in (rule.get("key_exprs") if isinstance(rule, dict) else None) or []:
+            parts = str(expr).split("/")
+            if parts[0] == PREFIX and parts[2:] == ["control", "stop"] and parts[1] != ANY:
+                runs.add(parts[1])
+    return runs
 
 
 def _read(path: Path, folder: Path) -> str:

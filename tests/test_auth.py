@@ -361,6 +361,50 @@ def test_a_router_without_its_acl_refuses_to_start(tmp_path: Path) -> None:
     assert out.returncode == 2 and "acl.json" in out.stderr
 
 
+def older_wiring_acl(folder: Path) -> None:
+    """Write the ACL a version made before bridges answered e-stops (no `estop_ack` route)."""
+    older = tuple(r for r in wire.routes(RUN) if not r.key.endswith("/estop_ack"))
+    (folder / zenoh_auth.ACL_FILE).write_text(json.dumps(zenoh_auth.acl(older)))
+
+
+def test_a_router_takes_the_acl_of_one_run_or_of_every_run_but_not_an_older_wiring(tmp_path: Path) -> None:
+    """A router is not told its runs: an ACL made today for any one run, or for every run, is its own."""
+    zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "one", RUN))
+    zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "every", wire.ANY))
+    folder = zenoh_auth.init(tmp_path / "older", RUN)
+    older_wiring_acl(folder)
+    with pytest.raises(zenoh_auth.AuthError, match=f"--run-id {RUN} --acl-only"):
+        zenoh_auth.check_acl(folder)
+
+
+@pytest.mark.system  # router processes
+def test_a_router_refuses_an_acl_from_an_older_wiring_and_starts_once_it_is_remade(tmp_path: Path) -> None:
+    """Zenoh would enforce it as it is, dropping the newer keys' messages (a bridge's answer to an
+    e-stop) without a word: the router exits 2 naming the command that remakes it, passwords kept."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    creds = zenoh_auth.credentials(folder)
+    older_wiring_acl(folder)
+    cmd = [sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
+           "--auth", str(folder)]
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=20)
+    assert out.returncode == 2 and "older wiring" in out.stderr, out.stderr
+    argv = out.stderr.split("`")[1].split()  # the command the refusal names, as a user runs it
+    fixed = subprocess.run([sys.executable, "-m", "nasa.cli", *argv[1:]], cwd=REPO, capture_output=True,
+                           text=True, timeout=60)
+    assert argv[:3] == ["nasa", "auth", "init"] and fixed.returncode == 0, fixed.stderr
+    assert zenoh_auth.credentials(folder) == creds
+    proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, text=True)
+    try:
+        lines: list[str] = []
+        while not lines or "listening on" not in lines[-1]:
+            line = proc.stderr.readline()  # type: ignore[union-attr]
+            assert line, "".join(lines)  # it ended without listening
+            lines.append(line)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
 # -- the learner's HTTP controls ---------------------------------------------------------------------
 
 

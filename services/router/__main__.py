@@ -14,7 +14,7 @@ from pathlib import Path
 import zenoh
 
 from shared.service import EXIT_BAD_INPUT, FlagError, Log, StopFlag, die_with_parent, read_flags
-from shared.zenoh_auth import USERS_FILE, AuthError, env_auth
+from shared.zenoh_auth import USERS_FILE, AuthError, check_acl, env_auth
 from shared.zenoh_session import open_router
 
 
@@ -44,6 +44,10 @@ def main(argv: list[str] | None = None) -> None:
     stop.install_signal_handlers()
     log = Log("router")
     try:
+        if args.auth is not None:
+            # Zenoh enforces whatever acl.json holds: one from an older wiring would drop the newer
+            # keys' messages (an e-stop's answer) without a word, so it is refused here, naming the fix.
+            check_acl(args.auth)
         router = open_router(args.listen, auth=args.auth, join=args.join)
     except AuthError as err:
         print(f"router: error: {err}", file=sys.stderr, flush=True)
