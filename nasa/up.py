@@ -28,7 +28,7 @@ then exits non-zero: 2 if it refused its input), when the router refuses a
 service's login (exit 2), on Ctrl-C, SIGTERM or SIGHUP (its terminal closed;
 exit 130, 143 or 129, the shell's 128 + the signal: a run stopped from outside
 is not a finished one).
-Children are stopped in order (actors, evaluator, learner, replay; a stop signal
+Children are stopped in order (STOP_ORDER: actors, robot bridges, evaluator, learner, replay; a stop signal
 while they are being started starts no more of them), killed if
 they do not exit in time, or at once on a second Ctrl-C or SIGTERM (StopSignals),
 and get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG, set by each
