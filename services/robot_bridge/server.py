@@ -167,8 +167,11 @@ class BridgeServer:
         try:
             msg = wire.decode(sample.payload.to_bytes(), wire.BridgeEStop)
         except wire.WireError as err:
+            # Fail safe: only an operator may send here, and a stop that cannot be read may still be
+            # one; a re-arm that cannot be read is not taken (the operator hears no answer and asks
+            # again).
             self.invalid += 1
-            self.log(f"invalid e-stop message: {err}")
+            self.estop(f"an e-stop message that could not be read ({err})")
             return
         unreached: list[int] = []
         if msg.engage:
