@@ -4,10 +4,10 @@ tests/test_baselines_reference.py writes TD3-AE's reference update out by hand. 
 reference's `AE_TD3` itself runs beside the project's agent, from the same weights, on the same
 batches and with the same random draws: one project update against the reference's
 `train_policy` then `train_predictive_model` (what its training loop calls per minibatch with the
-intrinsic rewards on), the project's scoring against its `get_intrinsic_values`, the project's
-initialisation against its `weight_init`, and the project's defaults against the settings in its
-code and the argument defaults of its `train_loop.py` (parsed, not imported: that file needs
-packages the project does not install).
+intrinsic rewards on), the project's scoring against its `get_intrinsic_values`, acting against
+its `select_action_from_policy`, the initialisation against its `weight_init`, and the project's
+defaults against the settings in its code and the argument defaults of its `train_loop.py`
+(parsed, not imported: that file needs packages the project does not install).
 
 The project holds none of the reference's code: `bench.reference` imports it from a checkout.
 Set NASA_REFERENCE_DIR to one (git clone https://github.com/UoA-CARES/NaSA_TD3); without it
@@ -163,6 +163,21 @@ def test_scores_are_the_references_get_intrinsic_values(agents):
         np.testing.assert_allclose(float(ours["novelty"][i]), novelty, rtol=0, atol=1e-4)  # as test_intrinsic
         # train_loop.py: reward_surprise * 1.0 + reward_novelty * 1.0 is added to the stored reward.
         np.testing.assert_allclose(float(ours["intrinsic"][i]), surprise + novelty, rtol=0, atol=1e-4)
+
+
+def test_acting_is_the_references_select_action_from_policy(agents):
+    """Evaluation: the policy's action; exploration: plus N(0, 0.1) noise, clipped to [-1, 1]. The
+    reference draws its noise from numpy's global state, so the project's draws from it too here."""
+    agent, ref = agents
+    for obs in numpy_batch(0)["obs"][:4]:
+        mine = agent.act(obs, explore=False, rng=np.random.default_rng(0))
+        theirs = ref.select_action_from_policy(obs, evaluation=True)
+        np.testing.assert_allclose(mine, theirs, rtol=0, atol=1e-6)
+        np.random.seed(7)
+        theirs = ref.select_action_from_policy(obs)
+        np.random.seed(7)
+        mine = agent.act(obs, explore=True, rng=np.random.mtrand._rand)
+        np.testing.assert_allclose(mine, theirs, rtol=0, atol=1e-6)
 
 
 def test_initialisation_is_the_references():
