@@ -336,6 +336,28 @@ def test_a_periodic_checkpoint_leaves_the_status_of_that_checkpoint_for_a_killed
     assert torch.load(tmp_path / CHECKPOINT, weights_only=True)["env_steps"] == 40
 
 
+def test_a_final_checkpoint_refused_leaves_the_status_of_the_last_checkpoint_written(tmp_path, capsys):
+    from services.learner.learner import STATUS_FILE
+
+    learner = bare_learner(tmp_path)
+    core = learner.core
+    core.train_on(core.scorer.client.sample(16))
+    core.board.seen_env_steps(40)
+    learner.save_checkpoint()
+    status = json.loads((tmp_path / STATUS_FILE).read_text())
+    core.train_on(core.scorer.client.sample(16))
+    core.board.seen_env_steps(50)
+    with torch.no_grad():  # the agent diverged: the stop's checkpoint is refused
+        next(core.agent.actor.parameters()).fill_(float("nan"))
+    learner._finish(finished=False)
+    # A relaunch resumes from the checkpoint at step 40: status.json must not say 2 updates, step 50.
+    assert json.loads((tmp_path / STATUS_FILE).read_text()) == status
+    assert torch.load(tmp_path / CHECKPOINT, weights_only=True)["env_steps"] == 40
+    err = capsys.readouterr().err
+    assert "the final checkpoint was not written (a tensor is not finite)" in err
+    assert "no final checkpoint" in err and "checkpoint at 2 updates" not in err
+
+
 def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):
     import builtins
 

@@ -326,27 +326,32 @@ class Learner:
                 self._wait_final_eval()
             elif (target := self.between.due(core.env_steps, final=True)) is not None:
                 self._evaluate(target)
-        core.save_checkpoint(self.wall_s)
-        self._leave("status.json", self.write_status)
         self.history.add(self.status())
-        self._leave("history.json", lambda: self.history.save(self.args.data))
+        saved = self.save_checkpoint()
+        if not saved:
+            # status.json too stays the last checkpoint's: the figures a relaunch resumes from.
+            self.log(f"the final checkpoint was not written ({core.checkpoint_error}): the run folder keeps "
+                     "the last one written, if any, and its status")
         self._write(None, lambda: core.scalars.status(self.status()))
         self._write(None, core.scalars.close)  # raises what its writing thread met, once
         if finished:
             self.log(f"run done: {core.env_steps} env steps, {core.agent.num_updates} updates")
             self.session.put(self.keys.stop, wire.encode(wire.Stop("run done")), congestion_control=BLOCK)
         else:
-            self.log(f"stopping ({self.stop.reason}); checkpoint at {core.agent.num_updates} updates")
+            where = f"checkpoint at {core.agent.num_updates} updates" if saved else "no final checkpoint"
+            self.log(f"stopping ({self.stop.reason}); {where}")
         self.stop.set("done")
 
-    def save_checkpoint(self) -> None:
+    def save_checkpoint(self) -> bool:
         """A checkpoint, and beside it the dashboard's series and the /status of that moment: a
         learner killed later (SIGKILL, out of memory) leaves `nasa status --data` the checkpoint's
         figures, and its restart resumes the series from here, where only a clean stop used to
-        leave them."""
-        if self.core.save_checkpoint(self.wall_s):  # else the last status.json stays the last checkpoint's
+        leave them. False: the checkpoint was not written (core.checkpoint_error says why)."""
+        saved = self.core.save_checkpoint(self.wall_s)
+        if saved:  # else the last status.json stays the last checkpoint's: the figures a restart resumes from
             self._leave("status.json", self.write_status)
         self._leave("history.json", lambda: self.history.save(self.args.data))
+        return saved
 
     def _leave(self, name: str, write: Callable[[], None]) -> None:
         """Write a file the run leaves for `nasa status` (`name`, as /status `writes` counts it); one
