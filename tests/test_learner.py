@@ -358,6 +358,40 @@ def test_a_final_checkpoint_refused_leaves_the_status_of_the_last_checkpoint_wri
     assert "no final checkpoint" in err and "checkpoint at 2 updates" not in err
 
 
+def test_a_resumed_learner_starts_with_the_status_of_its_checkpoint_and_a_fresh_one_with_none(
+        tmp_path, monkeypatch):
+    import builtins
+
+    from services.learner.learner import STATUS_FILE
+    from shared import files
+    from tests.test_train import FullFile
+
+    saved_status = tmp_path / STATUS_FILE
+    fresh = bare_learner(tmp_path)
+    saved_status.parent.mkdir(parents=True)
+    saved_status.write_text(json.dumps({"run_id": "an earlier session"}))
+    fresh._leave_start_status()  # no checkpoint: an earlier session's status must not pass for this one's
+    assert not saved_status.exists()
+    core = fresh.core
+    for _ in range(2):
+        core.train_on(core.scorer.client.sample(16))
+    core.board.seen_env_steps(40)
+    core.save_checkpoint(wall_s=3.0)  # and the learner is killed before it writes status.json
+    again = bare_learner(tmp_path)
+    assert again.core.resumed
+    again._leave_start_status()  # killed again before its next checkpoint: this is what it leaves
+    status = json.loads(saved_status.read_text())
+    assert status["resumed"] and (status["updates"], status["env_steps"]) == (2, 40)
+    assert again.status()["writes"]["failed"] == {}
+    # A disk that refuses it: the earlier status goes, as for a fresh run, and the refusal is counted.
+    saved_status.write_text(json.dumps({"run_id": "an earlier session"}))
+    third = bare_learner(tmp_path)
+    monkeypatch.setattr(files, "open", lambda *a, **k: FullFile(builtins.open(*a, **k)), raising=False)
+    third._leave_start_status()
+    monkeypatch.undo()
+    assert not saved_status.exists() and third.status()["writes"]["failed"] == {"status.json": 1}
+
+
 def test_a_history_the_disk_cannot_hold_leaves_no_half_written_copy(tmp_path, monkeypatch):
     import builtins
 

@@ -1,7 +1,7 @@
 """Issue 14: the ratio survives a learner restart. A learner killed with SIGKILL after its checkpoint
 loses the updates it made since; the restarted learner makes them up (it tells the replay's rate
 limiter how many samples it has used), so the run still ends with G * (steps - warm-up) updates.
-The restarted learner also clears the last status an earlier session left."""
+The restarted learner also replaces the last status an earlier session left with its checkpoint's."""
 
 from __future__ import annotations
 

@@ -150,10 +150,10 @@ def test_a_second_replay_or_learner_of_a_run_refuses_to_serve_it(tmp_path):
     assert system.leftover_pids() == []
 
 
-@pytest.mark.timeout(300)
-def test_a_learner_killed_after_a_checkpoint_leaves_that_checkpoints_status(tmp_path):
+@pytest.mark.timeout(420)
+def test_a_learner_killed_after_a_checkpoint_leaves_that_checkpoints_status_and_so_does_its_restart(tmp_path):
     # No clean stop (SIGKILL, out of memory): `nasa status --data DIR` shows the figures of the last
-    # checkpoint, which the run resumes from. The next checkpoint is far off when the kill lands.
+    # checkpoint, which the run resumes from. The next checkpoint is far off when each kill lands.
     data = tmp_path / "run"
     system = System(data, actors=1, steps=1_000_000, evaluator=False,
                     extra=["--checkpoint-every", "300", "--eval-every", "100000"])
@@ -171,6 +171,15 @@ def test_a_learner_killed_after_a_checkpoint_leaves_that_checkpoints_status(tmp_
         status = json.loads(saved_status.read_text())
         out = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--data", str(data),
                               "--url", system.url], cwd=REPO, capture_output=True, text=True, timeout=60)
+        # Restarted, the learner resumes from that checkpoint; killed again before its next one, it
+        # still leaves that checkpoint's status, not none.
+        system.wait_for("the restarted learner", lambda s: s["resumed"], timeout=200)
+        os.kill(learner.proc.pid, signal.SIGKILL)
+        learner.proc.wait()
+        resaved = torch.load(checkpoint, weights_only=True)
+        restatus = json.loads(saved_status.read_text()) if saved_status.exists() else None
+        again = subprocess.run([sys.executable, "-m", "nasa.cli", "status", "--data", str(data),
+                                "--url", system.url], cwd=REPO, capture_output=True, text=True, timeout=60)
     finally:
         system.close()
     assert saved["env_steps"] >= 300
@@ -178,4 +187,10 @@ def test_a_learner_killed_after_a_checkpoint_leaves_that_checkpoints_status(tmp_
     assert out.returncode == 0, out.stderr
     assert "the learner is not running" in out.stderr
     assert json.loads(out.stdout)["env_steps"] == saved["env_steps"]
+    assert restatus is not None, "the restarted learner, killed, left no status.json"
+    assert restatus["resumed"]
+    resumed_from = (resaved["agent"]["num_updates"], resaved["env_steps"])
+    assert (restatus["updates"], restatus["env_steps"]) == resumed_from
+    assert again.returncode == 0, again.stderr
+    assert json.loads(again.stdout)["env_steps"] == resaved["env_steps"]
     assert system.leftover_pids() == []

@@ -14,8 +14,9 @@
 - Records: evaluations from the evaluator become eval.csv rows (or, with
   --eval-between-updates, the learner plays them itself between updates),
   episodes the actors report become train.csv rows; a checkpoint every checkpoint_every env
-  steps, at the end and on SIGTERM/SIGINT; with each, the /status of that moment is left in
-  <data>/learner/status.json.
+  steps, at the end and on SIGTERM/SIGINT; with each one written, the /status of that moment is
+  left in <data>/learner/status.json, and a learner that resumes from its checkpoint leaves that
+  checkpoint's there as it starts.
 - The run ends when the replay's step budget is reached and the learner has
   done the schedule's updates (shared.schedule.total_updates: G * (steps - warmup),
   and the warm-up burst's beyond G with it) or the limiter allows no more; it then
@@ -193,9 +194,7 @@ class Learner:
         s, k = self.session, self.keys
         if not faults.claim_run_role(s, k, "learner", self.stop, self.log):
             return
-        # An earlier session's last status would read as this one's if this one dies before its first
-        # checkpoint.
-        (Path(self.args.data) / STATUS_FILE).unlink(missing_ok=True)
+        self._leave_start_status()
         try:
             self.history.restore(self.args.data, self.wall_s)
         except HistoryError as err:
@@ -353,7 +352,15 @@ class Learner:
         self._leave("history.json", lambda: self.history.save(self.args.data))
         return saved
 
-    def _leave(self, name: str, write: Callable[[], None]) -> None:
+    def _leave_start_status(self) -> None:
+        """status.json as this session starts. A learner that resumed from its checkpoint leaves the
+        status of that checkpoint, so one killed again before its next checkpoint still leaves
+        `nasa status --data` the figures the run resumes from. A fresh run leaves none: an earlier
+        session's last status in this folder would read as this one's."""
+        if not (self.core.resumed and self._leave("status.json", self.write_status)):
+            (Path(self.args.data) / STATUS_FILE).unlink(missing_ok=True)
+
+    def _leave(self, name: str, write: Callable[[], None]) -> bool:
         """Write a file the run leaves for `nasa status` (`name`, as /status `writes` counts it); one
         the disk refuses (full) is logged and counted like every other refused write, and the run
         still ends: raising here would skip the Stop, and the restarted learner would meet the same
@@ -364,8 +371,9 @@ class Learner:
         except OSError as err:
             writes.failed(name, err)
             self.log(f"{name} not written: {type(err).__name__}: {err}")
-        else:
-            writes.ok(name)
+            return False
+        writes.ok(name)
+        return True
 
     def _evaluate(self, target: int) -> None:
         """Step `target`'s evaluation, here and now (--eval-between-updates)."""
