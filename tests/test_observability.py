@@ -411,6 +411,17 @@ def test_status_of_a_nasa_train_folder_says_what_it_is(tmp_path, capsys):
     assert done.value.code == 1 and "a `nasa train` run" in err and "eval.csv" in err
 
 
+def test_a_run_folder_with_no_status_yet_says_its_learner_has_written_no_checkpoint(tmp_path, capsys):
+    from nasa.up import status as print_status
+
+    (tmp_path / "learner").mkdir()  # a `nasa up` run whose learner died before its first checkpoint
+    with pytest.raises(SystemExit) as done:
+        print_status(["--url", "http://127.0.0.1:9/status", "--data", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert done.value.code == 1 and "learner has written no checkpoint yet" in err
+    assert "stopped cleanly" not in err  # it leaves one with each checkpoint, not only at a clean stop
+
+
 def test_a_non_finite_figure_goes_out_as_null_not_as_json_no_browser_reads():
     status = STATUS | {"intrinsic": STATUS["intrinsic"] | {"novelty_mean": float("nan")},
                        "wall_s": float("inf")}

@@ -285,8 +285,9 @@ def read_final_status(data: Path) -> dict:
                 f"{data} is a `nasa train` run (no learner/ folder): it has no status API; its "
                 f"evaluations are in {Path(data) / 'eval.csv'} (`nasa plot {data}`), its losses in "
                 f"{Path(data) / 'tensorboard'}")
-        raise StoppedRunError(f"there is no {saved}: the learner of this run has not stopped cleanly "
-                              "since it last started")
+        # The learner writes it with each checkpoint (its stop's too) and as it resumes from one.
+        raise StoppedRunError(f"there is no {saved}: this run's learner has written no checkpoint yet "
+                              "(or the disk refused the file: see the learner's log)")
     return read_json_object(saved, StoppedRunError, "a status")
 
 
