@@ -41,7 +41,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from bench.args import task_name
-from bench.processes import stop_group, stopped_cleanly
+from bench.processes import followed, stop_group, stopped_cleanly
 from nasa.layout import usable_cores
 from nasa.up import free_port
 from shared.faults import RunFolderError, lock_run
@@ -60,12 +60,14 @@ def run_bounded(argv: list[str], minutes: float, log: Path, eval_csv: Path | Non
     Both runners are timed from their launch, start-up and the step-0 evaluation included, as a
     user waits for them (each run's own clock starts elsewhere). At the bound it gets SIGINT (a
     user's Ctrl-C), then SIGTERM: a process started in the background by a non-interactive shell
-    ignores SIGINT.
+    ignores SIGINT. Should this process die by SIGKILL, the command gets SIGTERM and stops its run
+    (NASA_PARENT_PID: `followed`).
     """
     start = time.monotonic()
     seen: dict[int, float] = {}
     with open(log, "w") as out:
-        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                                env=followed())
         try:
             while proc.poll() is None and time.monotonic() - start < minutes * 60:
                 time.sleep(poll_s)

@@ -8,8 +8,8 @@ nasa.stopping only, as bench.gpu imports it before its set-up step.
 A child whose output comes through a pipe must have it read all along (Drain): a pipe holds
 some 64 KiB, and a child that finds it full stops at its next line until someone reads.
 
-A benchmark killed by SIGKILL runs no `finally` block: a `nasa up` it started with `followed()`
-stops its run then too.
+A benchmark killed by SIGKILL runs no `finally` block: a `nasa up` or `nasa train` it started with
+`followed()` stops its run then too.
 """
 
 from __future__ import annotations
@@ -102,8 +102,8 @@ def stop_group(proc: subprocess.Popen, steps: tuple[tuple[int, float], ...] = ST
 
 
 def followed() -> dict[str, str]:
-    """This process's environment naming it in NASA_PARENT_PID: a `nasa up` started with it gets
-    SIGTERM when this process dies, even by SIGKILL, and stops its services in order."""
+    """This process's environment naming it in NASA_PARENT_PID: a `nasa up` or `nasa train` started
+    with it gets SIGTERM when this process dies, even by SIGKILL, and stops its run in order."""
     return {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
 
 

@@ -7,7 +7,6 @@ from nasa.stopping import interrupted  # first, and light: a Ctrl-C during the i
 with interrupted("nasa", "while starting"):
     import argparse
     import contextlib
-    import os
     import signal
     import sys
     from collections.abc import Callable
@@ -25,6 +24,7 @@ with interrupted("nasa", "while starting"):
         ignore_stop_signals,
         raise_terminated,
         second_signal_forces,
+        shares_launchers_ctrl_c,
         signal_code,
     )
     from shared import run_config
@@ -179,9 +179,10 @@ def _stopped(trainer: Trainer, out: Path, why: str, code: int, when: str = "") -
     # Closing flushes the replay's log and TensorBoard's files: a slow disk can hold it up, and a
     # second signal then ends it at once (the checkpoint is whole, the logs drop what was cut).
     # Under `nasa reproduce`, its SIGTERM follows the terminal's Ctrl-C that both got: a stop,
-    # not a second signal; the terminal's second Ctrl-C still forces.
+    # not a second signal; the terminal's second Ctrl-C still forces. Under a launcher in another
+    # session (bench.learning, whose SIGTERM follows a SIGINT that was not enough) either forces.
     ignore_stop_signals()
-    forcing = (signal.SIGINT,) if os.environ.get("NASA_PARENT_PID") else STOP_SIGNALS
+    forcing = (signal.SIGINT,) if shares_launchers_ctrl_c() else STOP_SIGNALS
     second_signal_forces("nasa train", f"{where}; {when}continue with: nasa train --resume {out}",
                          signals=forcing)
     signalled = code > 128

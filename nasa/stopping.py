@@ -41,6 +41,17 @@ def ignore_stop_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def shares_launchers_ctrl_c() -> bool:
+    """Whether this process's launcher (NASA_PARENT_PID) is in its process group, as `nasa reproduce`
+    is with its `nasa train`s: a terminal's Ctrl-C then reaches both, and the SIGTERM the launcher
+    sends after it is no second signal. A launcher that started it in a session of its own (the
+    benchmarks) shares no Ctrl-C with it."""
+    try:
+        return os.getpgid(int(os.environ.get("NASA_PARENT_PID", ""))) == os.getpgrp()
+    except (ValueError, OSError):  # no launcher, or it is gone
+        return False
+
+
 def write_line(line: str, fd: int = 2) -> None:
     """`line` on `fd`, unbuffered: safe inside a signal handler, where print() may find its stream's
     buffer in the middle of another write; nothing where the stream is gone (a closed terminal)."""

@@ -191,6 +191,34 @@ def test_bench_learning_stops_its_run_on_a_signal(tmp_path, signum):
     stop_and_check(bench, signum, mark, tmp)
 
 
+def killed_leaves_nothing(bench: subprocess.Popen, mark: str) -> None:
+    """SIGKILL the benchmark: it runs no `finally` block, so what it started must follow its death
+    itself (NASA_PARENT_PID); nothing carrying its mark may be left once that has stopped."""
+    bench.kill()
+    bench.communicate()
+    deadline = time.monotonic() + 90  # nasa up stopping its services in order
+    while (left := marked(mark)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for pid, _ in left:  # not to leave them to the rest of the suite
+        os.kill(pid, signal.SIGKILL)
+    assert left == [], f"left running: {left}"
+
+
+@pytest.mark.parametrize("runner", ["train", "up"])
+def test_bench_learning_killed_by_sigkill_leaves_no_process_of_its_run(tmp_path, runner):
+    mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out"
+    bench = start(["bench.learning", "--only", runner, "--task", "cartpole-balance", "--minutes", "10",
+                   "--out", str(out), "--", *TINY], mark, tmp)
+    if runner == "train":  # its run folder made: nasa train is past its start
+        config = out / "cartpole-balance" / "nasa_td3" / "seed0" / "config.json"
+        wait_for("nasa train's run folder", config.exists, bench)
+    else:
+        wait_for("replay service", running(mark, "services.replay"), bench)
+    killed_leaves_nothing(bench, mark)
+
+
 def up_profile_running(tmp_path: Path) -> tuple[subprocess.Popen, str, Path]:
     """bench.up_profile on a tiny run, once its nasa up has started the replay."""
     mark, tmp = uuid.uuid4().hex, tmp_path / "tmp"
@@ -207,16 +235,8 @@ def test_bench_up_profile_stops_nasa_up_on_sigterm(tmp_path):
 
 
 def test_bench_up_profile_killed_by_sigkill_leaves_no_process_of_its_run(tmp_path):
-    # SIGKILL runs no `finally` block: nasa up follows the benchmark's death itself (NASA_PARENT_PID).
     bench, mark, _ = up_profile_running(tmp_path)
-    bench.kill()
-    bench.communicate()
-    deadline = time.monotonic() + 90  # nasa up stopping its services in order
-    while (left := marked(mark)) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    for pid, _ in left:  # not to leave them to the rest of the suite
-        os.kill(pid, signal.SIGKILL)
-    assert left == [], f"left running: {left}"
+    killed_leaves_nothing(bench, mark)
 
 
 def test_bench_system_removes_its_folders_on_sigterm(tmp_path):

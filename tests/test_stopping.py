@@ -48,9 +48,10 @@ say("stopped")
 """
 
 
-def start(script: str, *args: str, env: dict | None = None) -> subprocess.Popen:
+def start(script: str, *args: str, env: dict | None = None, new_session: bool = False) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", script, *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=REPO, env=env or ENV)
+                            stderr=subprocess.PIPE, text=True, cwd=REPO, env=env or ENV,
+                            start_new_session=new_session)
 
 
 def gone(pid: int) -> bool:
@@ -150,6 +151,31 @@ def test_a_second_ctrl_c_while_nasa_train_closes_its_files_stops_it_at_once(tmp_
     assert lines == [
         "nasa train: stopping at step 7: closing the run's files (Ctrl-C again to stop at once)",
         f"nasa train: forced to stop (SIGINT); its last checkpoint holds step 5; continue with: "
+        f"nasa train --resume {tmp_path / 'run'}",
+    ], err
+
+
+def test_a_sigterm_while_nasa_train_closes_stops_it_at_once_under_a_launcher_in_another_session(tmp_path):
+    # bench.learning starts nasa train in a session of its own, naming itself in NASA_PARENT_PID so
+    # the run follows its death: no Ctrl-C reaches both, and its SIGTERM after a SIGINT that was not
+    # enough must end the stop, as it would without a launcher.
+    env = {**ENV, "NASA_PARENT_PID": str(os.getpid())}
+    train = start(TRAIN_STOP, str(tmp_path / "run"), env=env, new_session=True)
+    try:
+        assert train.stdout.readline() == "running\n"
+        train.send_signal(signal.SIGINT)
+        assert train.stdout.readline() == "closing\n"
+        train.send_signal(signal.SIGTERM)
+        try:
+            _, err = train.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the SIGTERM did not end nasa train's stop")
+    finally:
+        train.kill()
+    assert train.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines() == [
+        "nasa train: stopping at step 7: closing the run's files (Ctrl-C again to stop at once)",
+        f"nasa train: forced to stop (SIGTERM); its last checkpoint holds step 5; continue with: "
         f"nasa train --resume {tmp_path / 'run'}",
     ], err
 
