@@ -1,6 +1,8 @@
 """The camera path (a real VideoCapture over a video file) and the ArUco valve angle."""
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -88,3 +90,25 @@ def test_calibrate_reads_the_raw_marker_angle(tmp_path: Path, capsys) -> None:
     out = capsys.readouterr().out
     reading = float(out.split("angle.zero_deg = ")[1])
     assert abs(reading - 40.0) < 2.0
+
+
+@pytest.mark.parametrize("camera", ["file", "index"])
+def test_a_calibration_whose_camera_cannot_be_opened_is_one_line_and_exit_1(
+    tmp_path: Path, camera: str
+) -> None:
+    """OpenCV's own lines about the camera it could not open are not printed beside the error."""
+    from services.robot_bridge import operate
+
+    text = Path(operate.__file__).with_name("example.toml").read_text()
+    if camera == "file":
+        where, extra = repr(str(tmp_path / "missing.avi")), ["--source", str(tmp_path / "missing.avi")]
+    else:  # a camera index this machine has no device for
+        index = next(i for i in range(63, 0, -1) if not Path(f"/dev/video{i}").exists())
+        where, extra, text = repr(index), [], text.replace("index = 0", f"index = {index}")
+    config = tmp_path / "gripper.toml"
+    config.write_text(text)
+    argv = ["calibrate", "--config", str(config), "--samples", "1", *extra]
+    done = subprocess.run([sys.executable, "-m", "services.robot_bridge.operate", *argv],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.splitlines() == [f"calibrate: error: cannot open camera {where}"], done.stderr

@@ -169,6 +169,18 @@ def test_a_calibration_on_a_port_a_bridge_holds_is_refused_in_one_line(tmp_path:
             bus.close()
 
 
+def test_a_calibration_without_its_adapter_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    config = tmp_path / "gripper.toml"
+    missing = tmp_path / "ttyUSB9"
+    config.write_text(CONFIG.format(port=missing, latency_ms=LATENCY_MS))
+    done = subprocess.run([sys.executable, "-m", "services.robot_bridge.operate", "calibrate",
+                           "--config", str(config), "--samples", "1"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"calibrate: error: cannot open {missing}: "), lines
+
+
 def test_a_guard_ignores_sigterm_and_stood_down_exits_without_writing(tmp_path: Path) -> None:
     with BusEmulator(IDS) as emu:
         bus = ServoBus(emu.port, 1000000, IDS, latency_ms=LATENCY_MS)

@@ -45,9 +45,16 @@ class Camera:
     def __init__(self, config: CameraConfig, source: int | str | None = None) -> None:
         cv2 = _cv2()
         self.config = config
-        self._capture = cv2.VideoCapture(config.index if source is None else source)
+        where = config.index if source is None else source
+        # OpenCV logs lines of its own for a camera it cannot open (from each backend it tries): the
+        # error below says it once.
+        level = cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        try:
+            self._capture = cv2.VideoCapture(where)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if not self._capture.isOpened():
-            raise CameraUnavailable(f"cannot open camera {config.index if source is None else source!r}")
+            raise CameraUnavailable(f"cannot open camera {where!r}")
         self._capture.set(cv2.CAP_PROP_FRAME_WIDTH, config.width)
         self._capture.set(cv2.CAP_PROP_FRAME_HEIGHT, config.height)
         # A driver that honours it keeps one frame; the rest are dropped by `frame()` anyway.

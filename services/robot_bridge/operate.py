@@ -156,12 +156,11 @@ def main(argv: list[str] | None = None) -> None:
 
     try:
         raw = raw_reading(args.config, args.samples, args.source)
-    except GripperConfigError as err:
+    except (GripperConfigError, BusError, CameraUnavailable) as err:
+        # A bad config file is the operator's input (exit 2); a port another process holds, a
+        # missing adapter or camera, exit 1.
         print(f"calibrate: error: {err}", file=sys.stderr, flush=True)
-        sys.exit(EXIT_BAD_INPUT)
-    except (BusError, CameraUnavailable) as err:  # a port another process holds, a missing adapter or camera
-        print(f"calibrate: error: {err}", file=sys.stderr, flush=True)
-        sys.exit(1)
+        sys.exit(EXIT_BAD_INPUT if isinstance(err, GripperConfigError) else 1)
     if raw is None:
         print("the valve angle was never read: is the marker in view (or the valve servo answering)?")
         sys.exit(1)
