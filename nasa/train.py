@@ -17,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from shared import checkpoint, envs, run_config
-from shared.agents import Agent, batch_to_device, collect_action, make_agent
+from shared.agents import Agent, batch_to_device, collect_action, make_updating_agent
 from shared.config import EVAL_SEED_OFFSET, ConfigError, TrainConfig, validate
 from shared.device import resolve_device
 from shared.env_loop import EnvLoop
@@ -28,7 +28,7 @@ from shared.replay.client import LocalReplay
 from shared.replay.store import SNAPSHOT_EVERY, open_store
 from shared.runlog import checkpointed_step
 from shared.scalars import TENSORBOARD_DIR, Scalars
-from shared.schedule import burst_updates, step_updates
+from shared.schedule import step_updates
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -55,8 +55,7 @@ class Trainer:
             self._restore_envs(state)
         self.run_config = run_config.RunConfig(c, self.env.spec)
         spec = self.env.spec
-        self.agent: Agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, self.device)
-        self.agent.burst_updates = burst_updates(c)
+        self.agent: Agent = make_updating_agent(c, spec, self.device)
         self.rng = np.random.default_rng(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
         self.scalars = Scalars(self.out / TENSORBOARD_DIR / "train")  # the learner's tags too

@@ -19,14 +19,14 @@ import torch
 
 from services.learner.status import StatusBoard
 from shared import checkpoint, wire
-from shared.agents import batch_to_device, make_agent
+from shared.agents import batch_to_device, make_updating_agent
 from shared.agents.base import nonfinite_skips
 from shared.evaluation import final_eval_waits, is_eval_step, newest_eval_step
 from shared.recorder import Counters, MetricMeans, Recorder
 from shared.replay.client import Batch, ReplayClient
 from shared.run_config import RunConfig
 from shared.scalars import TENSORBOARD_DIR, Scalars
-from shared.schedule import burst_extra, burst_updates, total_updates
+from shared.schedule import burst_extra, total_updates
 from shared.scoring import IntrinsicScorer, collect_scoring
 from shared.service import Log
 
@@ -42,8 +42,7 @@ class LearnerCore:
         # Seeded before any network is built, as `nasa train` does: a seed's initial weights are
         # the same in both runners and from one launch to the next.
         torch.manual_seed(c.seed)
-        self.agent = make_agent(c.algo, spec.obs_shape, spec.action_dim, c.agent, device)
-        self.agent.burst_updates = burst_updates(c)
+        self.agent = make_updating_agent(c, spec, device)
         self.rng = np.random.default_rng(c.seed)
         self.recorder = Recorder(self.out, c.eval_episodes)
         self.scorer = (IntrinsicScorer(self.agent, client, c.warmup_steps, c.batch_size)

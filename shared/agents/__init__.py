@@ -6,6 +6,8 @@ autoencoder, `NaSATD3` adds to TD3AE the intrinsic rewards; `SACAE` stands apart
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from shared.agents.base import Agent, batch_to_device, collect_action
@@ -13,7 +15,11 @@ from shared.agents.nasa_td3 import NaSATD3, UnscoredBatchError
 from shared.agents.sac_ae import SACAE
 from shared.agents.td3 import TD3, PixelTD3
 from shared.agents.td3_ae import TD3AE
-from shared.config import AgentConfig, ConfigError, check_algo
+from shared.config import AgentConfig, ConfigError, TrainConfig, check_algo
+from shared.schedule import burst_updates
+
+if TYPE_CHECKING:
+    from shared.envs import EnvSpec
 
 AGENTS: dict[str, type[TD3] | type[SACAE]] = {
     "nasa_td3": NaSATD3,
@@ -39,6 +45,14 @@ def make_agent(
     return AGENTS[algo](obs_shape, action_dim, config, device)
 
 
+def make_updating_agent(config: TrainConfig, spec: EnvSpec, device: torch.device) -> Agent:
+    """The agent that makes a run's updates (`nasa train`'s, the learner's), with the run's warm-up
+    burst (shared.schedule.burst_updates) set on it."""
+    agent = make_agent(config.algo, spec.obs_shape, spec.action_dim, config.agent, device)
+    agent.burst_updates = burst_updates(config)
+    return agent
+
+
 def check_update_device(config: AgentConfig, device: torch.device) -> None:
     """ConfigError if the agent's updates cannot run on `device`."""
     if config.cuda_graph and device.type != "cuda":
@@ -58,4 +72,5 @@ __all__ = [
     "check_update_device",
     "collect_action",
     "make_agent",
+    "make_updating_agent",
 ]

@@ -20,7 +20,7 @@ class Agent(Protocol):
     device: torch.device
     uses_intrinsic: bool
     num_updates: int
-    burst_updates: int  # shared.schedule.burst_updates: set by the runner that makes the updates
+    burst_updates: int  # shared.schedule.burst_updates: set by make_updating_agent
 
     def act(self, obs: np.ndarray, explore: bool, rng: np.random.Generator) -> np.ndarray:
         """One action in [-1, 1] for one (C, H, W) uint8 observation."""
