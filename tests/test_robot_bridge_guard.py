@@ -5,12 +5,15 @@ import re
 import signal
 import subprocess
 import sys
+import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from bench.processes import processes_with, stop_group
 from services.robot_bridge import xl320
 from services.robot_bridge.client import BridgeEnv
 from services.robot_bridge.dynamixel import ServoBus
@@ -68,10 +71,30 @@ def gone(pid: int) -> bool:
         return True
 
 
+MARK = "BRIDGE_TEST_MARK"
+"""In the environment of a fixture's bridge, and so of its guard, whatever session that runs in."""
+
+
+def left_running(mark: str, deadline_s: float = 60.0) -> list[tuple[int, list[str]]]:
+    """The processes carrying `mark` once they have had `deadline_s` to exit (a killed bridge's guard
+    turns torque off, then exits; a stood-down one exits at once), SIGKILLed then, so none outlives
+    its test: a guard retrying the port by name would write to the next test's pty of that name."""
+    end = time.monotonic() + deadline_s
+    while (left := processes_with(MARK, mark)) and time.monotonic() < end:
+        time.sleep(0.1)
+    for pid, _ in left:
+        os.kill(pid, signal.SIGKILL)
+    return left
+
+
 @pytest.fixture
 def bridge(sessions, endpoint: str, tmp_path: Path) -> Iterator[tuple]:  # noqa: F811 (fixtures)
-    """A bridge process serving the emulated servos, torque taken by a reset over Zenoh; its log."""
+    """A bridge process serving the emulated servos, torque taken by a reset over Zenoh; its log.
+    A bridge still running after the test is stopped as an operator would (SIGTERM: it turns torque
+    off and stands its guard down; SIGKILL only if it does not exit in time), and neither it nor a
+    guard may be left once the emulator closes."""
     _, actor = sessions
+    mark = uuid.uuid4().hex
     with BusEmulator(ALL) as emu:
         config = tmp_path / "gripper.toml"
         config.write_text(CONFIG.format(port=emu.port, latency_ms=LATENCY_MS))
@@ -80,7 +103,7 @@ def bridge(sessions, endpoint: str, tmp_path: Path) -> Iterator[tuple]:  # noqa:
                 "--connect", endpoint]
         with log.open("w") as err:
             proc = subprocess.Popen([sys.executable, "-c", BRIDGE, video(tmp_path / "cam.avi"), *argv],
-                                    stderr=err)
+                                    stderr=err, env={**os.environ, MARK: mark}, start_new_session=True)
         try:
             wait_until(lambda: token_up(actor, wire.BridgeKeys("g1").alive), deadline_s=120.0)
             env = BridgeEnv(actor, "g1", timeout_s=60.0)
@@ -89,9 +112,9 @@ def bridge(sessions, endpoint: str, tmp_path: Path) -> Iterator[tuple]:  # noqa:
             assert torque(emu, IDS) == [1, 1, 1, 1]
             yield emu, proc, log
         finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+            stop_group(proc, ((signal.SIGTERM, 60.0),))
+            left = left_running(mark)  # while the emulator still holds the port
+        assert left == [], f"left running after the test: {left}\n{log.read_text()}"
 
 
 def guard_pid(log: Path) -> int:
@@ -127,7 +150,7 @@ def test_a_second_bridge_on_the_same_port_is_refused_and_the_first_runs_on(
 ) -> None:
     """A bridge launched twice by mistake, under another id (its Zenoh claim would not stop it):
     it exits 1 with one line naming the port and the bridge holding it, and the first steps on."""
-    emu, proc, log = bridge
+    emu, proc, _ = bridge
     argv = ["--bridge-id", "g2", "--task", "gripper-valve", "--config", str(tmp_path / "gripper.toml"),
             "--connect", endpoint]
     second = subprocess.run([sys.executable, "-c", BRIDGE, video(tmp_path / "cam2.avi"), *argv],
@@ -142,12 +165,6 @@ def test_a_second_bridge_on_the_same_port_is_refused_and_the_first_runs_on(
     env.reset()
     env.step(np.zeros(4, np.float32))
     assert env.fault() == "ok" and torque(emu, IDS) == [1, 1, 1, 1]
-    # A clean stop, its guard stood down: killed, the bridge would leave its guard retrying the
-    # port by name, which the next test's pty may take.
-    pid = guard_pid(log)
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
-    wait_until(lambda: gone(pid), deadline_s=60.0)
 
 
 def test_a_calibration_on_a_port_a_bridge_holds_is_refused_in_one_line(tmp_path: Path) -> None:
