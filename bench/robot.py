@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
 
 import numpy as np
 
+from bench.processes import followed
 from nasa.up import free_port
 from services.robot_bridge.client import BridgeEnv
 from shared import wire
@@ -73,7 +73,7 @@ def main() -> None:
     argv = ["--bridge-id", "bench", "--task", TASK, "--seed", str(args.seed), "--connect", endpoint]
     with open_router(endpoint), open_client(endpoint) as session:
         proc = subprocess.Popen([sys.executable, "-m", "services.robot_bridge", *argv],
-                                env={**os.environ, "MUJOCO_GL": "egl"}, stderr=subprocess.DEVNULL)
+                                env={**followed(), "MUJOCO_GL": "egl"}, stderr=subprocess.DEVNULL)
         try:
             wait_alive(session, "bench")
             remote = BridgeEnv(session, "bench", client="bench")
