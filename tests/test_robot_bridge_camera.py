@@ -92,6 +92,24 @@ def test_calibrate_reads_the_raw_marker_angle(tmp_path: Path, capsys) -> None:
     assert abs(reading - 40.0) < 2.0
 
 
+def test_a_calibration_that_never_sees_its_marker_is_one_error_line(tmp_path: Path, capsys) -> None:
+    from services.robot_bridge import operate
+
+    path = tmp_path / "no-marker.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (320, 320))
+    for _ in range(10):
+        writer.write(np.full((320, 320, 3), 255, np.uint8))
+    writer.release()
+    example = Path(operate.__file__).with_name("example.toml")
+    config = tmp_path / "gripper.toml"
+    config.write_text(example.read_text().replace("drop_frames = 4", "drop_frames = 0"))
+    with pytest.raises(SystemExit) as exited:
+        operate.main(["calibrate", "--config", str(config), "--samples", "3", "--source", str(path)])
+    out, err = capsys.readouterr()
+    assert exited.value.code == 1 and out == "", out
+    assert err.startswith("calibrate: error: the valve angle was never read") and err.count("\n") == 1, err
+
+
 @pytest.mark.parametrize("camera", ["file", "index"])
 def test_a_calibration_whose_camera_cannot_be_opened_is_one_line_and_exit_1(
     tmp_path: Path, camera: str

@@ -162,7 +162,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"calibrate: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT if isinstance(err, GripperConfigError) else 1)
     if raw is None:
-        print("the valve angle was never read: is the marker in view (or the valve servo answering)?")
+        print("calibrate: error: the valve angle was never read: is the marker in view (or the valve "
+              "servo answering)?", file=sys.stderr, flush=True)
         sys.exit(1)
     print(f"raw valve angle: {raw:.1f} degrees; with the valve at its zero, set angle.zero_deg = {raw:.1f}")
 
