@@ -144,7 +144,8 @@ def _runs_named(held: object) -> set[str]:
     rules = held.get("rules") if isinstance(held, dict) else None
     runs: set[str] = set()
     for rule in rules if isinstance(rules, list) else []:
-        for expr in (rule.get("key_exprs") if isinstance(rule, dict) else None) or []:
+        exprs = rule.get("key_exprs") if isinstance(rule, dict) else None
+        for expr in exprs if isinstance(exprs, list) else []:  # a hand-edited file may hold anything
             parts = str(expr).split("/")
             if parts[0] == PREFIX and parts[2:] == ["control", "stop"] and parts[1] != ANY:
                 runs.add(parts[1])

@@ -566,7 +566,7 @@ def test_nasa_auth_tls_takes_every_host_of_a_repeated_flag(tmp_path: Path) -> No
 
 @pytest.mark.system  # router processes
 @pytest.mark.parametrize("damage", ["users-binary", "users-folder", "users-empty", "users-no-replay",
-                                    "acl-folder", "acl-not-json"])
+                                    "acl-folder", "acl-not-json", "acl-odd-json"])
 def test_a_router_with_a_damaged_auth_folder_says_which_file_in_one_line(tmp_path: Path, damage: str) -> None:
     """Not a traceback, not Zenoh's parse error blamed on the port, and never a router that lets
     every client in unnamed (Zenoh's reading of an empty dictionary)."""
@@ -585,6 +585,8 @@ def test_a_router_with_a_damaged_auth_folder_says_which_file_in_one_line(tmp_pat
     elif damage == "acl-folder":
         rules.unlink()
         rules.mkdir()
+    elif damage == "acl-odd-json":
+        rules.write_text('{"rules": [{"key_exprs": 5}]}')
     else:
         rules.write_text("{not json")
     out = subprocess.run([sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
@@ -603,11 +605,16 @@ def test_a_client_with_an_unreadable_users_file_gets_an_auth_error(tmp_path: Pat
         open_client("tcp/127.0.0.1:1", timeout_s=0.1, role="actor", auth=folder)
 
 
-def test_a_damaged_acl_is_refused_like_a_missing_one(tmp_path: Path) -> None:
+@pytest.mark.parametrize("text", ['{"enabled": tr', '{"rules": [{"key_exprs": 5}]}',
+                                  '{"rules": [7, {"key_exprs": true}, {"key_exprs": null}]}', '[1]'])
+def test_a_damaged_acl_is_refused_like_a_missing_one(tmp_path: Path, text: str) -> None:
+    """Not JSON, or JSON of another shape (a hand edit): refused with the command that remakes it,
+    by `nasa up` (its run id) and by a router (none), not a traceback."""
     folder = zenoh_auth.init(tmp_path / "auth", RUN)
-    (folder / zenoh_auth.ACL_FILE).write_text('{"enabled": tr')
-    with pytest.raises(zenoh_auth.AuthError, match="--acl-only"):
-        zenoh_auth.check_acl(folder, RUN)
+    (folder / zenoh_auth.ACL_FILE).write_text(text)
+    for run_id in (RUN, None):
+        with pytest.raises(zenoh_auth.AuthError, match="--acl-only"):
+            zenoh_auth.check_acl(folder, run_id)
 
 
 def test_rotation_over_a_stale_temporary_file_keeps_the_credentials_private(tmp_path: Path) -> None:
