@@ -124,7 +124,8 @@ def check_acl(folder: Path, run_id: str | None = None) -> None:
         held = None
     named = sorted(_runs_named(held))
     runs = [ANY, run_id] if run_id is not None else [ANY, *named]
-    if not any(held == _acl_of(run) for run in runs):
+    # A missing or damaged file (None) matches no ACL, not even the None of a run id no run can have.
+    if held is None or not any(held == _acl_of(run) for run in runs):
         run = run_id or (named[0] if len(named) == 1 else "RUN_ID")
         raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
                         f"`nasa auth init {folder} --run-id {run} --acl-only` makes it anew "

@@ -617,6 +617,20 @@ def test_a_damaged_acl_is_refused_like_a_missing_one(tmp_path: Path, text: str) 
             zenoh_auth.check_acl(folder, run_id)
 
 
+def test_a_missing_or_damaged_acl_is_refused_whatever_run_is_named(tmp_path: Path) -> None:
+    """No run id makes a missing or unreadable ACL pass, not even one no run can have (for which
+    there is no ACL to compare it with)."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    rules = folder / zenoh_auth.ACL_FILE
+    for damage in ("missing", "not json"):
+        rules.unlink(missing_ok=True)
+        if damage == "not json":
+            rules.write_text('{"enabled": tr')
+        for run_id in (RUN, None, "not/a run"):
+            with pytest.raises(zenoh_auth.AuthError, match="--acl-only"):
+                zenoh_auth.check_acl(folder, run_id)
+
+
 def test_rotation_over_a_stale_temporary_file_keeps_the_credentials_private(tmp_path: Path) -> None:
     """A users.tmp left world-readable by an interrupted init must not hand its mode to users.txt."""
     folder = zenoh_auth.init(tmp_path / "auth", RUN)
