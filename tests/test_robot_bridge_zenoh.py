@@ -432,6 +432,18 @@ def test_an_answer_that_does_not_say_the_command_held_confirms_nothing() -> None
         assert operate.report(command, "g1", ack, 5.0)[1]
 
 
+def test_a_bridge_estopped_before_its_first_episode_refuses_in_a_reply_the_actor_reads(sessions) -> None:
+    """E-stopped before any reset (an operator's stop before the actor joined): the first reset's
+    refusal is read as one, with the e-stop's state, not as a malformed reply."""
+    bridge_session, actor_session = sessions
+    with stand_in_bridge(bridge_session, "g11") as server:
+        env = BridgeEnv(actor_session, "g11", client="actor-0", timeout_s=30.0)
+        server.estop("test")
+        with pytest.raises(BridgeUnavailable, match="refused a reset: e-stop: test"):
+            env.reset()
+        assert env.fault() == "estop"
+
+
 def test_bad_estop_messages_fail_safe_and_bad_answers_confirm_nothing(sessions, endpoint: str) -> None:
     """The wire fuzzer's variants (tests/test_fuzz.py) of the e-stop's two messages: a bridge counts
     each malformed e-stop or re-arm and is stopped by it (fail safe: an unreadable message on the

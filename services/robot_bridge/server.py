@@ -153,7 +153,9 @@ class BridgeServer:
 
     def _refusal(self, reason: str) -> wire.BridgeReply:
         safety = self.safety_status()
-        return wire.BridgeReply(False, reason, self.episode, 0, list(self.frame_shape), b"", 0.0, 1.0,
+        # Before the first episode (-1) the wire's episode is 0: -1 is no count, and the client would
+        # take the refusal (an e-stop, an operator awaited) for a malformed reply.
+        return wire.BridgeReply(False, reason, max(self.episode, 0), 0, list(self.frame_shape), b"", 0.0, 1.0,
                                 False, False, {"reason": reason, "safety": safety})
 
     # -- Zenoh ----------------------------------------------------------------------------------
