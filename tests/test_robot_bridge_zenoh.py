@@ -444,6 +444,27 @@ def test_a_bridge_estopped_before_its_first_episode_refuses_in_a_reply_the_actor
         assert env.fault() == "estop"
 
 
+@pytest.mark.parametrize("sent", ["unreadable", "long reason"])
+def test_an_estop_with_a_long_text_still_tells_the_actor_it_is_an_estop(sessions, sent: str) -> None:
+    """The e-stop's reason goes into every refusal the bridge sends after it: a garbled message's
+    error (which quotes what it was sent) or an operator's long reason must still leave that
+    refusal readable, so the actor hears `estop`, not a malformed reply."""
+    bridge_session, rogue = sessions
+    with stand_in_bridge(bridge_session, "g10") as server:
+        keys = wire.BridgeKeys("g10")
+        env = BridgeEnv(rogue, "g10", client="actor-0", timeout_s=30.0)
+        env.reset()
+        if sent == "unreadable":
+            payload = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "x" * 100_000})
+        else:
+            payload = wire.encode(wire.BridgeEStop(True, "r" * wire.MAX_TEXT, "tag"))
+        rogue.put(keys.estop, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: server.estopped)
+        with pytest.raises(BridgeUnavailable, match="refused a reset: e-stop: "):
+            env.reset()
+        assert env.fault() == "estop"
+
+
 def test_bad_estop_messages_fail_safe_and_bad_answers_confirm_nothing(sessions, endpoint: str) -> None:
     """The wire fuzzer's variants (tests/test_fuzz.py) of the e-stop's two messages: a bridge counts
     each malformed e-stop or re-arm and is stopped by it (fail safe: an unreadable message on the

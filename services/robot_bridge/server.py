@@ -24,6 +24,10 @@ from services.robot_bridge.safety import Refused
 from shared import wire
 
 WATCHDOG_POLL_S = 0.1
+# An e-stop's reason goes into every refusal after it ("e-stop: <reason>"), which the client reads
+# only within wire.MAX_TEXT: a longer one (an operator's, or a garbled message's error quoting
+# what it was sent) is cut, so the actor still hears that the bridge is e-stopped.
+ESTOP_REASON_CHARS = 512
 
 
 class BridgeServer:
@@ -59,6 +63,8 @@ class BridgeServer:
     def estop(self, reason: str) -> list[int]:
         """Idempotent: the flag first, then the hardware's torque-off (which wins over a step).
         Returns when it holds, with the servos the torque-off did not reach."""
+        if len(reason) > ESTOP_REASON_CHARS:
+            reason = reason[:ESTOP_REASON_CHARS - 3] + "..."
         self.estop_reason = reason
         unreached: list[int] = []
         if self._safety is not None:
