@@ -9,6 +9,9 @@ is never imported.
 One reference update is what its training loop does per sampled minibatch with
 intrinsic rewards on: `train_policy` then `train_predictive_model`, on numpy
 arrays. Its intrinsic scoring is `get_intrinsic_values`, one transition at a time.
+
+`load_sac_ae(directory)` imports SAC-AE's reference (denisyarats/pytorch_sac_ae) the same way:
+its `sac_ae` module, with the `encoder`, `decoder` and `utils` it imports from the checkout.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import importlib
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import torch
@@ -36,18 +40,46 @@ def load_class(directory: Path) -> type:
             f"{directory} is not a checkout of UoA-CARES/NaSA_TD3 (no {ENTRY} and networks/ there); "
             "get one with: git clone https://github.com/UoA-CARES/NaSA_TD3"
         )
-    for name in [n for n in sys.modules if n in ("nasa_td3", "networks") or n.startswith("networks.")]:
-        del sys.modules[name]  # another checkout's modules, loaded before in this process
+    module = import_from(directory, "nasa_td3", ("nasa_td3", "networks"))
+    if not hasattr(module, "AE_TD3"):
+        raise ReferenceError(f"{directory / ENTRY} defines no AE_TD3")
+    return module.AE_TD3
+
+
+def import_from(directory: Path, module: str, names: tuple[str, ...]) -> ModuleType:
+    """`module` imported from `directory`, after dropping the modules `names` (and their
+    submodules) that another checkout loaded before in this process."""
+    for name in [n for n in sys.modules if n in names or n.split(".")[0] in names]:
+        del sys.modules[name]
     sys.path.insert(0, str(directory))
     try:
-        module = importlib.import_module("nasa_td3")
+        return importlib.import_module(module)
     except ImportError as err:
         raise ReferenceError(f"the reference in {directory} does not import: {err}") from err
     finally:
         sys.path.remove(str(directory))
-    if not hasattr(module, "AE_TD3"):
-        raise ReferenceError(f"{directory / ENTRY} defines no AE_TD3")
-    return module.AE_TD3
+
+
+SAC_AE_FILES = ("sac_ae.py", "encoder.py", "decoder.py", "utils.py")
+
+
+def load_sac_ae(directory: Path) -> ModuleType:
+    """SAC-AE's reference `sac_ae` module (its `SacAeAgent`), imported from `directory`. Its
+    `utils` imports gym at the top, for an environment wrapper the agent does not use."""
+    directory = Path(directory).resolve()
+    missing = [name for name in SAC_AE_FILES if not (directory / name).is_file()]
+    if missing:
+        raise ReferenceError(
+            f"{directory} is not a checkout of denisyarats/pytorch_sac_ae (no {', '.join(missing)} there); "
+            "get one with: git clone https://github.com/denisyarats/pytorch_sac_ae"
+        )
+    own = tuple(name.removesuffix(".py") for name in SAC_AE_FILES)
+    module = import_from(directory, "sac_ae", own)
+    for name in own:  # names as common as utils must not shadow other packages' modules later
+        sys.modules.pop(name, None)
+    if not hasattr(module, "SacAeAgent"):
+        raise ReferenceError(f"{directory / 'sac_ae.py'} defines no SacAeAgent")
+    return module
 
 
 def make(directory: Path, action_dim: int, frame_stack: int, device: torch.device):

@@ -217,6 +217,25 @@ def test_reference_loader_imports_the_agent_from_the_checkout(tmp_path):
     assert str(tmp_path) not in [str(Path(p).resolve()) for p in __import__("sys").path]
 
 
+def test_sac_ae_reference_loader_names_the_files_a_checkout_lacks(tmp_path):
+    (tmp_path / "sac_ae.py").write_text("")
+    with pytest.raises(reference.ReferenceError, match="no encoder.py, decoder.py, utils.py"):
+        reference.load_sac_ae(tmp_path)
+
+
+def test_sac_ae_reference_loader_imports_the_module_and_leaves_its_common_names_free(tmp_path):
+    import sys
+
+    for name, text in {"encoder.py": "WIDTH = 3\n", "decoder.py": "from encoder import WIDTH\n",
+                       "utils.py": "", "sac_ae.py": "import utils\nfrom decoder import WIDTH\n"
+                                                   "class SacAeAgent:\n    width = WIDTH\n"}.items():
+        (tmp_path / name).write_text(text)
+    module = reference.load_sac_ae(tmp_path)
+    assert module.SacAeAgent.width == 3
+    assert not {"sac_ae", "encoder", "decoder", "utils"} & set(sys.modules)
+    assert str(tmp_path) not in [str(Path(p).resolve()) for p in sys.path]
+
+
 @pytest.mark.skipif(not os.environ.get("NASA_REFERENCE_DIR"), reason="set NASA_REFERENCE_DIR to a checkout")
 def test_the_real_reference_scores_one_transition():
     import numpy as np
