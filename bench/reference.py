@@ -16,6 +16,7 @@ its `sac_ae` module, with the `encoder`, `decoder` and `utils` it imports from t
 
 from __future__ import annotations
 
+import ast
 import importlib
 import sys
 from pathlib import Path
@@ -44,6 +45,18 @@ def load_class(directory: Path) -> type:
     if not hasattr(module, "AE_TD3"):
         raise ReferenceError(f"{directory / ENTRY} defines no AE_TD3")
     return module.AE_TD3
+
+
+def argument_defaults(script: Path) -> dict[str, object]:
+    """The defaults of a training script's `add_argument` calls, by option name, read from its
+    source: the references' scripts import packages the project does not install."""
+    found: dict[str, object] = {}
+    for node in ast.walk(ast.parse(Path(script).read_text())):
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument":
+            default = [kw.value for kw in node.keywords if kw.arg == "default"]
+            if default:
+                found[node.args[0].value.lstrip("-")] = ast.literal_eval(default[0])
+    return found
 
 
 def import_from(directory: Path, module: str, names: tuple[str, ...]) -> ModuleType:

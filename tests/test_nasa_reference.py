@@ -201,15 +201,11 @@ def test_initialisation_is_the_references():
 
 def train_loop_settings() -> dict[str, object]:
     """train_loop.py's argument defaults and the constants it assigns, read from its source."""
-    tree = ast.parse((Path(REFERENCE_DIR) / "train_loop.py").read_text())
-    found: dict[str, object] = {}
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument":
-            default = [kw.value for kw in node.keywords if kw.arg == "default"]
-            if default:
-                found[node.args[0].value.lstrip("-")] = ast.literal_eval(default[0])
-        elif (isinstance(node, ast.Assign) and len(node.targets) == 1
-              and isinstance(node.targets[0], ast.Name) and isinstance(node.value, ast.Constant)):
+    script = Path(REFERENCE_DIR) / "train_loop.py"
+    found = reference.argument_defaults(script)
+    for node in ast.walk(ast.parse(script.read_text())):
+        if (isinstance(node, ast.Assign) and len(node.targets) == 1
+                and isinstance(node.targets[0], ast.Name) and isinstance(node.value, ast.Constant)):
             found[node.targets[0].id] = node.value.value
     return found
 

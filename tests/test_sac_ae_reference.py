@@ -16,7 +16,6 @@ code: `bench.reference` imports it from a checkout. Set SAC_AE_REFERENCE_DIR to 
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import importlib.util
 import inspect
@@ -46,15 +45,8 @@ OBS_SHAPE = (9, 84, 84)  # the reference's encoder is built for 84x84 frames onl
 
 
 def train_py_settings() -> dict[str, object]:
-    """train.py's argument defaults, read from its source."""
-    tree = ast.parse((Path(REFERENCE_DIR) / "train.py").read_text())
-    found: dict[str, object] = {}
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument":
-            default = [kw.value for kw in node.keywords if kw.arg == "default"]
-            if default:
-                found[node.args[0].value.lstrip("-")] = ast.literal_eval(default[0])
-    return found
+    """train.py's argument defaults."""
+    return reference.argument_defaults(Path(REFERENCE_DIR) / "train.py")
 
 
 @pytest.fixture
