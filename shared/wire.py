@@ -629,13 +629,13 @@ def check_actor_status(m: ActorStatus, b: Bounds) -> None:
     _need(len(m.episode_returns) <= MAX_LIST, f"{len(m.episode_returns)} episode returns")
     for e in m.episode_returns:
         ok = (isinstance(e, list) and len(e) == 2 and _is_number(e[0]) and abs(e[0]) <= 1e12
-              and isinstance(e[1], int) and not isinstance(e[1], bool) and 0 <= e[1] < MAX_INT)
+              and is_count(e[1]))
         _need(ok, f"episode return {e!r} is not [finite return, length]")
     _need(m.fault is None or len(m.fault) <= MAX_FAULT_TEXT, "fault: longer than a state name")
     counts = m.step_counts
     _need(not counts or len(counts) == len(STEP_SECONDS_BUCKETS) + 1,
           f"step_counts: {len(counts)} buckets, expected {len(STEP_SECONDS_BUCKETS) + 1}")
-    _need(all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < MAX_INT for n in counts),
+    _need(all(is_count(n) for n in counts),
           "step_counts: not counts")
     _need(m.step_seconds >= 0, f"step_seconds {m.step_seconds}")
 
@@ -648,7 +648,7 @@ def check_eval_result(m: EvalResult, b: Bounds) -> None:
     _need(len(kinds) <= MAX_WRITE_KINDS, f"write_failures: {len(kinds)} kinds")
     _need(all(isinstance(k, str) and 0 < len(k) <= MAX_FAULT_TEXT for k in kinds),
           "write_failures: kinds must be short names")
-    _need(all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < MAX_INT for n in kinds.values()),
+    _need(all(is_count(n) for n in kinds.values()),
           "write_failures: not counts")
     _need(all(isinstance(k, str) and k in kinds for k in m.writes_failing),
           "writes_failing: a kind without a count in write_failures")
@@ -656,6 +656,11 @@ def check_eval_result(m: EvalResult, b: Bounds) -> None:
 
 def _is_number(x: Any) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def is_count(x: Any) -> bool:
+    """Whether a raw field holds an int the wire takes as a count, id or index: [0, 2**62)."""
+    return isinstance(x, int) and not isinstance(x, bool) and 0 <= x < MAX_INT
 
 
 CHECKS: dict[type[Message], Any] = {

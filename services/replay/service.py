@@ -116,11 +116,6 @@ def check_args(args: ReplayArgs) -> None:
         envs.check_camera(args.config.env)
 
 
-def _is_id(value: object) -> bool:
-    """Whether a raw message field holds an id the wire takes (an int in [0, 2**62))."""
-    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < wire.MAX_INT
-
-
 def default_error_buffer(updates_per_step: int) -> float:
     return 2.0 * updates_per_step * 16 + 8
 
@@ -192,14 +187,14 @@ class ReplayService(MessageGuard):
         try:
             body = msgpack.unpackb(sample.payload.to_bytes(), raw=False, strict_map_key=False)
             actor_id, incarnation, shape = body["actor_id"], body["incarnation"], body.get("frame_shape")
-            named = _is_id(actor_id) and _is_id(incarnation)
+            named = wire.is_count(actor_id) and wire.is_count(incarnation)
             if not named or str(sample.key_expr) != self.keys.insert(actor_id):
                 return
             lasting = isinstance(shape, list) and shape != list(self.frame_shape)
             # Echoed only where a writer can read it back (an ack it refuses never reaches it); 0 is
             # taken by every launch of the incarnation.
             launch = body.get("launch", 0)
-            launch = launch if _is_id(launch) else 0
+            launch = launch if wire.is_count(launch) else 0
             ack = wire.InsertAck(actor_id, incarnation, self.store.num_inserted, str(err)[:wire.MAX_TEXT],
                                  lasting, launch)
             self.session.put(self.keys.ack(actor_id), wire.encode(ack))
