@@ -341,16 +341,22 @@ def test_history_carries_on_the_series_an_earlier_learner_left(tmp_path):
         History().restore(tmp_path, wall_s=5.0)
 
 
-def test_rates_fall_while_the_loop_takes_no_samples():
+def test_rates_fall_while_the_loop_takes_no_samples(monkeypatch):
+    from types import SimpleNamespace
+
+    from services.learner import status
+
+    clock = [100.0]  # the board's own clock, so that a slow machine cannot change the rates
+    monkeypatch.setattr(status, "time", SimpleNamespace(monotonic=lambda: clock[0]))
     board = StatusBoard()
     board.sample_rates(0)
-    time.sleep(0.6)
+    clock[0] += 0.6
     board.sample_rates(12)
-    _, sampled = board.rates()
-    assert sampled > 12
-    time.sleep(1.5)  # the loop evaluates, or waits: no samples, no updates
-    _, stalled = board.rates()
-    assert stalled < sampled / 2
+    assert board.rates()[1] == pytest.approx(20.0)
+    clock[0] += status.STALE_SAMPLE_S / 2  # between two samples: the rate holds
+    assert board.rates()[1] == pytest.approx(20.0)
+    clock[0] = 100.0 + 2.1  # the loop evaluates, or waits: no samples, no updates
+    assert board.rates()[1] == pytest.approx(12 / 2.1)
 
 
 @pytest.fixture
