@@ -82,10 +82,13 @@ def test_a_subscriber_that_missed_the_only_publish_asks_for_the_latest_until_it_
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     keys = wire.Keys("weights-test")
     latest: list[bytes] = []
+    answered: list[bool] = []  # per query the learner answered: with weights or not
 
     def answer(query: zenoh.Query) -> None:
-        if latest:
-            query.reply(keys.eval_weights_latest, latest[0])
+        held = list(latest)
+        if held:
+            query.reply(keys.eval_weights_latest, held[0])
+        answered.append(bool(held))
         query.drop()
 
     actor, learner = _agent(0), _agent(1)
@@ -94,11 +97,15 @@ def test_a_subscriber_that_missed_the_only_publish_asks_for_the_latest_until_it_
         sub = WeightsSubscriber(actor, lambda what: None).subscribe(
             at_evaluator, keys.eval_weights, keys.eval_weights_latest)
         with sub:
-            time.sleep(0.5)  # the first query has been answered with nothing
-            assert not sub.maybe_load()
+            deadline = time.monotonic() + 10.0
+            while not answered:  # the first query, answered with nothing
+                assert not sub.maybe_load()
+                assert time.monotonic() < deadline, "the learner was never asked"
+                time.sleep(0.05)
             latest.append(_message(learner, epoch=1, version=0))  # held now, never published
             deadline = time.monotonic() + 10.0
             while not sub.maybe_load():
                 assert time.monotonic() < deadline, "the subscriber never asked again"
                 time.sleep(0.05)
             assert sub.version == 0 and _same(actor, learner)
+            assert answered[0] is False and True in answered  # loaded from a later query
