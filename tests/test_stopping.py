@@ -4,11 +4,13 @@ line, with real processes and real signals (no Zenoh, no torch in the children).
 from __future__ import annotations
 
 import ast
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -61,52 +63,58 @@ def gone(pid: int) -> bool:
         return True
 
 
-def test_a_second_ctrl_c_while_nasa_up_stops_in_order_kills_what_is_left_and_exits_130(tmp_path):
-    up = start(UP_STOP, str(tmp_path), "signal")
+@contextlib.contextmanager
+def up_stop(folder: Path, how: str) -> Iterator[tuple[subprocess.Popen, list[int]]]:
+    """UP_STOP started, and its services' pids once both run. Its services ignore SIGTERM and run in
+    sessions of their own: whatever of them a failing test leaves is killed here, not left running."""
+    up = start(UP_STOP, str(folder), how)
+    pids: list[int] = []
     try:
-        pids = [int(p) for p in up.stdout.readline().split()[1:]]
+        pids += [int(p) for p in up.stdout.readline().split()[1:]]
+        yield up, pids
+    finally:
+        up.kill()
+        up.wait()
+        for pid in pids:
+            if not gone(pid):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def test_a_second_ctrl_c_while_nasa_up_stops_in_order_kills_what_is_left_and_exits_130(tmp_path):
+    with up_stop(tmp_path, "signal") as (up, pids):
         assert len(pids) == 2
         up.send_signal(signal.SIGINT)
         assert up.stdout.readline().strip() == ("nasa up: stopping in order (SIGINT); Ctrl-C again "
                                                 "kills what is left")
         up.send_signal(signal.SIGINT)  # both services ignore SIGTERM: without it, a 600 s wait
         out, err = up.communicate(timeout=120)
-    finally:
-        up.kill()
+        assert all(gone(p) for p in pids)
     assert up.returncode == 130, (out, err)
     assert out.strip() == ("nasa up: forced to stop (SIGINT); killed actor-0, learner; the same command "
                            "resumes it")
     assert "Traceback" not in err, err
-    assert all(gone(p) for p in pids)
 
 
 def test_a_ctrl_c_while_a_finished_run_stops_in_order_forces_it(tmp_path):
-    up = start(UP_STOP, str(tmp_path), "done")
-    try:
-        pids = [int(p) for p in up.stdout.readline().split()[1:]]
+    with up_stop(tmp_path, "done") as (up, pids):
         assert up.stdout.readline().strip() == ("nasa up: stopping in order (the run is done (learner "
                                                 "finished)); Ctrl-C kills what is left")
         up.send_signal(signal.SIGTERM)
         out, _ = up.communicate(timeout=120)
-    finally:
-        up.kill()
+        assert all(gone(p) for p in pids)
     assert up.returncode == 143, out
     assert out.strip().startswith("nasa up: forced to stop (SIGTERM); killed actor-0, learner")
-    assert all(gone(p) for p in pids)
 
 
 def test_a_second_sighup_does_not_force_the_stop(tmp_path):
     # A closed terminal can send SIGHUP twice (the kernel, then the shell): it still stops in order.
-    up = start(UP_STOP, str(tmp_path), "signal")
-    try:
-        up.stdout.readline()
+    with up_stop(tmp_path, "signal") as (up, _):
         up.send_signal(signal.SIGHUP)
         assert up.stdout.readline().startswith("nasa up: stopping in order (SIGHUP)")
         up.send_signal(signal.SIGHUP)
         up.send_signal(signal.SIGINT)  # only this one forces: the exit code says which
         out, _ = up.communicate(timeout=120)
-    finally:
-        up.kill()
     assert up.returncode == 130 and out.startswith("nasa up: forced to stop (SIGINT)"), out
 
 
