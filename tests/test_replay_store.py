@@ -315,6 +315,10 @@ def test_sampling_without_replacement_has_no_repeat_and_stays_uniform() -> None:
 def test_concurrent_writer_and_sampler() -> None:
     import threading
 
+    # The same fills on a store of its own give every record the sampler may draw, before it runs.
+    reference = ReplayStore(500, SHAPE, K, A)
+    expected = fill(reference, np.random.default_rng(0), 100)
+    expected |= fill(reference, np.random.default_rng(1), 1500, first_actor=10)
     store = ReplayStore(500, SHAPE, K, A)
     naive = fill(store, np.random.default_rng(0), 100)
     errors = []
@@ -324,6 +328,7 @@ def test_concurrent_writer_and_sampler() -> None:
             for s in range(60):
                 b = store.sample(32, np.random.default_rng(s))
                 assert b["obs"].shape[0] == 32
+                check_batch(b, expected)  # what a batch drawn while rows are evicted holds
         except Exception as e:  # surfaced below
             errors.append(e)
 
