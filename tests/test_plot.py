@@ -146,6 +146,7 @@ def test_plot_command_writes_figures_and_table(
         if cells[0] in TASKS:
             rows[cells[0], cells[1]] = cells
             assert line in printed  # the same table is printed
+    assert set(rows) == {(t, a) for t in TASKS for a in ALGOS}  # each row read, or none is checked below
     paper = {"cartpole-balance": {"nasa_td3": "~950", "td3_ae": "~950"},
              "cheetah-run": {"nasa_td3": "~570", "td3_ae": "~360"}}
     for (task, algo), (_, _, seeds, repeat, last, frame, final, best, paper_cell) in rows.items():
