@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -19,16 +18,12 @@ import pytest
 from deploy_files import COMPOSE, torch_version
 from docker_harness import DockerHost, Unavailable, run
 
+from nasa.up import free_port
+
 pytestmark = [pytest.mark.docker, pytest.mark.system, pytest.mark.timeout(3600)]
 
 PROJECT = "nasa-td3-test"
 IMAGE = "nasa-td3-test:latest"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -86,9 +81,9 @@ def _updates_growing(port: int, seen: list[int]) -> bool:
 
 def test_compose_builds_runs_scales_and_stops(host: DockerHost, capsys: pytest.CaptureFixture) -> None:
     host.stage_build_inputs(torch_version())
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "IMAGE": IMAGE, "TORCH_INDEX": host.torch_index, "COMPOSE_PROJECT_NAME": PROJECT,
-           "STATUS_PORT": str(port), "ROUTER_PORT": str(_free_port()), "DOCKER_BUILDKIT": "0",
+           "STATUS_PORT": str(port), "ROUTER_PORT": str(free_port()), "DOCKER_BUILDKIT": "0",
            "COMPOSE_DOCKER_CLI_BUILD": "0"}
     compose = Compose(host, env)
     compose("down", "--volumes", "--remove-orphans", check=False)  # what a failed run left
