@@ -14,7 +14,7 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -62,10 +62,30 @@ def stop_and_check(bench: subprocess.Popen, signum: int, mark: str, tmp: Path) -
     return out
 
 
+_started: list[tuple[subprocess.Popen, str]] = []  # the benchmarks the running test started, and their marks
+
+
+@pytest.fixture(autouse=True)
+def no_benchmark_left() -> Iterator[None]:
+    """Kill what a failing test leaves of its benchmarks: one that never got to its signal runs on for
+    its whole budget (minutes of a training run), beside the rest of the suite."""
+    yield
+    while _started:
+        bench, mark = _started.pop()
+        if bench.poll() is None:
+            bench.kill()
+            bench.wait()
+        for pid, _ in marked(mark):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
 def start(argv: list[str], mark: str, tmp: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO), "BENCH_TEST_MARK": mark, "TMPDIR": str(tmp)}
-    return subprocess.Popen([sys.executable, "-m", *argv], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    bench = subprocess.Popen([sys.executable, "-m", *argv], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)
+    _started.append((bench, mark))
+    return bench
 
 
 def running(mark: str, needle: str) -> Callable[[], bool]:
