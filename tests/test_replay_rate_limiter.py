@@ -11,6 +11,35 @@ import pytest
 from shared.replay import RateLimiterClosed, SampleToInsertRatio
 
 
+class Watched(SampleToInsertRatio):
+    """Records the threads whose wait it has refused. It checks and waits under one lock, so a
+    thread recorded here is in its wait by the time another can change the limiter."""
+
+    def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003
+        super().__init__(*args, **kwargs)
+        self.refused: set[int] = set()
+
+    def can_insert(self, n: int = 1) -> bool:
+        ok = super().can_insert(n)
+        if not ok:
+            self.refused.add(threading.get_ident())
+        return ok
+
+    def can_sample(self, n: int = 1) -> bool:
+        ok = super().can_sample(n)
+        if not ok:
+            self.refused.add(threading.get_ident())
+        return ok
+
+
+def wait_blocked(threads: list[threading.Thread], *limiters: Watched) -> None:
+    """Until every thread waits in one of the limiters; the deadline only stops a hung test."""
+    deadline = time.monotonic() + 10
+    while not all(any(t.ident in rl.refused for rl in limiters) for t in threads):
+        assert time.monotonic() < deadline, "a thread never waited"
+        time.sleep(0.01)
+
+
 def test_min_size_blocks_samples_not_inserts() -> None:
     rl = SampleToInsertRatio(samples_per_insert=2.0, min_size_to_sample=3, error_buffer=2.0)
     assert not rl.take_sample(timeout=0.01)
@@ -21,7 +50,7 @@ def test_min_size_blocks_samples_not_inserts() -> None:
 
 
 def test_inserts_block_when_ahead_and_release_on_sample() -> None:
-    rl = SampleToInsertRatio(samples_per_insert=2.0, min_size_to_sample=1, error_buffer=2.0)
+    rl = Watched(samples_per_insert=2.0, min_size_to_sample=1, error_buffer=2.0)
     rl.insert()  # diff = 2 = center
     rl.insert()  # diff = 4 = max
     assert not rl.await_insert(timeout=0.02)  # another would overshoot
@@ -33,7 +62,7 @@ def test_inserts_block_when_ahead_and_release_on_sample() -> None:
 
     t = threading.Thread(target=writer)
     t.start()
-    time.sleep(0.05)
+    wait_blocked([t], rl)
     assert not released.is_set()
     assert rl.take_sample(2, timeout=0)  # diff = 2: room for one more insert
     t.join(2)
@@ -41,14 +70,14 @@ def test_inserts_block_when_ahead_and_release_on_sample() -> None:
 
 
 def test_samples_block_when_ahead_and_release_on_insert() -> None:
-    rl = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=2, error_buffer=1.0)
+    rl = Watched(samples_per_insert=1.0, min_size_to_sample=2, error_buffer=1.0)
     rl.insert(2)  # diff 2 = center, min 1
     assert rl.take_sample(timeout=0.01)
     assert not rl.take_sample(timeout=0.02)  # diff 1 - 1 < min
     got = []
     t = threading.Thread(target=lambda: got.append(rl.take_sample(timeout=5)))
     t.start()
-    time.sleep(0.05)
+    wait_blocked([t], rl)
     assert not got
     rl.insert()
     t.join(2)
@@ -86,7 +115,7 @@ def test_ratio_is_kept_by_concurrent_sides() -> None:
 
 
 def test_close_releases_all_waiters() -> None:
-    rl = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
+    rl = Watched(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
     results = []
 
     def waiter(fn) -> None:
@@ -98,11 +127,11 @@ def test_close_releases_all_waiters() -> None:
 
     rl.insert(6)  # diff 6 > max 6? max = 5 + 1 = 6: one more insert blocks
     threads = [threading.Thread(target=waiter, args=(rl.await_insert,)) for _ in range(3)]
-    rl2 = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
+    rl2 = Watched(samples_per_insert=1.0, min_size_to_sample=5, error_buffer=1.0)
     threads += [threading.Thread(target=waiter, args=(rl2.take_sample,)) for _ in range(3)]
     for t in threads:
         t.start()
-    time.sleep(0.05)
+    wait_blocked(threads, rl, rl2)
     assert results == []
     rl.close()
     rl2.close()
