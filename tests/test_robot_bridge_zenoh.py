@@ -19,7 +19,7 @@ import zenoh
 from nasa.up import free_port
 from services.robot_bridge import operate
 from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
-from services.robot_bridge.server import BridgeServer
+from services.robot_bridge.server import ESTOP_REASON_CHARS, BridgeServer
 from shared import wire
 from shared.envs import FrameStack
 from shared.evaluation import draws_restarter
@@ -462,7 +462,9 @@ def test_an_estop_with_a_long_text_still_tells_the_actor_it_is_an_estop(sessions
         wait_until(lambda: server.estopped)
         with pytest.raises(BridgeUnavailable, match="refused a reset: e-stop: "):
             env.reset()
-        assert env.fault() == "estop"
+        assert env.fault() == "estop" and len(server.estop_reason) <= ESTOP_REASON_CHARS
+        if sent == "long reason":
+            assert server.estop_reason == "r" * (ESTOP_REASON_CHARS - 3) + "..."
 
 
 def test_bad_estop_messages_fail_safe_and_bad_answers_confirm_nothing(sessions, endpoint: str) -> None:

@@ -40,6 +40,7 @@ from dynamixel_sdk import (
 from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
 
 from services.robot_bridge import xl320
+from shared.text import clip
 
 try:
     from termios import error as _TermiosError  # pyserial's input flush raises it on a dead device
@@ -79,7 +80,7 @@ def _lock_holders(port: str) -> list[str]:
             except OSError:
                 argv = ""
             command = " ".join(argv.replace("\0", " ").split())  # one line: `python -c` code has newlines
-            command = command if len(command) <= 100 else command[:97] + "..."
+            command = clip(command, 100)
             holders.append(f"pid {pid}: {command}" if command else f"pid {pid}")
     return holders
 

@@ -22,6 +22,7 @@ import zenoh
 
 from services.robot_bridge.safety import Refused
 from shared import wire
+from shared.text import clip
 
 WATCHDOG_POLL_S = 0.1
 # An e-stop's reason goes into every refusal after it ("e-stop: <reason>"), which the client reads
@@ -63,8 +64,7 @@ class BridgeServer:
     def estop(self, reason: str) -> list[int]:
         """Idempotent: the flag first, then the hardware's torque-off (which wins over a step).
         Returns when it holds, with the servos the torque-off did not reach."""
-        if len(reason) > ESTOP_REASON_CHARS:
-            reason = reason[:ESTOP_REASON_CHARS - 3] + "..."
+        reason = clip(reason, ESTOP_REASON_CHARS)
         self.estop_reason = reason
         unreached: list[int] = []
         if self._safety is not None:
