@@ -420,8 +420,9 @@ def test_an_estop_ack_for_another_operator_is_not_taken(sessions, endpoint: str)
 
 def test_an_answer_that_does_not_say_the_command_held_confirms_nothing() -> None:
     """A confirmation needs the bridge's state to say the command held: an e-stop answered with
-    another state, or a re-arm answered `estop`, is not confirmed (exit 1)."""
-    for command, state in (("estop", "ready"), ("estop", "recovering"), ("rearm", "estop")):
+    another state, or a re-arm answered `estop` or `waiting_for_operator`, is not confirmed (exit 1)."""
+    for command, state in (("estop", "ready"), ("estop", "recovering"), ("rearm", "estop"),
+                           ("rearm", "waiting_for_operator"), ("rearm", "x")):
         ack = wire.BridgeEStopAck("r", command == "estop", state, [], "h pid 1")
         line, confirmed = operate.report(command, "g1", ack, 5.0)
         assert not confirmed, line
@@ -430,6 +431,26 @@ def test_an_answer_that_does_not_say_the_command_held_confirms_nothing() -> None
     for command, state in (("estop", "estop"), ("rearm", "recovering"), ("rearm", "ready")):
         ack = wire.BridgeEStopAck("r", command == "estop", state, [], "h pid 1")
         assert operate.report(command, "g1", ack, 5.0)[1]
+
+
+def test_a_rearm_whose_recovery_failed_before_the_answer_is_not_confirmed(sessions, endpoint: str) -> None:
+    """A bridge whose homing failed in the instant before it answered says `waiting_for_operator`
+    (torque off, resets refused): `operate rearm` must not tell the operator the re-arm worked."""
+    bridge_session, _ = sessions
+    keys = wire.BridgeKeys("g12")
+
+    def answer(sample) -> None:  # noqa: ANN001 -- a stand-in bridge, answering the command's own request
+        sent = wire.decode(sample.payload.to_bytes(), wire.BridgeEStop)
+        ack = wire.BridgeEStopAck(sent.request, sent.engage, "waiting_for_operator", [], "h pid 1")
+        bridge_session.put(keys.estop_ack, wire.encode(ack))
+
+    with bridge_session.declare_subscriber(keys.estop, answer):
+        result = estop_cli("g12", endpoint, "--wait-s", "10", command="rearm")
+    assert result.returncode == 1 and "confirmed by" not in result.stdout, result.stdout
+    assert result.stderr.splitlines() == [
+        "NOT confirmed: bridge g12 (h pid 1) answered the rearm with state waiting_for_operator: its "
+        "recovery failed (torque off, resets refused): clear the fault its replies name under safety, "
+        "then send the re-arm again"], result.stderr
 
 
 def test_a_bridge_estopped_before_its_first_episode_refuses_in_a_reply_the_actor_reads(sessions) -> None:

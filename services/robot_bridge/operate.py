@@ -5,7 +5,8 @@
     python -m services.robot_bridge.operate calibrate --config gripper.toml
 
 `estop` and `rearm` wait for the bridge's acknowledgement and say who gave it; with none within
---wait-s (no bridge of that id heard it) they exit 1.
+--wait-s (no bridge of that id heard it), or one whose state says the command did not take effect
+(a re-arm answered `waiting_for_operator`: its recovery failed), they exit 1.
 
 `calibrate` prints the raw angle reading (ArUco marker or valve servo) with the valve at the angle
 you want as 0: put that number in the config's `angle.zero_deg`.
@@ -59,16 +60,26 @@ def send_estop(bridge_id: str, engage: bool, reason: str, connect: str,
 
 def report(command: str, bridge_id: str, ack: wire.BridgeEStopAck | None, wait_s: float) -> tuple[str, bool]:
     """What the operator is told of an `estop`/`rearm`, and whether it took effect."""
+    from services.robot_bridge.safety import REARMED
+
     if ack is None:
         what = ("stop the bridge itself (Ctrl-C) or cut the servos' power" if command == "estop"
                 else "check that the bridge runs, then send the re-arm again")
         return (f"NOT confirmed: {command} went out, but no bridge {bridge_id} answered within {wait_s:g} s "
                 f"(a wrong --bridge-id, a bridge that is down, or one older than this command): check "
                 f"the id; {what}", False)
-    # Only an answer that says the bridge is stopped confirms a stop; a re-arm, one that it is not.
-    if (ack.state == "estop") != (command == "estop"):
-        what = ("it is not e-stopped: stop the bridge itself (Ctrl-C) or cut the servos' power"
-                if command == "estop" else "it is still e-stopped: send the re-arm again")
+    # Only an answer that says the bridge is stopped confirms a stop; a re-arm, one that it is
+    # homing or ready (`waiting_for_operator`: the re-arm's recovery failed before the answer).
+    if command == "estop" and ack.state != "estop":
+        what = "it is not e-stopped: stop the bridge itself (Ctrl-C) or cut the servos' power"
+    elif command == "rearm" and ack.state == "estop":
+        what = "it is still e-stopped: send the re-arm again"
+    elif command == "rearm" and ack.state not in REARMED:
+        what = ("its recovery failed (torque off, resets refused): clear the fault its replies name "
+                "under safety, then send the re-arm again")
+    else:
+        what = ""
+    if what:
         return (f"NOT confirmed: bridge {bridge_id} ({ack.bridge}) answered the {command} with state "
                 f"{ack.state}: {what}", False)
     if ack.unreached:

@@ -49,6 +49,11 @@ class State(StrEnum):
     WAITING_FOR_OPERATOR = "waiting_for_operator"
 
 
+REARMED = (State.RECOVERING, State.READY)
+"""The states that show a re-arm took effect: homing (the state the re-arm sets) or done. After a
+re-arm, `waiting_for_operator` is a recovery that failed, and `estop` a later e-stop."""
+
+
 class Watchdog(StrEnum):
     ACTIVE = "active"
     HOLDING = "holding"
