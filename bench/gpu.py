@@ -250,11 +250,13 @@ def step_up(budget: Budget, seconds: float, port: int, poll_s: float = 5.0) -> d
     run_for = min(seconds, budget.left() - 60)
     if run_for < 30:
         return {"error": "skipped: out of time"}
+    from shared.service import followed  # not at the top: shared needs what the set-up step installs
+
     data = Path(tempfile.mkdtemp(prefix="gpu-check-up-"))
     cmd = [sys.executable, "-m", "nasa.cli", "up", *UP_ARGS, "--data", str(data / "run"),
            "--port", str(port), "--router-port", "0", "--logs"]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            errors="replace", start_new_session=True, env=processes.followed())  # fmt: skip
+                            errors="replace", start_new_session=True, env=followed())  # fmt: skip
     output = processes.Drain(proc.stdout)  # read all along, or nasa up stalls once the pipe is full
     samples, gpu, start = [], [], time.monotonic()
     window = UpWindow(proc.pid, port, data)

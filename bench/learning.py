@@ -41,11 +41,12 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from bench.args import task_name
-from bench.processes import followed, stop_group, stopped_cleanly
+from bench.processes import stop_group, stopped_cleanly
 from nasa.layout import usable_cores
 from nasa.up import free_port
 from shared.faults import RunFolderError, lock_run
 from shared.runlog import eval_walls, read_rows
+from shared.service import followed
 
 TASK = "ball_in_cup-catch"
 ALGO = "nasa_td3"
@@ -61,7 +62,7 @@ def run_bounded(argv: list[str], minutes: float, log: Path, eval_csv: Path | Non
     user waits for them (each run's own clock starts elsewhere). At the bound it gets SIGINT (a
     user's Ctrl-C), then SIGTERM: a process started in the background by a non-interactive shell
     ignores SIGINT. Should this process die by SIGKILL, the command gets SIGTERM and stops its run
-    (NASA_PARENT_PID: `followed`).
+    (NASA_PARENT_PID: `shared.service.followed`).
     """
     start = time.monotonic()
     seen: dict[int, float] = {}

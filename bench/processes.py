@@ -9,7 +9,7 @@ A child whose output comes through a pipe must have it read all along (Drain): a
 some 64 KiB, and a child that finds it full stops at its next line until someone reads.
 
 A benchmark killed by SIGKILL runs no `finally` block: a `nasa up` or `nasa train` it started with
-`followed()` stops its run then too.
+`shared.service.followed()` stops its run then too.
 """
 
 from __future__ import annotations
@@ -99,12 +99,6 @@ def stop_group(proc: subprocess.Popen, steps: tuple[tuple[int, float], ...] = ST
     if not _group_gone(proc):
         _kill_group(proc)
     return proc.returncode
-
-
-def followed() -> dict[str, str]:
-    """This process's environment naming it in NASA_PARENT_PID: a `nasa up` or `nasa train` started
-    with it gets SIGTERM when this process dies, even by SIGKILL, and stops its run in order."""
-    return {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
 
 
 def _stat(proc: Path) -> list[bytes]:

@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 
-from bench.processes import followed
 from nasa.up import free_port
 from services.robot_bridge.client import BridgeEnv
 from shared import wire
 from shared.gripper.sim import EPISODE_STEPS, ValveSim
+from shared.service import followed
 from shared.zenoh_session import open_client, open_router, token_up
 
 TASK = "gripper-valve_reset"

@@ -38,11 +38,11 @@ import numpy as np
 
 from bench.args import task_name
 from bench.gil_profile import GilProfileError, Recording
-from bench.processes import Drain, followed, processes_with, stop_group, stopped_cleanly
+from bench.processes import Drain, processes_with, stop_group, stopped_cleanly
 from bench.system import cpu_seconds
 from nasa.layout import usable_cores
 from nasa.up import free_port
-from shared.service import EXIT_BAD_INPUT
+from shared.service import EXIT_BAD_INPUT, followed
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import os
 import shlex
 import signal
 import subprocess
@@ -30,7 +29,7 @@ from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.files import last_line
 from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
 from shared.runlog import checkpointed_step, read_rows
-from shared.service import EXIT_BAD_INPUT, FlagError, given_flags, read_flags
+from shared.service import EXIT_BAD_INPUT, FlagError, followed, given_flags, read_flags
 
 if TYPE_CHECKING:
     import torch
@@ -279,9 +278,8 @@ def launch(run: Run, cmd: list[str]) -> tuple[subprocess.Popen, IO[str]]:
     the `nasa reproduce` started again to resume it would find it taken."""
     run.out.mkdir(parents=True, exist_ok=True)
     log = open(run.out / "train.log", "a")
-    env = {**os.environ, "NASA_PARENT_PID": str(os.getpid())}
     try:
-        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=followed()), log
     except BaseException:
         log.close()
         raise

@@ -63,6 +63,7 @@ from shared.service import (
     EXIT_BAD_INPUT,
     EXIT_LOGIN_REFUSED,
     die_with_parent,
+    followed,
     given_flags,
     parse_with_preset,
     read_flags,
@@ -103,7 +104,7 @@ class Child:
 
 
 def child_env(base: dict[str, str], over: dict[str, str | None]) -> dict[str, str]:
-    env = {**base, "NASA_PARENT_PID": str(os.getpid())}
+    env = followed(base)
     for key, value in over.items():
         if value is None:
             env.pop(key, None)

@@ -27,7 +27,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TypeVar
 
@@ -195,6 +195,13 @@ def _read_run_config(path: Path) -> TrainConfig:
     from shared.run_config import read_config
 
     return read_config(path)
+
+
+def followed(base: Mapping[str, str] = os.environ) -> dict[str, str]:
+    """`base` (this process's environment) naming this process in NASA_PARENT_PID: a process started
+    with it that calls `die_with_parent` (`nasa up`, `nasa train`, every service) gets SIGTERM when
+    this process dies, even by SIGKILL, and stops in order."""
+    return {**base, "NASA_PARENT_PID": str(os.getpid())}
 
 
 def die_with_parent() -> None:
