@@ -364,6 +364,9 @@ def test_an_adapter_unplugged_and_plugged_back_is_reopened(tmp_path) -> None:
         first.close()  # unplugged: the pty is gone, the bus's file is dead
         with pytest.raises(BusError, match="serial port"):
             bus.read_state()
+        with pytest.raises(BusError) as missing:  # the reopen finds no device under the name
+            bus.read_state()
+        assert str(missing.value) == f"serial port {link}: No such file or directory"
         with BusEmulator(IDS, positions={1: 310, 2: 410, 3: 510, 4: 610}) as second:  # plugged back
             link.unlink()
             link.symlink_to(second.port)
@@ -373,6 +376,13 @@ def test_an_adapter_unplugged_and_plugged_back_is_reopened(tmp_path) -> None:
         first.close()
     with pytest.raises(BusError, match="closed"):
         bus.read_state()  # a bus closed on purpose stays closed
+
+
+def test_a_missing_adapter_is_named_once_with_the_systems_reason(tmp_path) -> None:
+    missing = tmp_path / "ttyUSB9"
+    with pytest.raises(BusError) as refused:
+        ServoBus(str(missing), 1000000, IDS, latency_ms=LATENCY_MS)
+    assert str(refused.value) == f"cannot open {missing}: No such file or directory"
 
 
 def test_a_second_opener_of_a_held_port_is_refused_and_the_first_runs_on(rig) -> None:

@@ -61,6 +61,15 @@ class PortHeld(OSError):
     """Another process holds the port's lock: its packets and ours would interleave on the bus."""
 
 
+def _port_failure(err: BaseException) -> str:
+    """Why a port failed, once. pyserial's text for a port it could not open says the system's
+    reason twice ("[Errno 2] could not open port P: [Errno 2] No such file or directory: 'P'"):
+    such a failure (it gives an errno to an open's failures only) is the system's reason alone."""
+    if isinstance(err, serial.SerialException) and isinstance(err.errno, int):
+        return os.strerror(err.errno)
+    return str(err)
+
+
 def _lock_holders(port: str) -> list[str]:
     """The processes holding a lock on the port's device (pid and command line), as /proc/locks
     lists them; none where this system does not."""
@@ -272,7 +281,7 @@ class ServoBus:
             # closed and opened again in between, when another process could take its lock.
             opened = self.port.setBaudRate(baud)
         except _PORT_FAILURES as err:  # no such device, no access to it, or held by another process
-            raise BusError(f"cannot open {port}: {err}", self.ids) from err
+            raise BusError(f"cannot open {port}: {_port_failure(err)}", self.ids) from err
         if not opened:  # a rate the SDK has no setting for: the port is not opened
             raise BusError(f"cannot set {port} to {baud} baud", self.ids)
         self._goals = GroupSyncWrite(self.port, self.packet, xl320.GOAL_POSITION, 2)
@@ -302,7 +311,7 @@ class ServoBus:
             self.port.is_using = False
             with suppress(*_PORT_FAILURES):
                 self.port.closePort()  # opened again at the next transfer
-            raise BusError(f"serial port: {err}", list(ids)) from err
+            raise BusError(f"serial port {self.port.port_name}: {_port_failure(err)}", list(ids)) from err
 
     # -- whole bus -----------------------------------------------------------------------------
     def write_goals(self, goals: dict[int, int]) -> None:
