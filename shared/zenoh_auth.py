@@ -115,7 +115,7 @@ def write_acl(folder: Path, run_id: str = ANY) -> None:
 def check_acl(folder: Path, run_id: str | None = None) -> None:
     """AuthError unless the folder's acl.json is the one `init` makes today for `run_id` or every run:
     an ACL for another run, or from an older wiring, would deny this run's messages without a word.
-    `run_id` None (a router of its own, which serves runs it is not told of): for any run it names."""
+    `run_id` None (a router not told its run: no NASA_RUN_ID): for any run it names."""
     path = folder / ACL_FILE
     text = _read(path, folder) if path.exists() else "null"
     try:
@@ -127,9 +127,10 @@ def check_acl(folder: Path, run_id: str | None = None) -> None:
     # A missing or damaged file (None) matches no ACL, not even the None of a run id no run can have.
     if held is None or not any(held == _acl_of(run) for run in runs):
         run = run_id or (named[0] if len(named) == 1 else "RUN_ID")
-        raise AuthError(f"{path} is missing, or made for another run or an older wiring: "
-                        f"`nasa auth init {folder} --run-id {run} --acl-only` makes it anew "
-                        "and keeps the passwords")
+        remake = f"`nasa auth init {folder} --run-id {run} --acl-only` makes it anew and keeps the passwords"
+        if run_id is not None and len(named) == 1 and held == _acl_of(named[0]):
+            raise AuthError(f"{path} is made for run {named[0]}, not {run_id}: {remake}")
+        raise AuthError(f"{path} is missing, or made for another run or an older wiring: {remake}")
 
 
 def _acl_of(run_id: str) -> dict | None:

@@ -377,6 +377,41 @@ def test_a_router_takes_the_acl_of_one_run_or_of_every_run_but_not_an_older_wiri
         zenoh_auth.check_acl(folder)
 
 
+def start_router(folder: Path, run_id: str | None) -> tuple[bool, list[str]]:
+    """A router process on `folder` under NASA_RUN_ID `run_id` (None: unset): whether it came up
+    (it is stopped then), and what it wrote until it did or exited."""
+    env = {k: v for k, v in os.environ.items() if k != "NASA_RUN_ID"}
+    if run_id is not None:
+        env["NASA_RUN_ID"] = run_id
+    cmd = [sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
+           "--auth", str(folder)]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = []
+        while line := proc.stderr.readline():  # type: ignore[union-attr]
+            lines.append(line)
+            if "listening on" in line:
+                return True, lines
+        assert proc.wait(timeout=60) == 2, lines
+        return False, lines
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+@pytest.mark.system  # router processes
+def test_a_router_told_its_run_refuses_an_acl_made_for_another(tmp_path: Path) -> None:
+    """Started on it, the router would deny every service of its run without a word."""
+    other = zenoh_auth.init(tmp_path / "other", "another-run")
+    listened, lines = start_router(other, RUN)
+    assert not listened and lines == [
+        f"router: error: {other / zenoh_auth.ACL_FILE} is made for run another-run, not {RUN}: `nasa auth "
+        f"init {other} --run-id {RUN} --acl-only` makes it anew and keeps the passwords\n"]
+    assert start_router(other, "another-run")[0]
+    assert start_router(other, None)[0]  # not told its run: any one run's ACL is its own
+    assert start_router(zenoh_auth.init(tmp_path / "every", wire.ANY), RUN)[0]
+
+
 @pytest.mark.system  # router processes
 def test_a_router_refuses_an_acl_from_an_older_wiring_and_starts_once_it_is_remade(tmp_path: Path) -> None:
     """Zenoh would enforce it as it is, dropping the newer keys' messages (a bridge's answer to an
@@ -494,7 +529,7 @@ def test_an_acl_for_another_run_or_an_older_wiring_is_refused(tmp_path: Path) ->
     zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "mine", RUN), RUN)
     zenoh_auth.check_acl(zenoh_auth.init(tmp_path / "every", wire.ANY), RUN)
     other = zenoh_auth.init(tmp_path / "other", "another-run")
-    with pytest.raises(zenoh_auth.AuthError, match="another run"):
+    with pytest.raises(zenoh_auth.AuthError, match=f"made for run another-run, not {RUN}: "):
         zenoh_auth.check_acl(other, RUN)
     stale = json.loads((other / zenoh_auth.ACL_FILE).read_text())
     stale["rules"] = stale["rules"][1:]

@@ -76,9 +76,9 @@ def test_compose_has_the_topology():
         role = name.removesuffix("-gpu").removesuffix("-robot")
         assert svc["command"][:3] == ["python", "-m", f"services.{role}"]
         assert svc["healthcheck"]["test"] == ["CMD", "python", "/opt/nasa/healthcheck.py", role]
+        assert svc["environment"]["NASA_RUN_ID"] == env["NASA_RUN_ID"]  # the router's: its ACL's run
         if role != "router":
             assert svc["environment"]["NASA_ZENOH_CONNECT"] == "tcp/router:7447"
-            assert svc["environment"]["NASA_RUN_ID"] == env["NASA_RUN_ID"]
             # nothing starts before what it needs is healthy
             assert set(svc["depends_on"]) & {"router", "replay"}
             assert all(d["condition"] == "service_healthy" for d in svc["depends_on"].values())

@@ -2,6 +2,9 @@
 
 `nasa up` runs the same router inside its own process; deployments run this
 module (or the zenohd binary) as the `router` service.
+
+Given an auth folder, it refuses (exit 2) an ACL that is not today's: from an older wiring, or,
+where NASA_RUN_ID names its run (k8s and compose set it), made for another run.
 """
 
 from __future__ import annotations
@@ -43,11 +46,14 @@ def main(argv: list[str] | None = None) -> None:
     stop = StopFlag()
     stop.install_signal_handlers()
     log = Log("router")
+    # Told its run (NASA_RUN_ID, as k8s and compose set it), the router takes only that run's ACL
+    # or every run's: another run's would deny each of this run's services without a word.
+    run_id = os.environ.get("NASA_RUN_ID") or None
     try:
         if args.auth is not None:
             # Zenoh enforces whatever acl.json holds: one from an older wiring would drop the newer
             # keys' messages (an e-stop's answer) without a word, so it is refused here, naming the fix.
-            check_acl(args.auth)
+            check_acl(args.auth, run_id)
         router = open_router(args.listen, auth=args.auth, join=args.join)
     except AuthError as err:
         print(f"router: error: {err}", file=sys.stderr, flush=True)
