@@ -431,6 +431,18 @@ def test_an_answer_that_does_not_say_the_command_held_confirms_nothing() -> None
     for command, state in (("estop", "estop"), ("rearm", "recovering"), ("rearm", "ready")):
         ack = wire.BridgeEStopAck("r", command == "estop", state, [], "h pid 1")
         assert operate.report(command, "g1", ack, 5.0)[1]
+    unknown = operate.report("rearm", "g1", wire.BridgeEStopAck("r", False, "x", [], "h pid 1"), 5.0)[0]
+    assert "does not know" in unknown and "recovery failed" not in unknown, unknown
+
+
+def test_judging_an_answer_loads_no_servo_driver() -> None:
+    """`estop`/`rearm` confirm a stop with the wire alone: the servo driver (pyserial, the Dynamixel
+    SDK) is loaded only by the bridge and `calibrate`, so a confirmation never depends on it."""
+    code = ("import sys; from services.robot_bridge import operate; from shared import wire; "
+            "operate.report('rearm', 'g1', wire.BridgeEStopAck('r', False, 'ready', [], 'h'), 1.0); "
+            "print(sorted(m for m in sys.modules if 'dynamixel' in m or m.startswith('serial')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
 
 
 def test_a_rearm_whose_recovery_failed_before_the_answer_is_not_confirmed(sessions, endpoint: str) -> None:

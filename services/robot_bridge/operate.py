@@ -20,6 +20,7 @@ import secrets
 import statistics
 import sys
 
+from services.robot_bridge.states import REARMED, State
 from shared import wire
 from shared.zenoh_session import env_connect
 
@@ -60,8 +61,6 @@ def send_estop(bridge_id: str, engage: bool, reason: str, connect: str,
 
 def report(command: str, bridge_id: str, ack: wire.BridgeEStopAck | None, wait_s: float) -> tuple[str, bool]:
     """What the operator is told of an `estop`/`rearm`, and whether it took effect."""
-    from services.robot_bridge.safety import REARMED
-
     if ack is None:
         what = ("stop the bridge itself (Ctrl-C) or cut the servos' power" if command == "estop"
                 else "check that the bridge runs, then send the re-arm again")
@@ -74,9 +73,11 @@ def report(command: str, bridge_id: str, ack: wire.BridgeEStopAck | None, wait_s
         what = "it is not e-stopped: stop the bridge itself (Ctrl-C) or cut the servos' power"
     elif command == "rearm" and ack.state == "estop":
         what = "it is still e-stopped: send the re-arm again"
-    elif command == "rearm" and ack.state not in REARMED:
+    elif command == "rearm" and ack.state == State.WAITING_FOR_OPERATOR:
         what = ("its recovery failed (torque off, resets refused): clear the fault its replies name "
                 "under safety, then send the re-arm again")
+    elif command == "rearm" and ack.state not in REARMED:
+        what = "a state this command does not know (a newer bridge?): check the bridge before using it"
     else:
         what = ""
     if what:

@@ -38,20 +38,9 @@ import numpy as np
 
 from services.robot_bridge.config import SafetyConfig, ServoConfig
 from services.robot_bridge.dynamixel import BusError, ServoBus, ServoState
+from services.robot_bridge.states import State
 
 TORQUE_CUT_WAIT_S = 5.0
-
-
-class State(StrEnum):
-    READY = "ready"
-    ESTOP = "estop"
-    RECOVERING = "recovering"
-    WAITING_FOR_OPERATOR = "waiting_for_operator"
-
-
-REARMED = (State.RECOVERING, State.READY)
-"""The states that show a re-arm took effect: homing (the state the re-arm sets) or done. After a
-re-arm, `waiting_for_operator` is a recovery that failed, and `estop` a later e-stop."""
 
 
 class Watchdog(StrEnum):
