@@ -680,19 +680,9 @@ def test_rotation_over_a_stale_temporary_file_keeps_the_credentials_private(tmp_
 def test_a_router_warns_of_credentials_every_user_can_read(tmp_path: Path) -> None:
     folder = zenoh_auth.init(tmp_path / "auth", RUN)
     (folder / zenoh_auth.USERS_FILE).chmod(0o644)
-    listen = f"tcp/127.0.0.1:{free_port()}"
-    cmd = [sys.executable, "-m", "services.router", "--listen", listen, "--auth", str(folder)]
-    proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, text=True)
-    try:
-        lines = []
-        while not lines or "listening on" not in lines[-1]:
-            line = proc.stderr.readline()  # type: ignore[union-attr]
-            assert line, "".join(lines)
-            lines.append(line)
-        assert any("readable by every user" in line for line in lines), "".join(lines)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
+    # Told the folder's run: a NASA_RUN_ID left in the caller's environment would have it refused.
+    listened, lines = start_router(folder, RUN)
+    assert listened and any("readable by every user" in line for line in lines), "".join(lines)
 
 
 def test_nasa_up_names_a_run_folder_whose_access_rules_it_cannot_write(tmp_path: Path) -> None:
