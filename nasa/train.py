@@ -28,7 +28,7 @@ from shared.replay.client import LocalReplay
 from shared.replay.store import SNAPSHOT_EVERY, open_store
 from shared.runlog import checkpointed_step
 from shared.scalars import TENSORBOARD_DIR, Scalars
-from shared.schedule import step_updates
+from shared.schedule import step_updates, updates_due
 from shared.scoring import IntrinsicScorer, collect_scoring
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -187,8 +187,13 @@ class Trainer:
         while n.env_steps < c.steps:
             warming_up = n.env_steps < c.warmup_steps
             action = collect_action(self.agent, ts.obs, warming_up, self.rng, self.env.spec.action_dim)
+            version = self.agent.num_updates  # the policy that chose the action
+            if c.updates_before_store:
+                # Counted up to the schedule's, not by the step: a step the environment faults is
+                # taken again, and its updates are made once.
+                self.update(updates_due(n.env_steps + 1, c) - self.agent.num_updates)
             try:
-                ts = self.loop.step(action, self.agent.num_updates)
+                ts = self.loop.step(action, version)
             except envs.EnvFault as err:
                 # The step did not happen: no transition, no step counted. A reset starts a sound
                 # episode, as the actor does; the same steps fault again on a resume, and are
@@ -199,7 +204,8 @@ class Trainer:
             n.env_steps += 1
             if self.scorer is not None:
                 self.scorer.score_new()
-            self.update(step_updates(n.env_steps, c))
+            if not c.updates_before_store:
+                self.update(step_updates(n.env_steps, c))
             n.wall_s = wall0 + time.monotonic() - started
             if is_eval_step(n.env_steps, c):
                 self.run_evaluation()

@@ -120,11 +120,13 @@ SAC_AE_OVERRIDES: dict[str, object] = {
     "tau": 0.01,
 }
 # SAC-AE's training loop where it differs from NaSA-TD3's reference: one update per env step
-# (G = 5 is NaSA-TD3's) after a burst as many as the warm-up's steps, its buffer draws with
-# replacement, and it bootstraps through the time limit.
+# (G = 5 is NaSA-TD3's) after a burst as many as the warm-up's steps, each step's updates before
+# its transition is stored, its buffer draws with replacement, and it bootstraps through the time
+# limit.
 SAC_AE_TRAIN_OVERRIDES: dict[str, object] = {
     "updates_per_step": 1,
     "warmup_burst": True,
+    "updates_before_store": True,
     "env.time_limit": "bootstrap",
     "sample_without_replacement": False,
 }
@@ -180,6 +182,10 @@ class TrainConfig:
     """SAC-AE's warm-up burst: the first step after warm-up makes `warmup_steps` updates in place of
     its G, as SAC-AE's reference does (the default of `--algo sac_ae`). Off, the NaSA-TD3
     reference's way: G updates from the first step after warm-up on."""
+    updates_before_store: bool = False
+    """Make each step's updates before its transition is stored, as SAC-AE's reference does (the
+    default of `--algo sac_ae`): an update samples the transitions of the steps before its own.
+    Off, the NaSA-TD3 reference's way: a step's transition is stored, then its updates."""
     batch_size: int = 128
     sample_without_replacement: bool = True
     """Draw each batch without repeated rows, as the NaSA-TD3 reference does; off draws rows
@@ -268,6 +274,10 @@ def validate(config: TrainConfig) -> TrainConfig:
             raise ConfigError(f"{name} must be >= 1, got {value}")
     if config.warmup_steps < 0:
         raise ConfigError(f"warmup_steps must be >= 0, got {config.warmup_steps}")
+    if config.updates_before_store and not config.warmup_burst and config.warmup_steps == 0:
+        raise ConfigError("updates_before_store with warmup_steps 0 makes the first step's updates on an "
+                          "empty replay: give warmup_steps >= 1, or --warmup-burst (its burst of 0 "
+                          "updates leaves the first update to the second step)")
     if not 0 <= config.seed < 2**32:  # numpy's and MuJoCo's seeds are unsigned 32-bit
         raise ConfigError(f"seed must be in [0, 2**32 - 1], got {config.seed}")
     if config.env.image_size > MAX_IMAGE_SIZE:

@@ -217,25 +217,28 @@ def test_nasa_up_refuses_a_resumed_folder_started_with_other_flags(tmp_path, cap
     assert (data / "config.json").read_bytes() == before
 
 
+@pytest.mark.parametrize("field", ["warmup_burst", "updates_before_store"])
 def test_an_older_sac_ae_run_relaunched_is_refused_naming_the_flag_that_restores_its_settings(
-        tmp_path, capsys, monkeypatch):
-    """A SAC-AE run begun before --warmup-burst existed (its config.json lacks the field: no burst)
-    is refused at its relaunch with its own command, as --algo sac_ae now bursts by default; the
-    refusal names the flag that gives the run's setting back, and with it the run goes on."""
+        tmp_path, capsys, monkeypatch, field):
+    """A SAC-AE run begun before --warmup-burst (or --updates-before-store) existed (its config.json
+    lacks the field: off) is refused at its relaunch with its own command, as --algo sac_ae now has
+    it on by default; the refusal names the flag that gives the run's setting back, and with it the
+    run goes on."""
     data = tmp_path / "run"
     argv = ["--algo", "sac_ae", "--preset", "cpu-small", "--image-size", "32", "--data", str(data)]
     cmd, _ = parse_up(argv)
     prepare(cmd, data)
     body = json.loads((data / "config.json").read_text())
-    del body["warmup_burst"]  # as a version before the burst wrote it
+    del body[field]  # as a version before the field wrote it
     (data / "config.json").write_text(json.dumps(body))
     started = []
     monkeypatch.setattr("nasa.up.Supervisor.add", lambda *a, **k: started.append(a))
     code, err = up_in_process(argv, capsys)
-    assert code == 2 and "warmup_burst (True here, False in the run)" in err and started == []
-    assert "start it with the run's settings (--no-warmup-burst)" in err, err
-    cmd, _ = parse_up([*argv, "--no-warmup-burst"])
-    assert prepare(cmd, data).config.warmup_burst is False
+    assert code == 2 and f"{field} (True here, False in the run)" in err and started == []
+    flag = "--no-" + field.replace("_", "-")
+    assert f"start it with the run's settings ({flag})" in err, err
+    cmd, _ = parse_up([*argv, flag])
+    assert getattr(prepare(cmd, data).config, field) is False
 
 
 def test_nasa_up_rejects_an_unknown_task_before_writing_anything(tmp_path, capsys):

@@ -162,6 +162,26 @@ def test_only_sac_ae_makes_the_warm_up_burst_by_default_and_the_flag_sets_it():
     assert cmd.config.warmup_burst
 
 
+def test_only_sac_ae_updates_before_it_stores_a_step_by_default_and_the_flag_sets_it():
+    """SAC-AE's train.py makes a step's updates before it stores the step's transition; NaSA-TD3's
+    train_loop.py stores it first. Before it, the first updates need a stored transition."""
+    from nasa.cli import parse_train
+
+    for algo in ALGOS:
+        for preset in PRESETS:
+            assert default_config(algo, preset).updates_before_store == (algo == "sac_ae"), (algo, preset)
+    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", "--no-updates-before-store"])
+    assert not cmd.config.updates_before_store
+    cmd, _, _ = parse_train(["--algo", "nasa_td3", "--preset", "paper", "--updates-before-store"])
+    assert cmd.config.updates_before_store
+    config = TrainConfig(sample_without_replacement=False, warmup_steps=0, updates_before_store=True)
+    with pytest.raises(ConfigError, match="updates_before_store with warmup_steps 0 makes the first "
+                                          "step's updates on an empty replay"):
+        validate(config)
+    config.warmup_burst = True  # a burst of 0 updates: the first update is the second step's
+    validate(config)
+
+
 def test_presets_touch_only_existing_fields_and_round_trip():
     for name in PRESETS:
         config = apply_preset(TrainConfig(), name)

@@ -26,7 +26,7 @@ from shared.envs import EnvSpec, FrameStack
 from shared.replay.adder import StoreAdder, ZenohWriter
 from shared.replay.store import ReplayStore
 from shared.run_config import RunConfig
-from shared.schedule import total_updates, updates_due
+from shared.schedule import stored_updates, total_updates, updates_due
 from shared.service import Log, StopFlag
 from tests.tiny import WARMUP, tiny_config, tiny_run
 
@@ -103,48 +103,80 @@ def test_nasa_train_acts_uniformly_for_the_warm_up_then_scores_and_updates_g_tim
     assert np.all((rows["discount"] == 0.0) | (rows["discount"] == 1.0))
 
 
-def sac_ae_reference_counts(steps: int, init_steps: int) -> list[int]:
-    """The updates SAC-AE's reference (denisyarats/pytorch_sac_ae, `train.py`) has made at the top
-    of each of its steps 0..steps - 1, where it has stored that many transitions and its logging and
-    evaluation of that step run, and, last, at the end of a run of `steps` steps. Its loop, written
-    out: from `init_steps` on, each step updates before it steps the environment, `init_steps` times
-    at the step that ends the warm-up, once at every later one."""
-    counts, made = [], 0
+def sac_ae_reference_events(steps: int, init_steps: int) -> list[tuple]:
+    """SAC-AE's reference loop (denisyarats/pytorch_sac_ae, `train.py`) written out, for its steps
+    0..steps - 1: ("act", at random, stored, updates made) as each step picks its action (at random
+    before `init_steps`), then ("update", stored, updates made) for each of its updates: from
+    `init_steps` on, `init_steps` of them at the step that ends the warm-up, one at every later one,
+    each on the replay of the `stored` transitions of the steps before, as that step's own is stored
+    after them."""
+    events, made = [], 0
     for step in range(steps):
-        counts.append(made)
+        events.append(("act", step < init_steps, step, made))
         if step >= init_steps:
-            made += init_steps if step == init_steps else 1
-    return [*counts, made]
+            for _ in range(init_steps if step == init_steps else 1):
+                events.append(("update", step, made))
+                made += 1
+    return events
 
 
-def sac_ae_run(out, steps: int) -> Trainer:  # noqa: ANN001
+def sac_ae_reference_counts(steps: int, init_steps: int) -> list[int]:
+    """The updates SAC-AE's reference has made at the top of each of its steps 0..steps - 1, where it
+    has stored that many transitions and its logging and evaluation of that step run, and, last, at
+    the end of a run of `steps` steps."""
+    events = sac_ae_reference_events(steps, init_steps)
+    return [e[3] for e in events if e[0] == "act"] + [sum(e[0] == "update" for e in events)]
+
+
+def sac_ae_run(out, steps: int, warmup: int = WARMUP) -> Trainer:  # noqa: ANN001
     """A tiny `nasa train --algo sac_ae` run of 20-step episodes, with no evaluation on the way."""
-    config = tiny_config("sac_ae", steps=steps, eval_at_start=False, eval_every=1_000, eval_episodes=1)
+    config = tiny_config("sac_ae", steps=steps, warmup_steps=warmup, eval_at_start=False, eval_every=1_000,
+                         eval_episodes=1)
     config.env.action_repeat = 50
     return Trainer.create(config, out)
 
 
-def test_nasa_train_makes_sac_aes_warm_up_burst_as_its_reference_counts_updates(tmp_path, monkeypatch):
+def nasa_train_events(trainer: Trainer, monkeypatch) -> list[tuple]:  # noqa: ANN001
+    """The run's steps as `sac_ae_reference_events` writes the reference's: filled in as it runs."""
+    agent, store = trainer.agent, trainer.store
+    events: list[tuple] = []
+    real_collect, real_update = actor_module.collect_action, agent.update
+
+    def collect(agent_, obs, warming_up, rng, action_dim):  # noqa: ANN001, ANN202
+        events.append(("act", warming_up, store.num_inserted, agent.num_updates))
+        return real_collect(agent_, obs, warming_up, rng, action_dim)
+
+    def update(batch):  # noqa: ANN001, ANN202
+        events.append(("update", store.num_inserted, agent.num_updates))
+        return real_update(batch)
+
+    monkeypatch.setattr("nasa.train.collect_action", collect)
+    monkeypatch.setattr(agent, "update", update)
+    return events
+
+
+def test_nasa_train_acts_and_updates_on_the_rows_sac_aes_reference_does(tmp_path, monkeypatch):
+    """--algo sac_ae: steps 1..warmup at random, the initial policy at the next, whose updates (the
+    burst) come after its action and before its transition is stored, as each later step's one
+    does: every update samples the replay SAC-AE's would, and every action is picked by the policy
+    of as many updates."""
     steps = WARMUP + 3
     trainer = sac_ae_run(tmp_path, steps)
     assert trainer.config.warmup_burst and trainer.config.updates_per_step == 1  # --algo sac_ae's
+    assert trainer.config.updates_before_store
     assert trainer.agent.burst_updates == WARMUP  # its actor steps by the burst's env step
-    agent, store = trainer.agent, trainer.store
-    seen: list[tuple[int, int]] = []  # (stored, updates made) as each step's action is chosen
-    real_collect = actor_module.collect_action
-
-    def collect(agent_, obs, warming_up, rng, action_dim):  # noqa: ANN001, ANN202
-        seen.append((store.num_inserted, agent.num_updates))
-        return real_collect(agent_, obs, warming_up, rng, action_dim)
-
-    monkeypatch.setattr("nasa.train.collect_action", collect)
+    events = nasa_train_events(trainer, monkeypatch)
     trainer.run()
+    assert events == sac_ae_reference_events(steps, WARMUP)
     reference = sac_ae_reference_counts(steps, WARMUP)
-    assert seen == list(enumerate(reference[:-1]))
-    assert agent.num_updates == reference[-1]
-    # The count the learner aims at and the replay's limiter allows in nasa up, step by step.
+    assert trainer.agent.num_updates == reference[-1]
+    # The count the learner aims at in nasa up, step by step, and the replay's rate limit: on n stored
+    # transitions, the updates SAC-AE makes on at most n.
     assert [updates_due(n, trainer.config) for n in range(steps + 1)] == reference
     assert total_updates(trainer.config) == reference[-1]
+    sampled = [e[1] for e in events if e[0] == "update"]
+    assert [stored_updates(n, trainer.config) for n in range(steps)] == [
+        sum(k <= n for k in sampled) for n in range(steps)]
 
 
 def test_a_resumed_sac_ae_run_makes_the_burst_once(tmp_path):

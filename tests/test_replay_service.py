@@ -16,7 +16,7 @@ from shared.config import ConfigError, default_config
 from shared.envs import EnvSpec
 from shared.replay.client import decode_reply
 from shared.run_config import RunConfig
-from shared.schedule import burst_extra, updates_due
+from shared.schedule import burst_extra, stored_updates, updates_due
 from shared.service import StopFlag, parse
 
 SHAPE = (3, 16, 16)
@@ -24,10 +24,11 @@ SPEC = EnvSpec(SHAPE, 3, 2)
 
 
 def make_service(tmp_path, warmup=4, steps=100, session=None, stop=None, without_replacement=False,
-                 no_rate_limit=False, max_abs_reward=wire.Bounds.max_abs_reward, warmup_burst=False):
+                 no_rate_limit=False, max_abs_reward=wire.Bounds.max_abs_reward, warmup_burst=False,
+                 updates_before_store=False):
     config = default_config("nasa_td3", "cpu-small")
     config.env.image_size, config.warmup_steps, config.steps = 16, warmup, steps
-    config.warmup_burst = warmup_burst
+    config.warmup_burst, config.updates_before_store = warmup_burst, updates_before_store
     config.sample_without_replacement = without_replacement
     args = ReplayArgs(config=config, data=tmp_path, error_buffer=4, no_rate_limit=no_rate_limit,
                       max_abs_reward=max_abs_reward)
@@ -126,6 +127,37 @@ def test_the_rate_limit_lets_the_learner_make_the_warm_up_burst_at_once_then_kee
     assert inserts_wait == {False: False, True: True}
     again = make_service(tmp_path / "True", warmup=warmup, warmup_burst=True)
     assert again.limiter.samples == updates_due(warmup + 1, again.config) == warmup  # G = 1: the burst
+    again.store.close()
+
+
+def drawn_by_stored(svc: ReplayService, first: int, last: int) -> dict[int, int]:
+    """The samples a learner drawing all it may has drawn, by the transitions stored: `first` of them
+    at once, then one at a time up to `last`."""
+    req, drawn = wire.SampleRequest(2, wait_s=0.0), {}
+    assert svc.insert_batch(batch(n=first)[0]) == first
+    for stored in range(first, last + 1):
+        if stored > first:
+            assert svc.insert_batch(batch(start=stored - 1, n=1, seed=stored)[0]) == 1
+        while svc.sample(req).ok:
+            pass
+        drawn[stored] = svc.limiter.samples
+    svc.store.close()
+    return drawn
+
+
+def test_with_updates_before_store_the_learner_samples_a_replay_one_insert_smaller(tmp_path):
+    """SAC-AE's order (--algo sac_ae): a step's updates come before its transition is stored, so the
+    limiter allows on n stored transitions the samples it allows on n + 1 without, the burst on the
+    warm-up's own; restarted, the replay counts them as made."""
+    warmup, last = 6, 10
+    drawn = {before: drawn_by_stored(make_service(tmp_path / str(before), warmup=warmup, warmup_burst=True,
+                                                  updates_before_store=before), warmup - 1, last)
+             for before in (False, True)}
+    sooner = range(warmup - 1, last)
+    assert [drawn[True][n] for n in sooner] == [drawn[False][n + 1] for n in sooner]
+    assert drawn[True][warmup - 1] == 0 < drawn[True][warmup]  # the burst, on the warm-up's rows
+    again = make_service(tmp_path / "True", warmup=warmup, warmup_burst=True, updates_before_store=True)
+    assert again.limiter.samples == stored_updates(last, again.config) == updates_due(last + 1, again.config)
     again.store.close()
 
 

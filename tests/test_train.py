@@ -609,6 +609,20 @@ def test_an_env_fault_abandons_the_episode_and_a_resume_continues_exactly(tmp_pa
         assert stable_rows(tmp_path / "resumed" / name) == stable_rows(tmp_path / "straight" / name)
 
 
+def test_sac_aes_burst_is_made_once_where_the_environment_faults_at_its_step(tmp_path, capsys):
+    """--algo sac_ae makes a step's updates before it steps the environment: where that step
+    faults and is taken again after a reset, its updates (here the burst) are not made again."""
+    from tests.test_reference_loop import sac_ae_reference_counts
+
+    steps = 30
+    trainer = Trainer.create(tiny_config("sac_ae", steps=steps), tmp_path / "run")
+    warmup = trainer.config.warmup_steps
+    diverge_at(trainer, warmup, warmup)  # the first episode's step `warmup`: the burst's
+    trainer.run()
+    assert f"episode abandoned at step {warmup}, episode step {warmup}" in capsys.readouterr().out
+    assert trainer.agent.num_updates == sac_ae_reference_counts(steps, warmup)[-1] == steps - 1
+
+
 def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(
     tmp_path, monkeypatch, capsys, signals_kept
 ):

@@ -30,10 +30,12 @@
   scores back on `replay/intrinsic`.
 - Rate limit: `SampleToInsertRatio` with samples_per_insert = G (one sample =
   one batch = one update), min size warmup_steps + 1 (the trainer's first
-  update follows step warmup + 1), and with --warmup-burst the burst's
+  update follows step warmup + 1; warmup_steps with --updates-before-store,
+  whose first update comes before that step's transition is stored:
+  shared.schedule.first_update_rows), and with --warmup-burst the burst's
   updates beyond G allowed at once after it. On restart its counts are
   restored from the store: inserts = num_inserted, samples = the updates the
-  schedule makes by that step (shared.schedule.updates_due).
+  schedule makes on that many transitions (shared.schedule.stored_updates).
 - Persistence: the store logs every add in its data directory and is
   snapshotted every `snapshot_every` inserts; the run's step budget
   (config.steps) caps inserts.
@@ -62,7 +64,7 @@ from shared.replay.log import MANIFEST
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import SNAPSHOT_EVERY, ActorRefused, OpenStopped, open_store
 from shared.run_config import RunConfig
-from shared.schedule import burst_extra, updates_due
+from shared.schedule import burst_extra, first_update_rows, stored_updates
 from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
 
@@ -144,9 +146,9 @@ class ReplayService(MessageGuard):
         if not args.no_rate_limit:
             g = c.updates_per_step
             error_buffer = args.error_buffer or default_error_buffer(g)
-            self.limiter = SampleToInsertRatio(g, c.warmup_steps + 1, error_buffer, burst_extra(c))
+            self.limiter = SampleToInsertRatio(g, first_update_rows(c), error_buffer, burst_extra(c))
             n = self.store.num_inserted
-            self.limiter.restore(inserts=n, samples=updates_due(n, c))
+            self.limiter.restore(inserts=n, samples=stored_updates(n, c))
         self.replace = not c.sample_without_replacement
         # Sampling through the client's in-process side; each sampler thread has its own rng.
         self.local = LocalReplay(self.store, np.random.default_rng(0), self.limiter, self.replace)
