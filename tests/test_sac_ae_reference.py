@@ -5,7 +5,9 @@ tests/test_baselines_reference.py writes SAC-AE's update out by hand. Here the r
 file needs dm_control and gym), runs beside the project's agent from the same weights, on the same
 batches and with the same random draws: its `update` at the env steps `train.py` passes (a warm-up
 burst, then one a step), its `select_action` and `sample_action`, its `weight_init` and the
-initial state of its agent, and the project's defaults against its settings.
+initial state of its agent, and the project's defaults against its settings. Its `train.py` loop
+itself runs beside `nasa train`, each with a stand-in that records which transitions each update may
+sample and which policy picks each action.
 
 The reference's `utils` imports gym, which the project does not install, for a frame-stack wrapper
 these tests never use: where gym is missing, a module holding only `gym.Wrapper` stands in for it,
@@ -50,12 +52,17 @@ def train_py_settings() -> dict[str, object]:
 
 
 @pytest.fixture
-def sac_ae(monkeypatch) -> types.ModuleType:  # noqa: ANN001
-    """The reference's `sac_ae` module."""
+def gym_stand_in(monkeypatch) -> None:  # noqa: ANN001
+    """Where gym is missing, a module holding only `gym.Wrapper` in its place."""
     if importlib.util.find_spec("gym") is None:
         gym = types.ModuleType("gym")
         gym.Wrapper = object  # the base of utils.FrameStack, which no test here builds
         monkeypatch.setitem(sys.modules, "gym", gym)
+
+
+@pytest.fixture
+def sac_ae(gym_stand_in) -> types.ModuleType:  # noqa: ANN001
+    """The reference's `sac_ae` module."""
     return reference.load_sac_ae(Path(REFERENCE_DIR))
 
 
@@ -296,3 +303,119 @@ def test_the_defaults_are_train_pys(agents):
              (agent.decoder_opt, ref.decoder_optimizer)]
     for mine, theirs in pairs:
         assert settings(mine) == settings(theirs)
+
+
+class ActionSpace:
+    """The stand-in environment's action space: its uniform draw is one of train.py's random actions."""
+
+    def __init__(self, sampled) -> None:  # noqa: ANN001
+        self.shape, self.low, self.high = (ACTION_DIM,), -np.ones(ACTION_DIM), np.ones(ACTION_DIM)
+        self.sampled = sampled
+
+    def sample(self) -> np.ndarray:
+        self.sampled()
+        return np.zeros(ACTION_DIM, np.float32)
+
+
+class Episodes:
+    """dmc2gym's environment in train.py, stood in for: blank frames, episodes of 5 steps."""
+
+    _max_episode_steps = 5
+
+    def __init__(self, sampled) -> None:  # noqa: ANN001
+        self.observation_space = types.SimpleNamespace(shape=(3, 4, 4))
+        self.action_space = ActionSpace(sampled)
+        self.t = 0
+
+    def seed(self, seed: int) -> None:
+        pass
+
+    def reset(self) -> np.ndarray:
+        self.t = 0
+        return np.zeros(self.observation_space.shape, np.uint8)
+
+    def step(self, action: np.ndarray) -> tuple:
+        self.t += 1
+        return np.zeros(self.observation_space.shape, np.uint8), 0.0, self.t == self._max_episode_steps, {}
+
+
+class Recording:
+    """train.py's agent, stood in for: it records what the loop has it do, as
+    tests.test_reference_loop.sac_ae_reference_events writes it, on the loop's own replay buffer."""
+
+    training = True
+
+    def __init__(self, events: list[tuple], replay) -> None:  # noqa: ANN001
+        self.events, self.replay, self.updates = events, replay, 0
+
+    def train(self, training: bool = True) -> None:  # utils.eval_mode's
+        self.training = training
+
+    def sample_action(self, obs: np.ndarray) -> np.ndarray:
+        self.events.append(("act", False, self.replay["buffer"].idx, self.updates))
+        return np.zeros(ACTION_DIM, np.float32)
+
+    def select_action(self, obs: np.ndarray) -> np.ndarray:  # evaluation's, which stores nothing
+        return np.zeros(ACTION_DIM, np.float32)
+
+    def update(self, replay_buffer, logger, step: int) -> None:  # noqa: ANN001
+        self.events.append(("update", replay_buffer.idx, self.updates))
+        self.updates += 1
+
+
+def train_py_events(monkeypatch, work_dir: Path, steps: int, init_steps: int) -> list[tuple]:  # noqa: ANN001
+    """train.py's `main()` itself, run for `steps` steps with `init_steps`: its replay buffer is its
+    own; its environment and agent record what it has them do, where its Logger and VideoRecorder
+    (which import packages the project does not install) record nothing, and its frame stack (a
+    gym wrapper) leaves the stand-in's frames as they are."""
+    events: list[tuple] = []
+    replay: dict[str, object] = {}
+    agent = Recording(events, replay)
+    env = Episodes(lambda: events.append(("act", True, replay["buffer"].idx, agent.updates)))
+    stand_ins = {"dmc2gym": types.SimpleNamespace(make=lambda **kwargs: env),
+                 "logger": types.SimpleNamespace(Logger=lambda *args, **kwargs: Silent()),
+                 "video": types.SimpleNamespace(VideoRecorder=lambda *args, **kwargs: Silent())}
+    for name, module in stand_ins.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    own = ("train", *(name.removesuffix(".py") for name in reference.SAC_AE_FILES))
+    train = reference.import_from(Path(REFERENCE_DIR), "train", own)
+    for name in own:  # as bench.reference.load_sac_ae: names as common as utils leave sys.modules
+        sys.modules.pop(name, None)
+    real_buffer = train.utils.ReplayBuffer
+
+    def buffer(**kwargs):  # noqa: ANN003, ANN202
+        replay["buffer"] = real_buffer(**kwargs)
+        return replay["buffer"]
+
+    monkeypatch.setattr(train.utils, "ReplayBuffer", buffer)
+    monkeypatch.setattr(train.utils, "FrameStack", lambda env, k: env)
+    monkeypatch.setattr(train, "make_agent", lambda *args, **kwargs: agent)
+    monkeypatch.setattr(sys, "argv", ["train.py", "--init_steps", str(init_steps),
+                                      "--num_train_steps", str(steps), "--replay_buffer_capacity", "100",
+                                      "--num_eval_episodes", "1", "--work_dir", str(work_dir)])
+    torch_state, numpy_state = torch.get_rng_state(), np.random.get_state()
+    try:
+        train.main()
+    finally:  # its set_seed_everywhere seeded this process's generators
+        torch.set_rng_state(torch_state)
+        np.random.set_state(numpy_state)
+    return events
+
+
+def test_nasa_train_acts_and_updates_on_the_rows_train_pys_loop_does(tmp_path, monkeypatch, gym_stand_in):
+    """train.py's loop run with 3 warm-up steps beside `nasa train --algo sac_ae` with 3: the same
+    random steps, each update on a replay of as many stored transitions (its burst on the warm-up's
+    3, before the step that makes it stores its own), and each action picked by the policy of as
+    many updates (the initial policy's at the burst's step). tests/test_reference_loop.py checks
+    the same sequence without the reference, written out as sac_ae_reference_events, which this
+    checks is train.py's."""
+    from tests.test_reference_loop import nasa_train_events, sac_ae_reference_events, sac_ae_run
+
+    steps, init_steps = 9, 3
+    theirs = train_py_events(monkeypatch, tmp_path / "reference", steps, init_steps)
+    trainer = sac_ae_run(tmp_path / "run", steps, warmup=init_steps)
+    ours = nasa_train_events(trainer, monkeypatch)
+    trainer.run()
+    assert ours == theirs
+    assert theirs == sac_ae_reference_events(steps, init_steps)
+    assert ("update", init_steps, 0) in theirs  # the burst, on the warm-up's transitions
