@@ -148,32 +148,25 @@ def test_sac_ae_makes_one_update_per_env_step_as_its_training_loop_does():
     assert cmd.config.updates_per_step == 5
 
 
-def test_only_sac_ae_makes_the_warm_up_burst_by_default_and_the_flag_sets_it():
-    """SAC-AE's train.py bursts at the end of its warm-up; NaSA-TD3's train_loop.py makes G updates
-    from the first step after it, and so do the algorithms run in its loop."""
+@pytest.mark.parametrize("field", ["warmup_burst", "updates_before_store"])
+def test_only_sac_ae_takes_its_loops_order_by_default_and_the_flags_set_it(field: str) -> None:
+    """SAC-AE's train.py bursts at the end of its warm-up and makes a step's updates before it
+    stores the step's transition; NaSA-TD3's train_loop.py makes G updates from the first step
+    after warm-up, each after the step is stored, and so do the algorithms run in its loop."""
     from nasa.cli import parse_train
 
+    flag = "--" + field.replace("_", "-")
     for algo in ALGOS:
         for preset in PRESETS:
-            assert default_config(algo, preset).warmup_burst == (algo == "sac_ae"), (algo, preset)
-    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", "--no-warmup-burst"])
-    assert not cmd.config.warmup_burst
-    cmd, _, _ = parse_train(["--algo", "nasa_td3", "--preset", "paper", "--warmup-burst"])
-    assert cmd.config.warmup_burst
+            assert getattr(default_config(algo, preset), field) == (algo == "sac_ae"), (algo, preset)
+    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", flag.replace("--", "--no-", 1)])
+    assert not getattr(cmd.config, field)
+    cmd, _, _ = parse_train(["--algo", "nasa_td3", "--preset", "paper", flag])
+    assert getattr(cmd.config, field)
 
 
-def test_only_sac_ae_updates_before_it_stores_a_step_by_default_and_the_flag_sets_it():
-    """SAC-AE's train.py makes a step's updates before it stores the step's transition; NaSA-TD3's
-    train_loop.py stores it first. Before it, the first updates need a stored transition."""
-    from nasa.cli import parse_train
-
-    for algo in ALGOS:
-        for preset in PRESETS:
-            assert default_config(algo, preset).updates_before_store == (algo == "sac_ae"), (algo, preset)
-    cmd, _, _ = parse_train(["--algo", "sac_ae", "--preset", "paper", "--no-updates-before-store"])
-    assert not cmd.config.updates_before_store
-    cmd, _, _ = parse_train(["--algo", "nasa_td3", "--preset", "paper", "--updates-before-store"])
-    assert cmd.config.updates_before_store
+def test_updates_before_store_needs_a_stored_transition_for_the_first_updates() -> None:
+    """Before a step is stored, the first updates need a transition already stored."""
     config = TrainConfig(sample_without_replacement=False, warmup_steps=0, updates_before_store=True)
     with pytest.raises(ConfigError, match="updates_before_store with warmup_steps 0 makes the first "
                                           "step's updates on an empty replay"):
