@@ -49,6 +49,14 @@ def first_update_rows(config: TrainConfig) -> int:
     return max(1, config.warmup_steps + (0 if config.updates_before_store else 1))
 
 
+def limiter_extra(config: TrainConfig) -> int:
+    """The samples beyond G the rate limiter allows on its minimum size (first_update_rows): the
+    schedule's updates on those rows less one step's G. SAC-AE's burst beyond G; with
+    `updates_before_store` and no warm-up, the burst of 0 plus the second step's G, made on the one
+    row the minimum size holds."""
+    return stored_updates(first_update_rows(config), config) - config.updates_per_step
+
+
 def total_updates(config: TrainConfig) -> int:
     """The run's updates."""
     return updates_due(config.steps, config)

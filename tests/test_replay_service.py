@@ -161,6 +161,17 @@ def test_with_updates_before_store_the_learner_samples_a_replay_one_insert_small
     again.store.close()
 
 
+def test_with_updates_before_store_and_no_warm_up_the_second_step_samples_the_first_row(tmp_path):
+    """A warm-up of 0 with its burst: the first step makes no updates and the second its G before
+    its transition is stored, on the one row stored; the limiter allows that, one insert sooner than
+    without the flag, though its minimum size stays one row."""
+    last = 6
+    drawn = {before: drawn_by_stored(make_service(tmp_path / str(before), warmup=0, warmup_burst=True,
+                                                  updates_before_store=before), 1, last)
+             for before in (False, True)}
+    assert [drawn[True][n] for n in range(1, last)] == [drawn[False][n + 1] for n in range(1, last)]
+
+
 def test_unscored_requests_return_the_oldest_unscored_rows_outside_the_ratio(tmp_path):
     svc = make_service(tmp_path, warmup=4)
     msg, frames, first = batch(n=7, last=True)

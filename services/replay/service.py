@@ -33,7 +33,7 @@
   update follows step warmup + 1; warmup_steps with --updates-before-store,
   whose first update comes before that step's transition is stored:
   shared.schedule.first_update_rows), and with --warmup-burst the burst's
-  updates beyond G allowed at once after it. On restart its counts are
+  updates beyond G allowed at once after it (shared.schedule.limiter_extra). On restart its counts are
   restored from the store: inserts = num_inserted, samples = the updates the
   schedule makes on that many transitions (shared.schedule.stored_updates).
 - Persistence: the store logs every add in its data directory and is
@@ -64,7 +64,7 @@ from shared.replay.log import MANIFEST
 from shared.replay.rate_limiter import RateLimiterClosed, SampleToInsertRatio
 from shared.replay.store import SNAPSHOT_EVERY, ActorRefused, OpenStopped, open_store
 from shared.run_config import RunConfig
-from shared.schedule import burst_extra, first_update_rows, stored_updates
+from shared.schedule import first_update_rows, limiter_extra, stored_updates
 from shared.service import Log, MessageGuard, StopFlag
 from shared.zenoh_session import ServiceArgs
 
@@ -146,7 +146,7 @@ class ReplayService(MessageGuard):
         if not args.no_rate_limit:
             g = c.updates_per_step
             error_buffer = args.error_buffer or default_error_buffer(g)
-            self.limiter = SampleToInsertRatio(g, first_update_rows(c), error_buffer, burst_extra(c))
+            self.limiter = SampleToInsertRatio(g, first_update_rows(c), error_buffer, limiter_extra(c))
             n = self.store.num_inserted
             self.limiter.restore(inserts=n, samples=stored_updates(n, c))
         self.replace = not c.sample_without_replacement

@@ -6,7 +6,7 @@ and inserts while diff stays <= spi * min_size + error_buffer; whichever side
 runs ahead blocks. Before min_size, inserts never block and samples always do.
 With G updates per env step, count one sample per update and one insert per env
 step (over all writers) and set samples_per_insert = G. `extra_samples` moves the window by a
-schedule's samples beyond the ratio (SAC-AE's warm-up burst, shared.schedule.burst_extra): once
+schedule's samples beyond the ratio (SAC-AE's warm-up burst, shared.schedule.limiter_extra): once
 min_size is reached samples may run that many further ahead, and inserts wait for them.
 
 Inserts check and commit in separate calls (await_insert then insert), so
