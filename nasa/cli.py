@@ -22,10 +22,12 @@ with interrupted("nasa", "while starting"):
         STOP_SIGNALS,
         Terminated,
         ignore_stop_signals,
+        raise_on_stop_signals,
         raise_terminated,
         second_signal_forces,
         shares_launchers_ctrl_c,
         signal_code,
+        stop_code,
     )
     from shared import run_config
     from shared.config import DEFAULT_PRESET, ConfigError, TrainConfig
@@ -155,7 +157,7 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
     from nasa.train import EnvFaultsInARow
     from shared.envs import EnvFault
 
-    signal.signal(signal.SIGTERM, raise_terminated)
+    raise_on_stop_signals()
     try:
         trainer.run()
     except (KeyboardInterrupt, Terminated) as err:
@@ -164,6 +166,11 @@ def run_until_stopped(trainer: Trainer, out: Path) -> None:
         _stopped(trainer, out, f": {write_error(err)}", 1, "once it can be written again, ")
     except (EnvFaultsInARow, EnvFault) as err:  # a step's EnvFault is handled in the run: a reset's
         _stopped(trainer, out, f": {err}", 1)
+    except Exception as err:
+        # A stop signal whose exception a C extension replaced (it rang while a frame rendered).
+        if (code := stop_code(err)) is None:
+            raise
+        _stopped(trainer, out, "", code)
 
 
 def write_error(err: OSError) -> str:

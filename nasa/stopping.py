@@ -25,14 +25,42 @@ class Terminated(Exception):
     """SIGTERM, raised where the run is, as Ctrl-C raises KeyboardInterrupt: the same clean stop."""
 
 
+_raised: list[int] = []
+"""The stop signals raised as exceptions in this process. Python code that a C extension calls
+back (ctypes converting an argument: PyOpenGL's EGL calls while a frame renders) can be where the
+signal's exception is raised, and the extension replaces it with its own (ctypes' ArgumentError
+"argument 4: Terminated: "): `stop_code` still knows it was the stop."""
+
+
 def raise_terminated(_signum: int, _frame: object) -> None:
     """A SIGTERM handler: raise Terminated where the main thread is."""
+    _raised.append(signal.SIGTERM)
     raise Terminated
+
+
+def raise_interrupt(_signum: int, _frame: object) -> None:
+    """A SIGINT handler: raise KeyboardInterrupt, as Python's own does, and remember it."""
+    _raised.append(signal.SIGINT)
+    raise KeyboardInterrupt
+
+
+def raise_on_stop_signals() -> None:
+    """Ctrl-C and SIGTERM raise where the main thread is (KeyboardInterrupt, Terminated)."""
+    signal.signal(signal.SIGTERM, raise_terminated)
+    signal.signal(signal.SIGINT, raise_interrupt)
 
 
 def signal_code(err: BaseException) -> int:
     """128 + the signal that raised `err` (130, 143), the shell's convention."""
     return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
+
+
+def stop_code(err: BaseException) -> int | None:
+    """128 + the stop signal behind `err`, raised as itself or replaced by a C extension on its way
+    out (see `_raised`); None for an error no stop signal raised."""
+    if isinstance(err, (KeyboardInterrupt, Terminated)):
+        return signal_code(err)
+    return 128 + _raised[-1] if _raised else None
 
 
 def ignore_stop_signals() -> None:

@@ -739,3 +739,42 @@ def test_a_checkpoint_reads_cuda_random_states_only_where_the_run_touched_cuda(m
     monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
     monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: states)
     assert checkpoint.rng_state(np.random.default_rng(0))["cuda"] is states
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_that_rings_inside_a_c_call_still_stops_cleanly(
+    tmp_path, monkeypatch, capsys, signals_kept, signum
+):
+    """A stop signal's exception raised in Python code that a C extension calls back (ctypes
+    converting an argument, as PyOpenGL's EGL calls do while a frame renders) comes out as the
+    extension's own error (ctypes.ArgumentError): the run still stops as for the signal."""
+    import ctypes
+    import time
+
+    from nasa.cli import run_until_stopped
+
+    class Rings:
+        @classmethod
+        def from_param(cls, _obj):
+            signal.raise_signal(signum)
+            time.sleep(5)  # the handler raises here, inside ctypes' conversion
+            return 0
+
+    call = ctypes.CDLL(None).abs
+    call.argtypes = [Rings]
+    out = tmp_path / "run"
+    trainer = Trainer.create(tiny_config(steps=120), out)
+    step = trainer.loop.step
+
+    def rendering(action, version):
+        if trainer.counters.env_steps == 30:
+            call(1)
+        return step(action, version)
+
+    monkeypatch.setattr(trainer.loop, "step", rendering)
+    with pytest.raises(SystemExit) as stop:
+        run_until_stopped(trainer, out)
+    err = capsys.readouterr().err
+    assert stop.value.code == 128 + signum, err
+    assert "nasa train: stopped at step 30" in err and "Traceback" not in err, err
+    assert f"continue with: nasa train --resume {out}" in err
