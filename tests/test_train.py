@@ -39,15 +39,6 @@ def tiny_config(algo: str = "nasa_td3", steps: int = 80):
     return config
 
 
-@pytest.fixture
-def signals_kept():
-    """run_until_stopped sets the stop signals' handlers; the tests after this one need them back."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    for s, handler in saved.items():
-        signal.signal(s, handler)
-
-
 def stable_rows(path):
     return [{k: v for k, v in row.items() if k not in VOLATILE} for row in read_rows(path)]
 
@@ -512,7 +503,7 @@ def straight_120(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("where", ["csv", "checkpoint", "replay", "tensorboard"])
 def test_a_full_disk_stops_the_run_in_one_line_and_the_run_resumes_exactly(
-    tmp_path, monkeypatch, capsys, where, straight_120, signals_kept
+    tmp_path, monkeypatch, capsys, where, straight_120
 ):
     from nasa.cli import run_until_stopped
 
@@ -551,7 +542,7 @@ def test_cutting_a_run_log_writes_nothing_so_a_full_disk_loses_none_of_its_rows(
     assert path.read_bytes() == b"step,mean\r\n0,1\r\n1,2\r\n"
 
 
-def test_a_resume_on_a_full_disk_is_one_line_and_keeps_the_run(tmp_path, monkeypatch, capsys, signals_kept):
+def test_a_resume_on_a_full_disk_is_one_line_and_keeps_the_run(tmp_path, monkeypatch, capsys):
     import errno
     import os
 
@@ -624,7 +615,7 @@ def test_sac_aes_burst_is_made_once_where_the_environment_faults_at_its_step(tmp
 
 
 def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(
-    tmp_path, monkeypatch, capsys, signals_kept
+    tmp_path, monkeypatch, capsys
 ):
     from nasa import train
     from nasa.cli import run_until_stopped
@@ -644,7 +635,7 @@ def test_a_policy_that_acts_nan_stops_the_run_in_one_line_after_a_few_faults(
 
 
 def test_a_reset_the_environment_faults_at_stops_the_run_in_one_line_and_it_resumes(
-    tmp_path, capsys, signals_kept
+    tmp_path, capsys
 ):
     from nasa.cli import run_until_stopped
     from shared import envs
@@ -685,7 +676,7 @@ def test_an_evaluation_the_environment_faults_in_leaves_no_row_and_the_run_goes_
 
 
 def test_a_sigterm_while_a_resume_reads_the_replay_log_is_one_line_and_the_run_resumes(
-    tmp_path, monkeypatch, capsys, signals_kept
+    tmp_path, monkeypatch, capsys
 ):
     import os
 
@@ -743,7 +734,7 @@ def test_a_checkpoint_reads_cuda_random_states_only_where_the_run_touched_cuda(m
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_stop_signal_that_rings_inside_a_c_call_still_stops_cleanly(
-    tmp_path, monkeypatch, capsys, signals_kept, signum
+    tmp_path, monkeypatch, capsys, signum
 ):
     """A stop signal's exception raised in Python code that a C extension calls back (ctypes
     converting an argument, as PyOpenGL's EGL calls do while a frame renders) comes out as the
