@@ -57,7 +57,8 @@ def signal_code(err: BaseException) -> int:
 
 def stop_code(err: BaseException) -> int | None:
     """128 + the stop signal behind `err`, raised as itself or replaced by a C extension on its way
-    out (see `_raised`); None for an error no stop signal raised."""
+    out (see `_raised`): once a stop signal was raised here, the error that ends the run is taken
+    as its stop; None where none was."""
     if isinstance(err, (KeyboardInterrupt, Terminated)):
         return signal_code(err)
     return 128 + _raised[-1] if _raised else None
