@@ -172,6 +172,41 @@ def test_a_restarted_learner_continues_from_its_checkpoint(tmp_path, monkeypatch
         assert torch.equal(tensor, again.agent.policy_state_dict()[name])
 
 
+def test_a_refused_sample_ends_the_run_only_once_every_batch_served_is_used():
+    """At the end of a run the prefetch thread asks again as soon as it has queued a batch, and the
+    limiter refuses it while that batch waits: the learner must use it, not take the refusal for
+    a replay that ran dry (it logged that, and resynced the limiter, at N - 1 of N updates)."""
+    import time
+
+    from services.learner.learner import ran_dry
+    from shared.replay import SampleToInsertRatio
+    from shared.replay.client import Prefetcher
+    from shared.service import StopFlag
+
+    limiter = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=1, error_buffer=1.0)
+    limiter.restore(inserts=60, samples=57)  # three samples left in the budget
+    client = LocalReplay(filled_store(60), np.random.default_rng(0), limiter)
+    done_at = time.monotonic()  # the replay has said that its last env step is stored
+    used = 0
+    with Prefetcher(client, batch_size=8, threads=1, stop=StopFlag(), wait_s=0.01) as prefetch:
+        # One batch queued and one in the thread's hands: the thread asks for the 4th, refused, once
+        # the learner has taken two; the third then waits in the queue.
+        for _ in range(2):
+            assert prefetch.get(timeout=10.0) is not None
+            used += 1
+        deadline = time.monotonic() + 30.0
+        while prefetch.misses == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert prefetch.misses >= 1 and prefetch.last_miss > done_at and prefetch.drawn == 3
+        assert not ran_dry(done_at, prefetch.last_miss, prefetch.drawn - used)
+        assert prefetch.get(timeout=10.0) is not None
+        used += 1
+        assert ran_dry(done_at, prefetch.last_miss, prefetch.drawn - used)
+        assert prefetch.get(timeout=0.1) is None
+    assert not ran_dry(None, prefetch.last_miss, 0)  # the replay still stores env steps
+    assert not ran_dry(time.monotonic(), prefetch.last_miss, 0)  # no refusal since it said so
+
+
 def test_batches_staged_on_the_device_train_exactly_as_host_batches(tmp_path):
     """The CUDA path's prefetcher (shared.prefetch) run on the CPU: its batches carry unscored
     (NaN) intrinsic rewards to the device; the update must use the scores computed on the host."""

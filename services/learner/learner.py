@@ -266,8 +266,9 @@ class Learner:
                     continue
                 if core.board.replay["done"] and done_at is None:
                     done_at = time.monotonic()
-                # Done: every update made, or the limiter refused a sample after the budget was reached.
-                starved = done_at is not None and (prefetcher.last_miss or 0.0) > done_at
+                # Done: every update made, or the limiter refused a sample after the budget was reached
+                # and every batch it served has been used.
+                starved = ran_dry(done_at, prefetcher.last_miss, prefetcher.drawn - used)
                 if starved and not core.done() and not resynced:
                     # Short of the target: samples were counted that no update used (a replay restart
                     # counts G per stored step; a dead learner's requests served after it died).
@@ -488,6 +489,14 @@ def check_args(args: LearnerArgs) -> None:
     api_token(args.api_token_file)
     if args.publish_every < 1:
         raise ConfigError(f"--publish-every must be >= 1, got {args.publish_every}")
+
+
+def ran_dry(done_at: float | None, last_miss: float | None, unused: int) -> bool:
+    """Whether no more batches will come: the replay refused a sample (at `last_miss`) after it said
+    its last env step was stored (`done_at`), and none of the batches it served is still on its way
+    to an update (`unused`: served, not taken yet). A prefetch thread asks again as soon as it has
+    queued a batch, so a refusal can come while the learner still has a batch or two to use."""
+    return done_at is not None and unused <= 0 and (last_miss or 0.0) > done_at
 
 
 def use_device_prefetch(setting: str, device: torch.device) -> bool:
