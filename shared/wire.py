@@ -56,9 +56,9 @@ from shared.envs import ACTION_BOUND
 # key (UnscoredRequest), InsertAck and TransitionBatch lose the sequence numbers nothing read.
 # A field added with a default (ReplayStats.write_error, ActorStatus.fault, EvalResult.write_failures,
 # InsertAck.refused, ActorStatus.refused, BridgeEStop.request, TransitionBatch.launch, InsertAck.launch,
-# BridgeEStopAck.stand_in) keeps the version: a receiver fills in the default where a sender has not
-# the field, and ignores fields it does not know, so either side of a rolling upgrade reads the
-# other's messages.
+# BridgeEStopAck.stand_in, BridgeReset.pid, BridgeStep.pid) keeps the version: a receiver fills in
+# the default where a sender has not the field, and ignores fields it does not know, so either side
+# of a rolling upgrade reads the other's messages.
 SCHEMA_VERSION = 3
 PREFIX = "nasa"
 _EPOCH_2025 = 1_735_689_600.0
@@ -722,32 +722,39 @@ class BridgeSpec(Message):
 
 @dataclass
 class BridgeReset(Message):
-    """`rewind`: before this reset, the bridge puts its draws (targets, reset angles) back where
-    they stood when it started, so an evaluation can play the same episodes each time."""
+    """`client`: who asks (`services.robot_bridge.client.client_name`; an older client sends its
+    task's name): the bridge serves one client at a time. `pid`: the asking process, named in the
+    bridge's refusals to other clients (0: not sent). `rewind`: before this reset, the bridge puts
+    its draws (targets, reset angles) back where they stood when it started, so an evaluation can
+    play the same episodes each time."""
 
     TYPE: ClassVar[str] = "bridge_reset"
     client: str
     rewind: bool = False
+    pid: int = 0
 
 
 @dataclass
 class BridgeStep(Message):
-    """`action` is float32 (action_dim,) raw bytes; `episode`/`step` let the bridge refuse a stale step."""
+    """`action` is float32 (action_dim,) raw bytes; `episode`/`step` let the bridge refuse a stale step;
+    `client` and `pid` as in BridgeReset."""
 
     TYPE: ClassVar[str] = "bridge_step"
     client: str
     episode: int
     step: int
     action: bytes
+    pid: int = 0
 
 
 @dataclass
 class BridgeReply(Message):
     """One raw (unstacked) frame, uint8 (C, H, W) bytes, and the step's outcome.
 
-    ok=False: the bridge could not reset (e-stop, fault, waiting for an operator); `reason` says
-    why and the client retries later. `info` holds the valve and target angles, servo positions,
-    loads and error bits, the step latency and the safety state.
+    ok=False: the bridge could not reset (e-stop, fault, waiting for an operator, another client
+    holding the gripper: `info["holder"]` names it); `reason` says why and the client retries later.
+    `info` holds the valve and target angles, servo positions, loads and error bits, the step
+    latency and the safety state.
     """
 
     TYPE: ClassVar[str] = "bridge_reply"

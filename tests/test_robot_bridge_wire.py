@@ -11,6 +11,8 @@ BRIDGE_MESSAGES = [
     wire.BridgeReset("actor-0"),
     wire.BridgeReset("evaluator", rewind=True),
     wire.BridgeStep("actor-0", 2, 7, b"\0" * 16),
+    wire.BridgeReset("actor 3 of run r on host", pid=1234),
+    wire.BridgeStep("actor 3 of run r on host", 2, 7, b"\0" * 16, pid=1234),
     wire.BridgeReply(True, "", 2, 8, [3, 2, 2], b"f" * 12, -0.25, 1.0, False, True,
                      {"valve_angle": 1.5, "positions": [512, 600], "safety": {"state": "ready"}}),
     wire.BridgeEStop(True, "button"),
@@ -32,6 +34,7 @@ def test_bridge_messages_are_validated() -> None:
         wire.decode(body, wire.BridgeStep)
     no_rewind = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a"})
     assert wire.decode(no_rewind, wire.BridgeReset).rewind is False  # optional: a plain reset
+    assert wire.decode(no_rewind, wire.BridgeReset).pid == 0  # an older client sends none
     bad_rewind = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a", "rewind": 1})
     with pytest.raises(wire.WireError, match="rewind"):
         wire.decode(bad_rewind, wire.BridgeReset)
