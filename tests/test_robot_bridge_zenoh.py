@@ -18,7 +18,7 @@ import zenoh
 
 from nasa.up import free_port
 from services.robot_bridge import operate
-from services.robot_bridge.client import BridgeEnv, BridgeUnavailable
+from services.robot_bridge.client import BridgeEnv, BridgeHeld, BridgeUnavailable
 from services.robot_bridge.server import ESTOP_REASON_CHARS, BridgeServer
 from shared import wire
 from shared.envs import FrameStack
@@ -37,10 +37,11 @@ def wait_until(condition: Callable[[], bool], deadline_s: float = 20.0) -> None:
 
 
 @contextlib.contextmanager
-def stand_in_bridge(session, bridge_id: str) -> Iterator[BridgeServer]:  # noqa: ANN001
-    """A bridge serving the gripper stand-in on `session`, closed after the block."""
+def stand_in_bridge(session, bridge_id: str, **settings: object) -> Iterator[BridgeServer]:  # noqa: ANN001
+    """A bridge serving the gripper stand-in on `session`, closed after the block; `settings`
+    (`log`, `hold_s`) go to BridgeServer."""
     sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
-    server = BridgeServer(session, bridge_id, sim, "gripper-valve", log=lambda _: None)
+    server = BridgeServer(session, bridge_id, sim, "gripper-valve", **{"log": lambda _: None, **settings})
     try:
         with server.serve():
             yield server
@@ -301,12 +302,114 @@ def test_a_stale_step_is_refused_and_leaves_the_live_episode_going() -> None:
     try:
         live = server.handle_reset(wire.BridgeReset("b"))
         action = np.zeros(4, "<f4").tobytes()
-        stale = server.handle_step(wire.BridgeStep("a", live.episode - 1, 0, action))  # another client's
+        stale = server.handle_step(wire.BridgeStep("b", live.episode - 1, 0, action))  # from before a restart
         assert not stale.ok and "stale step" in stale.reason
         again = server.handle_step(wire.BridgeStep("b", live.episode, 0, action))
         assert again.ok and not again.last and again.step == 1
+        twice = server.handle_step(wire.BridgeStep("b", live.episode, 0, action))  # sent again
+        assert not twice.ok and "stale step" in twice.reason and server.step_index == 1
     finally:
         sim.close()
+
+
+def test_a_second_client_is_refused_naming_the_holder_while_the_first_steps_on(sessions, endpoint) -> None:
+    """Two clients pointed at one bridge took turns resetting the gripper, each refusing the other's
+    next step as stale, and neither recorded anything. The bridge serves the one it holds the
+    gripper for; the other is refused, told who holds it; the holder restarted (its name again,
+    another process) gets it back at once; anyone may still e-stop it."""
+    bridge_session, actor_session = sessions
+    said: list[str] = []
+    with stand_in_bridge(bridge_session, "h1", log=said.append, hold_s=600.0) as server, \
+            open_client(endpoint) as other_session:
+        first = BridgeEnv(actor_session, "h1", client="actor 0 of run r on a", timeout_s=30.0)
+        second = BridgeEnv(other_session, "h1", client="actor 1 of run r on b", timeout_s=30.0)
+        first.reset()
+        first.step(np.zeros(4))
+        holder = rf"actor 0 of run r on a \(pid {os.getpid()}\)"
+        with pytest.raises(BridgeHeld, match=rf"refused a reset: the gripper is held by {holder}, "
+                                             r"last heard \d+\.\d s ago") as refused:
+            second.reset()
+        assert refused.value.holder == f"actor 0 of run r on a (pid {os.getpid()})"
+        for i in range(2, 5):  # the holder's episode goes on as if the other were not there
+            _, _, _, last = first.step(np.zeros(4))
+            assert not last and server.step_index == i and server.episode == 0
+        # An e-stop is anyone's to send: the other client's stops the gripper the first holds.
+        button = wire.BridgeEStop(True, "the other's button")
+        other_session.put(wire.BridgeKeys("h1").estop, wire.encode(button))
+        wait_until(lambda: server.estopped)
+        with pytest.raises(BridgeUnavailable, match="refused a step: e-stop: the other's button"):
+            first.step(np.zeros(4))
+        operate.send_estop("h1", False, "operator re-arm", endpoint)
+        wait_until(lambda: not server.estopped)
+        with pytest.raises(BridgeHeld):  # the re-arm hands the gripper to no one else
+            second.reset()
+        # The first restarted (`nasa up` restarts an actor with its id): the same name takes the
+        # gripper back at once, its old episode is stale, and the other is still refused.
+        restarted = BridgeEnv(other_session, "h1", client="actor 0 of run r on a", timeout_s=30.0)
+        restarted.reset()
+        restarted.step(np.zeros(4))
+        with pytest.raises(BridgeUnavailable, match="stale step"):
+            first.step(np.zeros(4))
+        with pytest.raises(BridgeHeld, match=f"held by {holder}"):
+            second.reset()
+    held = [line for line in said if "gripper" in line]
+    assert held == [f"gripper held by actor 0 of run r on a (pid {os.getpid()})"]  # said once
+
+
+def test_a_holder_silent_for_the_hold_time_hands_the_gripper_to_the_next_client(sessions) -> None:
+    bridge_session, actor_session = sessions
+    said: list[str] = []
+    with stand_in_bridge(bridge_session, "h2", log=said.append, hold_s=0.5):
+        first = BridgeEnv(actor_session, "h2", client="actor 0 of run r on a", timeout_s=30.0)
+        second = BridgeEnv(actor_session, "h2", client="evaluator of run r on b", timeout_s=30.0)
+        first.reset()
+        first.step(np.zeros(4))
+
+        def taken() -> bool:  # the second asks until the first has been silent long enough
+            try:
+                second.reset()
+            except BridgeHeld:
+                return False
+            return True
+
+        wait_until(taken)
+        second.step(np.zeros(4))
+        with pytest.raises(BridgeHeld, match="held by evaluator of run r on b"):
+            first.step(np.zeros(4))  # the first is back: its step is refused, its episode is over
+        with pytest.raises(BridgeHeld, match="held by evaluator of run r on b"):
+            first.reset()
+    handed = [line for line in said if "handed over" in line]
+    assert len(handed) == 1 and handed[0].startswith(
+        f"gripper handed over from actor 0 of run r on a (pid {os.getpid()}) (silent for ")
+    assert handed[0].endswith(f"to evaluator of run r on b (pid {os.getpid()})")
+
+
+def test_an_older_client_naming_its_task_still_steps_alone_and_a_hold_time_must_be_positive() -> None:
+    sim = ValveSim("gripper-valve", seed=1, render_quality="fast")
+    server = BridgeServer(None, "h3", sim, "gripper-valve", log=lambda _: None)
+    try:
+        old_reset = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "gripper-valve"})
+        live = server.handle_reset(wire.decode(old_reset, wire.BridgeReset))  # no pid: an older client
+        action = np.zeros(4, "<f4").tobytes()
+        assert live.ok and server.handle_step(wire.BridgeStep("gripper-valve", live.episode, 0, action)).ok
+        assert server.hold.holder() == "gripper-valve"
+        # A name of any length the wire takes is cut in the refusal, which the client still reads.
+        long_name = "x" * wire.MAX_TEXT
+        refused = server.handle_reset(wire.BridgeReset(long_name, pid=7))
+        assert not refused.ok and refused.info["holder"] == "gripper-valve"
+        server.hold.hold_s = 0.0  # the older client gone silent: the long name takes the gripper
+        assert server.handle_reset(wire.BridgeReset(long_name, pid=7)).ok
+        server.hold.hold_s = 600.0
+        refusal = server.handle_reset(wire.BridgeReset("gripper-valve"))
+        refused = wire.decode(wire.encode(refusal), wire.BridgeReply)
+        assert refused.info["holder"].endswith("... (pid 7)") and len(refused.reason) < wire.MAX_TEXT
+    finally:
+        sim.close()
+    for bad in ("0", "-1", "inf", "nan"):
+        done = subprocess.run([sys.executable, "-m", "services.robot_bridge", "--client-hold-s", bad],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and f"--client-hold-s must be a finite number > 0, got {float(bad)}" \
+            in done.stderr, done.stderr
 
 
 def estop_cli(bridge_id: str, endpoint: str, *extra: str,

@@ -4,13 +4,16 @@ It has the raw layer's interface (`reset`/`step` -> (frame, reward, discount, la
 `image_size`, `rng_state`), so `shared.envs.FrameStack` stacks its frames like a local task's and
 the actor above it does not change. The bridge draws targets and reset angles itself, so the
 client's random state is empty. A bridge that does not answer (gone, or refusing a reset during
-an e-stop or fault) raises `BridgeUnavailable`: the actor pauses and starts a new episode later.
+an e-stop or fault) raises `BridgeUnavailable`: the actor pauses and starts a new episode later;
+`BridgeHeld` when the refusal is that another client holds the gripper (`hold.py`).
 `BridgePresence` follows the bridge's liveliness token, so an actor knows at once that its bridge
 went; `fault_state` names the bridge's safety state in one word for the learner's /status.
 """
 
 from __future__ import annotations
 
+import os
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +32,20 @@ BRIDGE_LOST = "bridge_lost"
 
 class BridgeUnavailable(EnvUnavailable):
     """The bridge did not answer, or refused (e-stop, fault, waiting for an operator)."""
+
+
+class BridgeHeld(BridgeUnavailable):
+    """The bridge refused: another client holds the gripper (`holder` names it)."""
+
+    def __init__(self, message: str, holder: str) -> None:
+        super().__init__(message)
+        self.holder = holder
+
+
+def client_name(role: str, run_id: str) -> str:
+    """Who a client is to a bridge: its role (`actor 3`, `evaluator`), run and host. Not its pid:
+    the same actor restarted on its host gets the gripper back at once, and any other client waits."""
+    return f"{role} of run {run_id} on {socket.gethostname()}"
 
 
 def fault_state(info: dict) -> str:
@@ -143,23 +160,29 @@ class BridgeEnv:
         return fault_state(self.info)
 
     def reset(self) -> tuple[np.ndarray, float, float, bool]:
-        r = self._ask(self.keys.reset, wire.BridgeReset(self.client, self._rewind), wire.BridgeReply)
+        msg = wire.BridgeReset(self.client, self._rewind, os.getpid())
+        r = self._ask(self.keys.reset, msg, wire.BridgeReply)
         if not r.ok:
             self.info = r.info  # why: the safety state of a refusal (e-stop, waiting for an operator)
-            raise BridgeUnavailable(f"bridge {self.keys.prefix} refused a reset: {r.reason}")
+            raise self._refused("a reset", r)
         self._rewind = False
         self.episode, self._step = r.episode, 0
         return self._frame(r), 0.0, 1.0, False
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, float, bool]:
         payload = np.asarray(action, dtype="<f4").tobytes()
-        msg = wire.BridgeStep(self.client, self.episode, self._step, payload)
+        msg = wire.BridgeStep(self.client, self.episode, self._step, payload, os.getpid())
         r = self._ask(self.keys.step, msg, wire.BridgeReply)
         if not r.ok:  # not executed (an e-stop, a stale step): the episode is abandoned, nothing stored
             self.info = r.info
-            raise BridgeUnavailable(f"bridge {self.keys.prefix} refused a step: {r.reason}")
+            raise self._refused("a step", r)
         self._step += 1
         return self._frame(r), r.reward, r.discount, r.last
+
+    def _refused(self, what: str, r: wire.BridgeReply) -> BridgeUnavailable:
+        message = f"bridge {self.keys.prefix} refused {what}: {r.reason}"
+        holder = r.info.get("holder")
+        return BridgeHeld(message, str(holder)) if holder else BridgeUnavailable(message)
 
     def _frame(self, r: wire.BridgeReply) -> np.ndarray:
         self.info = r.info

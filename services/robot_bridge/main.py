@@ -9,6 +9,7 @@ e-stops it without ending the process, until a re-arm message.
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +19,7 @@ from services.robot_bridge.camera import CameraUnavailable
 from services.robot_bridge.config import GripperConfigError
 from services.robot_bridge.dynamixel import BusError
 from services.robot_bridge.guard import GuardUnavailable
+from services.robot_bridge.hold import DEFAULT_HOLD_S
 from shared import faults, wire
 from shared.gl import RenderQuality
 from shared.gripper.sim import UnknownGripperTask
@@ -52,6 +54,9 @@ class BridgeArgs:
     the only ones there: any other id is refused."""
     render_quality: RenderQuality = "fast"
     """The stand-in's render quality."""
+    client_hold_s: float = DEFAULT_HOLD_S
+    """The bridge serves one client at a time: another client's reset is refused until the one it
+    serves has been silent this long (seconds), then the next to reset takes the gripper."""
     connect: str = field(default_factory=env_connect)
     """Zenoh router endpoint(s) (env NASA_ZENOH_CONNECT)."""
 
@@ -83,6 +88,8 @@ def main(argv: list[str] | None = None) -> None:
     try:
         args = read_flags(BridgeArgs, sys.argv[1:] if argv is None else argv,
                           "python -m services.robot_bridge")
+        if not (math.isfinite(args.client_hold_s) and args.client_hold_s > 0):
+            raise FlagError(f"--client-hold-s must be a finite number > 0, got {args.client_hold_s}")
     except FlagError as err:
         print(f"robot_bridge: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
@@ -105,7 +112,8 @@ def main(argv: list[str] | None = None) -> None:
             key = wire.BridgeKeys(args.bridge_id).alive
             hint = "stop that one first, or give this one its own --bridge-id"
             if faults.claim_role(session, key, stop, log, f"bridge {args.bridge_id}", hint):
-                server = BridgeServer(session, args.bridge_id, env, args.task, log=log)
+                server = BridgeServer(session, args.bridge_id, env, args.task, log=log,
+                                      hold_s=args.client_hold_s)
                 with server.serve():
                     kind = "hardware" if args.config else "emulated bus" if args.emulate else "stand-in"
                     log(f"serving {args.task} ({kind}) on {server.keys.prefix}")

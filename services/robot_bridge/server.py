@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from services.robot_bridge.hold import DEFAULT_HOLD_S, ClientHold
 from services.robot_bridge.safety import Refused
 from shared import wire
 from shared.text import clip
@@ -35,7 +36,7 @@ class BridgeServer:
     """One environment behind the bridge's keys; `serve()` declares them for as long as it runs."""
 
     def __init__(self, session: zenoh.Session, bridge_id: str | int, env: Any, task: str,
-                 log: Callable[[str], None] = print) -> None:
+                 log: Callable[[str], None] = print, hold_s: float = DEFAULT_HOLD_S) -> None:
         self.session = session
         self.keys = wire.BridgeKeys(bridge_id)
         self.env = env
@@ -53,6 +54,7 @@ class BridgeServer:
         self._work: queue.Queue[tuple[zenoh.Query, str, bytes]] = queue.Queue()
         self._stop = threading.Event()
         self._safety = getattr(env, "fingers", None)  # the real gripper's interlocks, if any
+        self.hold = ClientHold(hold_s, log)  # the client served; the e-stop key is anyone's
 
     # -- e-stop ---------------------------------------------------------------------------------
     @property
@@ -103,6 +105,9 @@ class BridgeServer:
         return wire.BridgeSpec(self.task, int(self.env.action_dim), list(self.frame_shape))
 
     def handle_reset(self, msg: wire.BridgeReset) -> wire.BridgeReply:
+        held = self.hold.refusal(msg.client, msg.pid, takes=True)
+        if held is not None:
+            return self._refusal(held, holder=self.hold.holder())
         if self.estopped:
             return self._refusal(f"e-stop: {self.estop_reason}")
         start = time.perf_counter()
@@ -118,8 +123,12 @@ class BridgeServer:
 
     def handle_step(self, msg: wire.BridgeStep) -> wire.BridgeReply:
         action = wire.array(msg.action, "<f4", (int(self.env.action_dim),))
+        held = self.hold.refusal(msg.client, msg.pid, takes=False)
+        if held is not None:  # another client's episode is the live one: it goes on
+            return self._refusal(held, holder=self.hold.holder())
         # Refused, not answered as a step: a transition that never ran must not reach the replay.
-        # A stale step (another client's, or one sent again) leaves the live episode as it is.
+        # A stale step (one sent again, or its client's from before it restarted) leaves the live
+        # episode as it is.
         if msg.episode != self.episode or msg.step != self.step_index or self._done:
             return self._refusal(f"stale step (episode {msg.episode} step {msg.step}): reset first")
         if self.estopped:
@@ -157,12 +166,15 @@ class BridgeServer:
             reward, discount, first, last, self._info(env_s, reason),
         )
 
-    def _refusal(self, reason: str) -> wire.BridgeReply:
+    def _refusal(self, reason: str, holder: str = "") -> wire.BridgeReply:
+        """`holder`: the client that holds the gripper, when that is why (the client tells this
+        refusal from a fault by it)."""
         safety = self.safety_status()
+        info = {"reason": reason, "safety": safety, **({"holder": holder} if holder else {})}
         # Before the first episode (-1) the wire's episode is 0: -1 is no count, and the client would
         # take the refusal (an e-stop, an operator awaited) for a malformed reply.
         return wire.BridgeReply(False, reason, max(self.episode, 0), 0, list(self.frame_shape), b"", 0.0, 1.0,
-                                False, False, {"reason": reason, "safety": safety})
+                                False, False, info)
 
     # -- Zenoh ----------------------------------------------------------------------------------
     def _on_query(self, kind: str) -> Callable[[zenoh.Query], None]:
