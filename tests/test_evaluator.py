@@ -561,3 +561,40 @@ def test_refused_write_counts_on_the_wire_are_checked():
             wire.decode(wire.encode(wire.EvalResult(0, 0, [1.0], bad)), wire.EvalResult)
     with pytest.raises(wire.WireError, match="writes_failing"):
         wire.decode(wire.encode(wire.EvalResult(0, 0, [1.0], {}, ["media"])), wire.EvalResult)
+
+
+def test_an_evaluator_on_a_bridge_another_client_holds_says_so_once_not_at_every_retry(capfd):
+    """Over real Zenoh on loopback: another client holds the bridge's gripper. Each evaluation is
+    abandoned (no result) and played again later; the evaluator says why once for that holder."""
+    import socket
+
+    from nasa.up import free_port
+    from services.robot_bridge.client import BridgeEnv
+    from services.robot_bridge.server import BridgeServer
+    from shared.gripper.sim import ValveSim
+    from shared.zenoh_session import open_client, open_router
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    c = tiny_config("td3_ae", steps=500)
+    c.env.task, c.env.action_repeat = "gripper-valve", 1
+    run = RunConfig(c, EnvSpec((3, 32, 32), 3, 4))
+    keys = wire.Keys(f"t{free_port()}")
+    sim = ValveSim("gripper-valve", seed=7, image_size=32, render_quality="fast")
+    with (open_router(endpoint), open_client(endpoint) as bridge_session,
+          open_client(endpoint) as eval_session, open_client(endpoint) as other_session):
+        server = BridgeServer(bridge_session, "e9", sim, "gripper-valve", log=lambda _: None, hold_s=600.0)
+        with server.serve():
+            BridgeEnv(other_session, "e9", client="actor 0 of run elsewhere on x").reset()
+            ev = EvaluatorService(EvaluatorArgs(config=run.config, run_id=keys.run_id, bridge="e9"),
+                                  eval_session, StopFlag(), run)
+            _weights(ev, version=0)
+            with ev.bridge:
+                target = ev.due()
+                assert [ev.evaluate(target) for _ in range(3)] == [None] * 3
+                assert ev.env is None and ev.evaluations == 0
+                server.hold.hold_s = 0.0  # the holder is silent from now on: the evaluator takes it
+                assert ev.evaluate(target) is not None
+                assert server.hold.client == f"evaluator of run {keys.run_id} on {socket.gethostname()}"
+    sim.close()
+    said = [line for line in capfd.readouterr().err.splitlines() if "evaluation abandoned" in line]
+    assert len(said) == 1 and "held by actor 0 of run elsewhere on x" in said[0], said

@@ -42,13 +42,13 @@ def test_a_bridge_behind_the_same_spec(tmp_path) -> None:
         try:
             with BridgeServer(bridge, "src", sim, "gripper-valve", log=lambda _: None).serve():
                 config = EnvConfig(task="gripper-valve")
-                env = GripperSource().make_remote(config, actor, "src")
+                env = GripperSource().make_remote(config, actor, "src", "test")
                 assert env.spec == GripperSource().spec(config)
                 assert env.reset().obs.shape == env.spec.obs_shape
                 with pytest.raises(BridgeMismatch, match="gripper-valve_reset"):
-                    GripperSource().make_remote(EnvConfig(task="gripper-valve_reset"), actor, "src")
+                    GripperSource().make_remote(EnvConfig(task="gripper-valve_reset"), actor, "src", "test")
                 with pytest.raises(BridgeMismatch, match="--action-repeat 1"):
                     repeated = EnvConfig(task="gripper-valve", action_repeat=8)
-                    GripperSource().make_remote(repeated, actor, "src")
+                    GripperSource().make_remote(repeated, actor, "src", "test")
         finally:
             sim.close()

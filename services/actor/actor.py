@@ -62,7 +62,7 @@ import numpy as np
 import torch
 import zenoh
 
-from services.robot_bridge.client import BRIDGE_LOST, BridgePresence
+from services.robot_bridge.client import BRIDGE_LOST, BridgeHeld, BridgePresence, client_name
 from shared import envs, run_config, wire
 from shared.agents import collect_action, make_agent
 from shared.config import ConfigError
@@ -219,6 +219,7 @@ class ActorService(MessageGuard):
         self._rate = StepRate(time.monotonic())
         self.superseded_by: int | None = None
         self._older_seen: set[int] = set()
+        self._held_by: str | None = None  # the other client holding the bridge's gripper, once said
 
     @property
     def policy_version(self) -> int:
@@ -321,7 +322,9 @@ class ActorService(MessageGuard):
             if not self._bridge_present():
                 return False
             try:
-                self.env = envs.source_for(c.env.task).make_remote(c.env, self.session, self.args.bridge)
+                client = client_name(f"actor {self.actor_id}", self.args.run_id)
+                source = envs.source_for(c.env.task)
+                self.env = source.make_remote(c.env, self.session, self.args.bridge, client)
             except envs.EnvUnavailable as err:
                 self.log.every("bridge", 10.0, f"waiting for bridge {self.args.bridge}: {err}")
         self.loop = EnvLoop(self.env, self.writer, c.env.time_limit)
@@ -350,11 +353,20 @@ class ActorService(MessageGuard):
                 self._episode()
             except envs.EnvUnavailable as err:  # gone, or refusing: the episode is abandoned
                 self._note_fault()
-                self.log.every("unavailable", 10.0, f"environment unavailable, collection paused: {err}")
+                self._paused(err)
                 self.stop.wait(PAUSE_S)
             except envs.EnvFault as err:  # this episode cannot go on; a reset starts a sound one
                 self.env_faults += 1
                 self.log.every("fault", 10.0, f"episode abandoned ({self.env_faults} so far): {err}")
+
+    def _paused(self, err: envs.EnvUnavailable) -> None:
+        """Say why collection pauses: a bridge another client holds once per holder (the refusal
+        names how long ago it was heard, which every retry changes), anything else every 10 s."""
+        if not isinstance(err, BridgeHeld):
+            self.log.every("unavailable", 10.0, f"environment unavailable, collection paused: {err}")
+        elif err.holder != self._held_by:
+            self.log(f"collection paused until the gripper is free: {err}")
+        self._held_by = err.holder if isinstance(err, BridgeHeld) else None
 
     def _await_first_weights(self) -> bool:
         """Wait for the learner's weights before the first policy step: the actor's own networks
@@ -375,6 +387,7 @@ class ActorService(MessageGuard):
         """One episode, until its end, a stop, the replay's or the bridge's loss, or the budget."""
         c, w, loop = self.config, self.writer, self.loop
         ts = loop.reset()
+        self._held_by = None  # the gripper is this actor's: a client that takes it later is said again
         self._note_fault()
         while not self.stop and not w.replay_done and not w.broken:
             if self.bridge is not None and not self.bridge.present:

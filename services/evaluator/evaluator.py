@@ -38,7 +38,7 @@ import torch
 import zenoh
 
 from services.evaluator.media import AutoencoderTap, EvalMedia
-from services.robot_bridge.client import BridgePresence
+from services.robot_bridge.client import BridgeHeld, BridgePresence, client_name
 from shared import checkpoint, envs, faults, run_config, wire
 from shared.agents import make_agent
 from shared.config import EVAL_SEED_OFFSET
@@ -135,6 +135,7 @@ class EvaluatorService(MessageGuard):
         self.done = first_done(c)  # the newest step evaluated
         self._kept: tuple | None = None  # what `pictures` needs of the evaluation just played
         self._epoch: int | None = None  # the learner's incarnation whose weights it holds
+        self._held_by: str | None = None  # the other client holding the bridge's gripper, once said
         self._policy = deterministic_policy(self.agent)
         # Where the evaluation draws stood after the last evaluation, so a restarted evaluator plays
         # the episodes an uninterrupted one would (no run folder: they start from the seed again).
@@ -164,7 +165,7 @@ class EvaluatorService(MessageGuard):
             return False
         try:
             self.env = envs.source_for(self.config.env.task).make_remote(
-                self.config.env, self.session, self.args.bridge)
+                self.config.env, self.session, self.args.bridge, client_name("evaluator", self.args.run_id))
             self.restart_draws = draws_restarter(self.env, self.config.eval_same_episodes)
         except envs.EnvUnavailable as err:
             self.log.every("bridge", 10.0, f"waiting for bridge {self.args.bridge}: {err}")
@@ -190,7 +191,10 @@ class EvaluatorService(MessageGuard):
             self.log(f"step {target}: evaluation stopped unfinished ({self.stop.reason}); no result")
             return None
         except envs.EnvUnavailable as err:  # a bridge gone or refusing: no partial result
-            self.log(f"step {target}: evaluation abandoned, played again when the bridge is back: {err}")
+            holder = err.holder if isinstance(err, BridgeHeld) else None
+            if holder is None or holder != self._held_by:  # a holder once, not at every retry
+                self.log(f"step {target}: evaluation abandoned, played again when the bridge is back: {err}")
+            self._held_by = holder
             if self.bridge is not None:
                 self.env = None  # made again once the bridge is there
             self.stop.wait(1.0)
@@ -200,6 +204,7 @@ class EvaluatorService(MessageGuard):
             self.log(f"step {target}: evaluation failed, no result for this step: {err}")
             return None
         self.done, self.evaluations = target, self.evaluations + 1
+        self._held_by = None
         self._save_draws()
         self._kept = (obs, cameras, first, video, version)
         return self.with_writes(wire.EvalResult(target, version, [float(r) for r in returns]))

@@ -41,14 +41,17 @@ class GripperSource:
         pixels = ValveSim(c.task, seed, c.image_size, c.camera_id, c.action_repeat, c.render_quality)
         return FrameStack(pixels, c.frame_stack)
 
-    def make_remote(self, config: EnvConfig, session: Any, bridge_id: str, timeout_s: float = 30.0) -> Any:
-        """The bridge's environment, stacked here; the bridge keeps its own seed and render settings."""
+    def make_remote(self, config: EnvConfig, session: Any, bridge_id: str, client: str,
+                    timeout_s: float = 30.0) -> Any:
+        """The bridge's environment, stacked here; the bridge keeps its own seed and render settings.
+        `client`: who asks (`services.robot_bridge.client.client_name`), as the bridge serves one
+        client at a time."""
         from services.robot_bridge.client import BridgeEnv
         from shared import envs
         from shared.envs import FrameStack
 
         envs.check_remote(config, BridgeMismatch)
-        remote = BridgeEnv(session, bridge_id, client=f"{config.task}", timeout_s=timeout_s)
+        remote = BridgeEnv(session, bridge_id, client=client, timeout_s=timeout_s)
         if remote.task != config.task or remote.frame_shape != frame_shape(config.image_size):
             raise BridgeMismatch(
                 f"bridge {bridge_id} serves {remote.task} at {list(remote.frame_shape)}; the run asks for "
