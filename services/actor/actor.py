@@ -34,9 +34,9 @@
   after the replay's return starts a new episode.
 - Robot bridge (`--bridge ID`): the environment is a bridge's (the gripper, or
   its stand-in, in its own process), stacked here. While the bridge's
-  liveliness token is gone, or it refuses (e-stop, a fault), the actor sends
-  nothing and waits; the episode under way is abandoned and a new one starts
-  when the bridge is back.
+  liveliness token is gone, or it refuses (e-stop, a fault, another client
+  holding its gripper), the actor sends nothing and waits; the episode under
+  way is abandoned and a new one starts when the bridge is back (or free).
 - Reports: each heartbeat carries the environment's fault state where it has
   one (the bridge's safety state; the worst seen since the previous heartbeat)
   and the counts of a histogram of env step times.

@@ -16,8 +16,8 @@ from collections.abc import Callable
 from shared.text import clip
 
 DEFAULT_HOLD_S = 35.0
-"""A little more than a client's request timeout (`BridgeEnv`'s 30 s): a holder whose step the
-bridge takes that long to answer is still there."""
+"""A little more than a client's request timeout (`BridgeEnv`'s 30 s): a holder whose request
+was lost on the way (a router cut off) waits that long before it asks again, and is still there."""
 
 
 # A name is cut in refusals and the log: a refusal quoting one of any length the wire takes would
