@@ -277,7 +277,7 @@ class ActorStatus(Message):
     """(return, length) of each episode finished since the previous status."""
     fault: str | None = None
     """The environment's fault state where it reports one (a robot bridge: ok, estop, overload,
-    torque_off, bridge_lost, ...); None for environments without one (the suite's tasks)."""
+    torque_off, held, bridge_lost, ...); None for environments without one (the suite's tasks)."""
     step_counts: list = field(default_factory=list)
     """This incarnation's env steps per bucket of STEP_SECONDS_BUCKETS, the last one slower than
     all (empty: not measured); with step_seconds, a Prometheus histogram's figures."""

@@ -35,6 +35,8 @@ def test_fault_state_names_the_bridges_safety_state_in_one_word() -> None:
     assert fault_state({"safety": {"state": "ready", "watchdog": "torque_off"}}) == "torque_off"
     assert fault_state({"safety": {"state": "ready", "errors": {"2": ["overload"]}}}) == "overload"
     assert fault_state({"safety": {"state": "ready", "errors": {"1": ["input voltage"]}}}) == "input_voltage"
+    # Refused because another client holds the gripper: this actor's steps stop, and /status says why.
+    assert fault_state({"holder": "actor 1 of run r on h", "safety": {"state": "ready"}}) == "held"
 
 
 def test_step_times_count_each_step_in_its_prometheus_bucket() -> None:

@@ -228,7 +228,7 @@ class StatusCollector:
         """What each actor's environment reports: its fault state (where it has one) and step times."""
         faults = GaugeMetricFamily(
             "nasa_actor_fault_state", "1 for the fault state the actor's environment reports (a robot "
-            "bridge: ok, estop, overload, torque_off, bridge_lost, ...); absent where it reports none",
+            "bridge: ok, estop, overload, torque_off, held, bridge_lost, ...); absent where it reports none",
             labels=["actor", "state"])
         steps = HistogramMetricFamily(
             "nasa_actor_env_step_duration_seconds", "Time of one env step in the actor (its incarnation's)",

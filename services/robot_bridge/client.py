@@ -51,7 +51,10 @@ def client_name(role: str, run_id: str) -> str:
 def fault_state(info: dict) -> str:
     """The bridge's safety state (a reply's info map) in one word: `ok`, the interlocks' state
     (`estop`, `recovering`, `waiting_for_operator`), `torque_off` (the watchdog's), or the first
-    hardware error of the last step (`overload`, `overheating`, `input_voltage`)."""
+    hardware error of the last step (`overload`, `overheating`, `input_voltage`); `held` when the
+    bridge refused because another client holds its gripper (this client cannot use it at all)."""
+    if info.get("holder"):
+        return "held"
     safety = info.get("safety") or {}
     state = safety.get("state", "ready")
     if state != "ready":
