@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 
 import numpy as np
 import pytest
@@ -205,6 +206,88 @@ def test_a_refused_sample_ends_the_run_only_once_every_batch_served_is_used():
         assert prefetch.get(timeout=0.1) is None
     assert not ran_dry(None, prefetch.last_miss, 0)  # the replay still stores env steps
     assert not ran_dry(time.monotonic(), prefetch.last_miss, 0)  # no refusal since it said so
+
+
+def test_the_learner_resyncs_the_limiter_again_only_after_a_resync_that_helped():
+    from services.learner.learner import resync_due
+
+    assert resync_due(8, None)  # the first shortfall
+    assert resync_due(9, 8)  # the last resync let it make an update: samples may be miscounted again
+    assert not resync_due(8, 8)  # the last resync brought none: the run ends short
+
+
+class MiscountingReplay(LocalReplay):
+    """The replay service's answers to the learner, in this process: `sync_samples` lowers the
+    limiter's count as the service does, and with each draw numbered in `lost` the limiter counts
+    one more sample that no update will use (a reply lost on its way, a replay restart)."""
+
+    timeout_s = 10.0
+    invalid = 0
+
+    def __init__(self, inserts: int, lost: set[int]) -> None:
+        from shared.replay import SampleToInsertRatio
+
+        limiter = SampleToInsertRatio(samples_per_insert=1.0, min_size_to_sample=1, error_buffer=1.0)
+        limiter.restore(inserts=inserts, samples=0)  # `inserts` samples in all
+        super().__init__(filled_store(60), np.random.default_rng(0), limiter)
+        self.lost, self.draws, self.synced = lost, 0, []
+        self._lock = threading.Lock()
+
+    def sample(self, batch_size: int, wait_s: float = 0.0) -> dict | None:
+        with self._lock:  # the prefetch threads draw one at a time, so the draws' numbers are fixed
+            batch = super().sample(batch_size, wait_s)
+            if batch is not None:
+                self.draws += 1
+                if self.draws in self.lost:
+                    assert self.limiter.take_sample(1, timeout=0.0)
+            return batch
+
+    def sync_samples(self, updates: int) -> bool:
+        self.synced.append(updates)
+        self.limiter.lower_samples(updates)
+        return True
+
+
+def end_of_run(tmp_path, client: MiscountingReplay):  # noqa: ANN001, ANN201
+    """The update count a learner (td3_ae, 10 updates due) ends its loop with at the end of a run
+    (the replay's last env step stored), `client` its replay."""
+    from nasa.up import free_port
+    from services.learner.health import LearnerArgs
+    from services.learner.learner import Learner
+    from shared.service import StopFlag
+    from shared.zenoh_session import open_router
+
+    run = tiny_run("td3_ae", steps=30)
+    args = LearnerArgs(data=tmp_path, final_eval_wait_s=0.0, device_prefetch="off")
+    with open_router(f"tcp/127.0.0.1:{free_port()}") as session:
+        learner = Learner(args, session, StopFlag(), run)
+        assert learner.core.target_updates == 10
+        learner.client = client
+        k = learner.keys
+        with session.declare_publisher(k.weights) as weights, session.declare_publisher(k.eval_weights) as ev:
+            learner._publishers = {"policy": weights, "evaluation": ev}
+            learner.core.board.replay_stats(wire.ReplayStats(60, 0, 60, 60, 0, 0, 0, done=True))
+            learner._loop()
+    return learner.core.agent.num_updates
+
+
+def test_a_learner_short_again_after_a_resync_that_helped_resyncs_again_and_reaches_its_target(
+        tmp_path, capsys):
+    """Draws 2 and 3 lost: dry at 8 of 10, resync; draw 9 lost: dry at 9, and the resync at 8
+    brought an update, so another; the 10th update ends the run (one resync ended it at 9)."""
+    client = MiscountingReplay(inserts=10, lost={2, 3, 9})
+    assert end_of_run(tmp_path, client) == 10
+    assert client.synced == [0, 8, 9]  # the start's, then one per shortfall
+    log = capsys.readouterr().err
+    assert "run done: " in log and "ends short" not in log
+
+
+def test_a_learner_whose_resync_brought_no_update_ends_short_and_says_so(tmp_path, capsys):
+    client = MiscountingReplay(inserts=8, lost=set())  # the replay allows 8 samples of the 10 due
+    assert end_of_run(tmp_path, client) == 8
+    assert client.synced == [0, 8]
+    log = capsys.readouterr().err
+    assert log.count("the run ends short: 8 of 10 updates made") == 1 and "run done: " in log
 
 
 def test_batches_staged_on_the_device_train_exactly_as_host_batches(tmp_path):

@@ -242,7 +242,7 @@ class Learner:
         while not self.stop and not self.client.sync_samples(core.agent.num_updates):
             self.stop.wait(0.5)
         wall_start, wall0 = time.monotonic(), self.wall_s
-        finished, done_at, resynced, used = False, None, False, 0
+        finished, done_at, resynced_at, used = False, None, None, 0
         with ExitStack() as stack:
             prefetcher = Prefetcher(self.client, c.batch_size, self.args.prefetch, self.stop)
             stack.enter_context(prefetcher)
@@ -269,7 +269,7 @@ class Learner:
                 # Done: every update made, or the limiter refused a sample after the budget was reached
                 # and every batch it served has been used.
                 starved = ran_dry(done_at, prefetcher.last_miss, prefetcher.drawn - used)
-                if starved and not core.done() and not resynced:
+                if starved and not core.done() and resync_due(core.agent.num_updates, resynced_at):
                     # Short of the target: samples were counted that no update used (a replay restart
                     # counts G per stored step; a dead learner's requests served after it died).
                     # Those served and not used yet (queued, staged, or in a thread's hands) still
@@ -277,12 +277,17 @@ class Learner:
                     with prefetcher.paused(timeout=self.client.timeout_s) as quiet:
                         if quiet:
                             ahead = prefetcher.drawn - used
-                            resynced = self.client.sync_samples(core.agent.num_updates + ahead)
+                            synced = self.client.sync_samples(core.agent.num_updates + ahead)
+                            if synced:
+                                resynced_at = core.agent.num_updates
                             self.log(f"the replay ran dry at {core.agent.num_updates} of "
                                      f"{core.target_updates} updates ({ahead} drawn, not used yet): "
-                                     f"limiter {'resynced' if resynced else 'not resynced'}")
+                                     f"limiter {'resynced' if synced else 'not resynced'}")
                     done_at = time.monotonic()
                     continue
+                if starved and not core.done():
+                    self.log(f"the run ends short: {core.agent.num_updates} of {core.target_updates} "
+                             "updates made (the replay ran dry, and resyncing its limiter brought no more)")
                 if core.done() or starved:
                     finished = True
                     break
@@ -497,6 +502,14 @@ def ran_dry(done_at: float | None, last_miss: float | None, unused: int) -> bool
     to an update (`unused`: served, not taken yet). A prefetch thread asks again as soon as it has
     queued a batch, so a refusal can come while the learner still has a batch or two to use."""
     return done_at is not None and unused <= 0 and (last_miss or 0.0) > done_at
+
+
+def resync_due(updates: int, resynced_at: int | None) -> bool:
+    """Whether a learner short of its target when the replay ran dry resyncs the limiter's sample
+    count (`resynced_at`: its update count at the last resync, None before any): at the first
+    shortfall, and again after a resync that let it make more updates, since samples counted that
+    no update used can pile up again; one that brought no update ends the run short."""
+    return resynced_at is None or updates > resynced_at
 
 
 def use_device_prefetch(setting: str, device: torch.device) -> bool:
