@@ -9,8 +9,10 @@ actor (no crash, no transitions) until the Supervisor restarts the bridge.
 
 from __future__ import annotations
 
+import queue
 import signal
 import time
+from collections.abc import Callable
 
 import httpx
 import pytest
@@ -19,6 +21,7 @@ from system_harness import System
 
 from nasa.up import bridge_id
 from services.robot_bridge import operate
+from shared import wire
 from shared.runlog import read_rows
 
 pytestmark = pytest.mark.system
@@ -68,6 +71,15 @@ def test_the_actor_steps_the_emulated_gripper_through_a_bridge_and_its_safety_st
 
 def test_killing_the_bridge_pauses_the_actor_and_its_restart_resumes_it(tmp_path):
     system = start(tmp_path, "stand-in", "gripper-valve")
+    keys = wire.Keys(f"t{system.port}")
+    beats: queue.Queue[wire.ActorStatus] = queue.Queue()
+    stats: queue.Queue[wire.ReplayStats] = queue.Queue()
+    # The actor's heartbeats and the replay's stats as the router (in this process) relays them:
+    # each key has one sender, one session's puts, which Zenoh delivers in the order they were put,
+    # so a later message on a key was sent after every earlier one and counts whatever they did.
+    listen = [system.router.declare_subscriber(key, lambda s, q=q, cls=cls: q.put(
+        wire.decode(s.payload.to_bytes(), cls))) for key, q, cls in (
+            (keys.actor_status(0), beats, wire.ActorStatus), (keys.replay_stats, stats, wire.ReplayStats))]
     try:
         system.wait_for("steps through the bridge", lambda s: s["env_steps"] >= 30, timeout=50)
         bridge, actor = system.sup.children["robot_bridge-0"], system.sup.children["actor-0"]
@@ -76,25 +88,43 @@ def test_killing_the_bridge_pauses_the_actor_and_its_restart_resumes_it(tmp_path
         lost = system.wait_for("the bridge's loss in /status",
                                lambda s: actor0(s).get("fault") == "bridge_lost", timeout=20,
                                poll_supervisor=False)
-        time.sleep(2.0)  # what was sent before the loss has arrived: heartbeats and stats come each second
-        settled = system.status()
-        time.sleep(3.0)
-        paused = system.wait_for("a fresh heartbeat", lambda s: actor0(s)["last_seen_s"] < 1.5,
-                                 timeout=10, poll_supervisor=False)
+        first = next_beat(beats, lambda b: b.fault == "bridge_lost")
+        # The step under way when the bridge died may still end; by the next heartbeat it has. Each
+        # heartbeat after that carries the count at its sending: a step while the bridge is gone
+        # would show in the last one, which arrives after all those before it.
+        gone = [next_beat(beats) for _ in range(4)]
         assert actor.proc.poll() is None and actor.restarts == 0  # paused, not crashed
-        assert actor0(paused)["incarnation"] == actor0(lost)["incarnation"]
-        assert actor0(paused)["fault"] == "bridge_lost"
-        assert actor0(paused)["env_steps"] == actor0(settled)["env_steps"]  # no steps while it is gone
-        assert paused["env_steps"] == settled["env_steps"]
-        assert paused["replay"]["size"] == settled["replay"]["size"]
+        assert {b.incarnation for b in gone} == {first.incarnation} == {actor0(lost)["incarnation"]}
+        assert {b.fault for b in gone} == {"bridge_lost"}
+        assert gone[-1].env_steps == gone[0].env_steps  # no steps while it is gone
+        # The replay stores only transitions the actor stepped, so none of its stats so far counts
+        # more than the actor's last heartbeat (a later stat would only count more).
+        stored = [stats.get_nowait() for _ in range(stats.qsize())]
+        assert stored and stored[-1].num_inserted <= gone[-1].env_steps
         # The Supervisor restarts the bridge; the same actor incarnation resumes collecting.
         resumed = system.wait_for("collection after the bridge's restart",
                                   lambda s: actor0(s).get("fault") == "ok"
-                                  and s["env_steps"] > settled["env_steps"], timeout=50)
+                                  and s["env_steps"] > gone[-1].env_steps, timeout=50)
         assert bridge.restarts == 1 and actor0(resumed)["incarnation"] == actor0(lost)["incarnation"]
         assert actor.proc.poll() is None and actor.restarts == 0
     finally:
+        for subscriber in listen:
+            subscriber.undeclare()
         system.close()
+
+
+def next_beat(beats: queue.Queue, pred: Callable[[wire.ActorStatus], bool] = lambda b: True,
+              timeout: float = 20.0) -> wire.ActorStatus:
+    """The next heartbeat that satisfies `pred` (heartbeats come each second)."""
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            beat = beats.get(timeout=left)
+        except queue.Empty:
+            break
+        if pred(beat):
+            return beat
+    raise AssertionError(f"no such heartbeat within {timeout} s")
 
 
 def test_the_evaluator_plays_its_episodes_through_a_bridge_of_its_own(tmp_path):
