@@ -15,8 +15,6 @@ from pathlib import Path
 
 from deploy_files import DEPLOY, REPO
 
-DOCKERD_LOG = Path("/tmp/nasa-td3-test-dockerd.log")
-
 
 class Unavailable(Exception):
     """What this machine lacks for the test (the test is skipped with it)."""
@@ -49,9 +47,11 @@ def apt_install(*packages: str) -> None:
 
 
 class DockerHost:
-    """The engine, the compose command and the staged build inputs of one test run."""
+    """The engine, the compose command and the staged build inputs of one test run; a dockerd it
+    starts logs to `dockerd.log` in `folder` (the run's own: two runs never share a log)."""
 
-    def __init__(self) -> None:
+    def __init__(self, folder: Path) -> None:
+        self.dockerd_log = folder / "dockerd.log"
         self.dockerd: subprocess.Popen | None = None
         self.staged: list[Path] = []
         self.compose: list[str] = []
@@ -67,15 +67,16 @@ class DockerHost:
             raise Unavailable("no Docker engine answers `docker info` and starting one needs root")
         if not shutil.which("dockerd") or not shutil.which("docker"):
             apt_install("docker.io")
-        log = DOCKERD_LOG.open("wb")
-        self.dockerd = subprocess.Popen(["dockerd"], stdout=log, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
+        self.dockerd_log.parent.mkdir(parents=True, exist_ok=True)
+        with self.dockerd_log.open("wb") as log:
+            self.dockerd = subprocess.Popen(["dockerd"], stdout=log, stderr=subprocess.STDOUT,
+                                            stdin=subprocess.DEVNULL, start_new_session=True)
         deadline = time.monotonic() + 120
         while not _ok(["docker", "info"], timeout=20):
             if self.dockerd.poll() is not None or time.monotonic() > deadline:
                 self._stop_dockerd()
-                tail = DOCKERD_LOG.read_text(errors="replace").strip().splitlines()[-3:]
-                raise Unavailable(f"dockerd did not start here: {' | '.join(tail)}")
+                tail = self.dockerd_log.read_text(errors="replace").strip().splitlines()[-3:]
+                raise Unavailable(f"dockerd did not start here (log: {self.dockerd_log}): {' | '.join(tail)}")
             time.sleep(1)
 
     def _compose_command(self) -> list[str]:

@@ -27,14 +27,16 @@ IMAGE = "nasa-td3-test:latest"
 
 
 @pytest.fixture(scope="module")
-def host() -> Iterator[DockerHost]:
-    docker = DockerHost()
+def host(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DockerHost]:
+    docker = DockerHost(tmp_path_factory.mktemp("docker"))
     try:
         docker.start()
         docker.base_image()
     except Unavailable as why:
         docker.close()
         pytest.skip(f"no Docker engine for this test: {why}")
+    if docker.dockerd is not None:
+        print(f"dockerd started by the test, its log: {docker.dockerd_log}")  # shown if the test fails
     try:
         yield docker
     finally:
