@@ -413,6 +413,20 @@ def test_a_router_told_its_run_refuses_an_acl_made_for_another(tmp_path: Path) -
 
 
 @pytest.mark.system  # router processes
+def test_a_router_told_an_invalid_run_id_says_what_one_is_and_exits_before_it_listens(tmp_path: Path) -> None:
+    """With its auth folder the refusal named `nasa auth init ... --run-id a/b`, which refuses that id."""
+    folder = zenoh_auth.init(tmp_path / "auth", RUN)
+    for auth in (["--auth", str(folder)], []):
+        port = free_port()
+        out = subprocess.run([sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{port}",
+                              *auth], cwd=REPO, env={**os.environ, "NASA_RUN_ID": "a/b"}, capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 2 and out.stderr == (
+            "router: error: NASA_RUN_ID: run id 'a/b' may hold only letters, digits, '_', '.', '-'\n")
+    assert start_router(folder, RUN)[0]
+
+
+@pytest.mark.system  # router processes
 def test_a_router_refuses_an_acl_from_an_older_wiring_and_starts_once_it_is_remade(tmp_path: Path) -> None:
     """Zenoh would enforce it as it is, dropping the newer keys' messages (a bridge's answer to an
     e-stop) without a word: the router exits 2 naming the command that remakes it, passwords kept."""

@@ -4,7 +4,8 @@
 module (or the zenohd binary) as the `router` service.
 
 Given an auth folder, it refuses (exit 2) an ACL that is not today's: from an older wiring, or,
-where NASA_RUN_ID names its run (k8s and compose set it), made for another run.
+where NASA_RUN_ID names its run (k8s and compose set it), made for another run. A NASA_RUN_ID
+that is no run id is refused (exit 2) before anything is opened.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 import zenoh
 
 from shared.service import EXIT_BAD_INPUT, FlagError, Log, StopFlag, die_with_parent, read_flags
+from shared.wire import check_run_id
 from shared.zenoh_auth import USERS_FILE, AuthError, check_acl, env_auth
 from shared.zenoh_session import open_router
 
@@ -43,12 +45,18 @@ def main(argv: list[str] | None = None) -> None:
     except FlagError as err:
         print(f"router: error: {err}", file=sys.stderr, flush=True)
         sys.exit(EXIT_BAD_INPUT)
-    stop = StopFlag()
-    stop.install_signal_handlers()
-    log = Log("router")
     # Told its run (NASA_RUN_ID, as k8s and compose set it), the router takes only that run's ACL
     # or every run's: another run's would deny each of this run's services without a word.
     run_id = os.environ.get("NASA_RUN_ID") or None
+    if run_id is not None:
+        try:
+            check_run_id(run_id)  # else the ACL's refusal would name a command that refuses it too
+        except ValueError as err:
+            print(f"router: error: NASA_RUN_ID: {err}", file=sys.stderr, flush=True)
+            sys.exit(EXIT_BAD_INPUT)
+    stop = StopFlag()
+    stop.install_signal_handlers()
+    log = Log("router")
     try:
         if args.auth is not None:
             # Zenoh enforces whatever acl.json holds: one from an older wiring would drop the newer
