@@ -27,7 +27,14 @@ from typing import IO, TYPE_CHECKING, Literal
 from shared.config import ALGOS, PRESETS, ConfigError, TrainConfig, check_algo, check_types
 from shared.envs import PAPER_TASKS, check_camera, check_task
 from shared.files import last_line
-from shared.run_config import RESUME_MAY_CHANGE, differing_fields, read_config, read_json_object
+from shared.run_config import (
+    RESUME_MAY_CHANGE,
+    differences,
+    differing_fields,
+    read_config,
+    read_json_object,
+    run_flags,
+)
 from shared.runlog import checkpointed_step, read_rows
 from shared.service import EXIT_BAD_INPUT, FlagError, followed, given_flags, read_flags
 
@@ -135,9 +142,10 @@ class DamagedConfig(ConfigError):
     """A run folder's config.json that cannot be read as a run's settings."""
 
 
-def settings_mismatch(run: Run, preset: str, device: str, extra: list[str]) -> str | None:
+def settings_mismatch(run: Run, preset: str, device: str, extra: list[str]) -> tuple[str, list[str]] | None:
     """Why the run already in `run.out` is not the one this command would start there (another
-    preset, flags, task, algorithm or seed), or None. The step budget and the device may differ:
+    preset, flags, task, algorithm or seed: each differing setting with both values), and the flags
+    that give the run's settings back; None when it is. The step budget and the device may differ:
     a resumed run keeps its own device, and --steps extends it. DamagedConfig, naming the file and
     what is wrong with it, if its config.json holds no settings (unreadable, or a value of the
     wrong type): compared, each such value would read as a setting of its own."""
@@ -154,7 +162,7 @@ def settings_mismatch(run: Run, preset: str, device: str, extra: list[str]) -> s
         raise DamagedConfig(f"{where}{err}") from err
     wanted, _, _ = parse_train(start_args(run, preset, device, None, extra))
     fields = differing_fields(wanted.config, saved, ignore=("steps", "device", *RESUME_MAY_CHANGE))
-    return ", ".join(fields) if fields else None
+    return (differences(fields, wanted.config, saved), run_flags(fields, saved)) if fields else None
 
 
 def train_command(
@@ -466,12 +474,18 @@ def plan_and_run(cmd: ReproduceCommand, tasks: list[str], algos: list[str], extr
             f"--results {cmd.results} holds runs whose config.json is damaged: {'; '.join(damaged[:3])}"
             f"{more}. Fix the file, or move the run's folder aside to run it again")
     if mismatched:
-        shown = "; ".join(f"{r.out}: {why}" for r, why in mismatched[:3])
+        shown = "; ".join(f"{r.out}: {why}" for r, (why, _) in mismatched[:3])
         more = f" (and {len(mismatched) - 3} more)" if len(mismatched) > 3 else ""
+        # A default changed since the runs began (an upgrade) is the usual cause: these flags after
+        # -- continue them, and give the runs still to start the same settings. A run's own (its
+        # seed: a folder moved by hand) cannot be given there.
+        flags = " ".join(dict.fromkeys(f for _, (_, fs) in mismatched for f in fs
+                                       if f.split()[0] not in RUN_FLAGS))
+        add = f" (add after --: {flags})" if flags else ""
         raise ConfigError(
             f"--results {cmd.results} holds runs made with other settings than --preset {cmd.preset} "
-            f"and the flags after -- give: {shown}{more}. Use the settings they were made with, or "
-            "another --results folder")
+            f"and the flags after -- give: {shown}{more}. Use the settings they were made with{add}, "
+            "or another --results folder")
     lost = [(r, why) for r in runs if r.action == "resume" and (why := lost_checkpoint(r.out))]
     if lost:
         shown = "; ".join(f"{r.out}: {why}" for r, why in lost[:3])

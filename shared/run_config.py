@@ -46,13 +46,23 @@ class ConfigMismatch(ConfigError):
 
     def __init__(self, where: str, fields: list[str], ours: TrainConfig, theirs: TrainConfig) -> None:
         self.fields = fields
-        mine, run = flatten(ours), flatten(theirs)
-        detail = ", ".join(f"{f} ({mine[f]!r} here, {run[f]!r} in the run)" for f in fields)
-        flags = " ".join(_flag_of(f, run[f]) for f in fields)
+        flags = " ".join(run_flags(fields, theirs))
         super().__init__(
-            f"settings differ from the run's ({where}): {detail}; "
+            f"settings differ from the run's ({where}): {differences(fields, ours, theirs)}; "
             f"start it with the run's settings ({flags}), or start a new run in another folder"
         )
+
+
+def differences(fields: list[str], ours: TrainConfig, theirs: TrainConfig) -> str:
+    """Each of dotted config `fields` with its value in `ours` and in the run's `theirs`."""
+    mine, run = flatten(ours), flatten(theirs)
+    return ", ".join(f"{f} ({mine[f]!r} here, {run[f]!r} in the run)" for f in fields)
+
+
+def run_flags(fields: list[str], run: TrainConfig) -> list[str]:
+    """The flags that set dotted config `fields` to the run's values, one string each."""
+    values = flatten(run)
+    return [_flag_of(f, values[f]) for f in fields]
 
 
 def _flag_of(field: str, value: object) -> str:

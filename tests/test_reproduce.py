@@ -415,6 +415,31 @@ def test_runs_made_with_another_preset_are_not_resumed_or_counted_as_this_ones(
     assert "0 to start, 1 to resume" in capsys.readouterr().out
 
 
+def test_runs_begun_before_a_default_changed_are_refused_naming_the_flags_that_continue_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A results folder begun before --updates-before-store existed: its sac_ae runs' config.json
+    has no such field, so they go on storing before updating, where a new run now updates first."""
+    results = tmp_path / "results"
+    out = run_folder(results, "cartpole-balance", "sac_ae", 0)
+    make_run(out, "cartpole-balance", "sac_ae", 0, total=1000, last=500, ckpt=True)
+    body = json.loads((out / "config.json").read_text())
+    del body["updates_before_store"]
+    (out / "config.json").write_text(json.dumps(body))
+    before = (out / "config.json").read_bytes()
+    args = ["reproduce", "--tasks", "cartpole-balance", "--algos", "sac_ae", "--seeds", "1",
+            "--results", str(results), "--device", "cpu", "--preset", "paper", "--dry-run"]
+    with pytest.raises(SystemExit) as done:
+        main(args)
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and err.count("\n") == 1
+    assert "updates_before_store (True here, False in the run)" in err
+    assert "add after --: --no-updates-before-store)" in err
+    main([*args, "--", "--no-updates-before-store"])  # the flag it names: the run goes on
+    assert "0 to start, 1 to resume" in capsys.readouterr().out
+    assert (out / "config.json").read_bytes() == before
+
+
 @pytest.mark.parametrize("extra", [["--seed", "7"], ["--out=elsewhere"], ["--task", "walker-walk"],
                                    ["--preset", "cpu-small"], ["--device", "cuda"], ["--resume", "x"],
                                    ["--algo", "sac_ae"], ["--steps", "10"]])
