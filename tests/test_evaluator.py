@@ -395,6 +395,24 @@ def test_spread_frames_hold_a_bounded_spread_from_first_to_last(length):
         assert max(b - a for a, b in zip(held, held[1:], strict=False)) <= 2 * (length - 1) / 4
 
 
+@pytest.mark.parametrize("algo", ["td3_ae", "sac_ae"])
+def test_the_pictures_of_weights_that_carry_the_decoder(tmp_path, algo):
+    """The learner's evaluation weights carry the decoder. SAC-AE's reads the critic's encoder,
+    which they do not carry: its evaluator made no view and crashed at every evaluation's pictures."""
+    run = tiny_run(algo, steps=500)
+    ev = EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, video_every=1), None,
+                          StopFlag(), run)
+    try:
+        state = ev.agent.policy_state_dict()
+        state |= {f"decoder.{k}": v for k, v in ev.agent.decoder.state_dict().items()}
+        ev.weights.offer(wire.encode(wire.Weights(1, 0, 0, wire.pack_tensors(state))))
+        ev.pictures(ev.evaluate(ev.due()).step)
+        assert (tmp_path / "media" / "eval_step_000000000.mp4").exists()
+        assert (tmp_path / "media" / "autoencoder.png").exists() == (algo == "td3_ae")
+    finally:
+        ev.media.close()
+
+
 def test_the_video_cadence_goes_on_across_a_restart(tmp_path):
     run = tiny_run("td3_ae", steps=500)
 

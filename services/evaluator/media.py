@@ -40,7 +40,8 @@ AE_IMAGE = "autoencoder.png"
 class AutoencoderTap:
     """Stands for the agent in a WeightsSubscriber: loads the policy into it and, from weights that
     carry a decoder, the decoder too. `autoencoder` is that agent while its encoder and decoder
-    came in one message (the evaluated policy's own pair), else None."""
+    came in one message (the evaluated policy's own pair), else None; always None for SAC-AE, whose
+    decoder reads its critic's encoder, which the policy's weights do not carry (only the actor's)."""
 
     def __init__(self, agent) -> None:  # noqa: ANN001
         self.agent = agent
@@ -56,7 +57,7 @@ class AutoencoderTap:
         self.agent.load_policy_state_dict({k: v for k, v in state.items() if not k.startswith("decoder.")})
         if decoder:
             module.load_state_dict(decoder)
-        self.autoencoder = self.agent if decoder else None
+        self.autoencoder = self.agent if decoder and hasattr(self.agent, "encoder") else None
 
 
 class EvalMedia:
