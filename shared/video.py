@@ -14,6 +14,7 @@ the observation above its reconstruction on the right.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -23,16 +24,25 @@ from shared import intrinsic
 CAMERA_SIZE = 256
 
 
+class Autoencoder(NamedTuple):
+    """What a picture reconstructs through: an agent's encoder and decoder, and its algorithm."""
+
+    encoder: torch.nn.Module
+    decoder: torch.nn.Module
+    algo: str
+
+
 @torch.no_grad()
 def reconstruct(agent, obs: np.ndarray, chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
     """Dec(Enc(obs)) of a batch (N, C*k, H, W) uint8: its newest frames (N, H, W, 3) uint8 and
-    each observation's novelty (N,). `agent` has an `encoder` and a `decoder`."""
+    each observation's novelty (N,). `agent` has an `encoder`, a `decoder` and its `algo` (an
+    `Autoencoder`, or an agent whose own modules are named so)."""
     frames, novelty = [], []
     device = next(agent.decoder.parameters()).device
     for i in range(0, len(obs), chunk):
         x = torch.as_tensor(obs[i:i + chunk], device=device)  # uint8; the encoder casts
         rec = agent.decoder(agent.encoder(x)).float()
-        if getattr(agent, "algo", "") == "sac_ae":
+        if agent.algo == "sac_ae":
             rec = rec + 0.5  # SAC-AE's decoder targets the 5-bit observation centred on 0
         novelty.append(intrinsic.novelty(x, rec).float().cpu().numpy())
         rec = rec.clamp(0.0, 1.0)

@@ -11,6 +11,7 @@ from nasa.train import Trainer
 from services.evaluator.evaluator import EvaluatorArgs, EvaluatorService
 from services.learner.evaluation import BetweenUpdates
 from shared import envs, wire
+from shared.agents import make_agent
 from shared.envs import EnvSpec
 from shared.evaluation import draws_restarter
 from shared.run_config import RunConfig
@@ -395,20 +396,31 @@ def test_spread_frames_hold_a_bounded_spread_from_first_to_last(length):
         assert max(b - a for a, b in zip(held, held[1:], strict=False)) <= 2 * (length - 1) / 4
 
 
-@pytest.mark.parametrize("algo", ["td3_ae", "sac_ae"])
-def test_the_pictures_of_weights_that_carry_the_decoder(tmp_path, algo):
-    """The learner's evaluation weights carry the decoder. SAC-AE's reads the critic's encoder,
-    which they do not carry: its evaluator made no view and crashed at every evaluation's pictures."""
+@pytest.mark.parametrize(("algo", "sent"), [("td3_ae", "view"), ("sac_ae", "view"), ("sac_ae", "decoder")])
+def test_the_pictures_of_weights_that_carry_the_autoencoder(tmp_path, algo, sent):
+    """The learner's evaluation weights carry the autoencoder's modules that the policy's lack
+    (`view_state_dict`): the decoder, and SAC-AE's critic encoder, which its decoder reads. SAC-AE's
+    evaluator reconstructed through an encoder it had not (and crashed at every evaluation's
+    pictures); from a decoder alone (an older learner) it draws no view and still writes the video."""
     run = tiny_run(algo, steps=500)
     ev = EvaluatorService(EvaluatorArgs(config=run.config, data=tmp_path, video_every=1), None,
                           StopFlag(), run)
+    source = make_agent(algo, run.spec.obs_shape, run.spec.action_dim, run.config.agent, torch.device("cpu"))
     try:
-        state = ev.agent.policy_state_dict()
-        state |= {f"decoder.{k}": v for k, v in ev.agent.decoder.state_dict().items()}
+        state = source.policy_state_dict()
+        if sent == "view":
+            state |= source.view_state_dict()
+        else:
+            state |= {f"decoder.{k}": v for k, v in source.decoder.state_dict().items()}
         ev.weights.offer(wire.encode(wire.Weights(1, 0, 0, wire.pack_tensors(state))))
         ev.pictures(ev.evaluate(ev.due()).step)
         assert (tmp_path / "media" / "eval_step_000000000.mp4").exists()
-        assert (tmp_path / "media" / "autoencoder.png").exists() == (algo == "td3_ae")
+        assert (tmp_path / "media" / "autoencoder.png").exists() == (sent == "view")
+        if sent == "view":  # the source's own autoencoder, not the evaluator's initial one
+            encoder, decoder = source.view_modules()
+            for mine, theirs in zip(ev.tap.autoencoder, (encoder, decoder), strict=False):
+                for a, b in zip(mine.parameters(), theirs.parameters(), strict=True):
+                    assert torch.equal(a, b)
     finally:
         ev.media.close()
 

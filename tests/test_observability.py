@@ -215,9 +215,9 @@ def test_evaluation_video_decodes_to_its_frame_count_and_the_autoencoder_view(tm
                                   torch.device("cpu"))).load_policy_state_dict({"decoder.w": torch.zeros(1)})
     decoder = {f"decoder.{k}": v for k, v in source.decoder.state_dict().items()}
     tap.load_policy_state_dict(source.policy_state_dict() | decoder)
-    assert tap.autoencoder is tap.agent  # the evaluated policy's encoder, its decoder
+    assert tap.autoencoder == (tap.agent.encoder, tap.agent.decoder, "nasa_td3")  # the policy's encoder
     for name in ("encoder", "decoder", "actor"):
-        for a, b in zip(getattr(tap.autoencoder, name).parameters(), getattr(source, name).parameters(),
+        for a, b in zip(getattr(tap.agent, name).parameters(), getattr(source, name).parameters(),
                         strict=True):
             assert torch.equal(a, b)
     tap.load_policy_state_dict(_agent().policy_state_dict())  # a new encoder, no decoder with it

@@ -1,9 +1,10 @@
 """The evaluator's pictures of a run: the autoencoder's view and evaluation videos, in <data>/media.
 
 The learner sends the evaluator the weights of each eval step with the
-decoder (services/learner/core.py); `AutoencoderTap` loads that decoder into
-the evaluated agent, so the view is always the evaluated policy's encoder
-with its own decoder. Everything here runs in the evaluator's process, after
+autoencoder's modules that the policy lacks (services/learner/core.py: the
+decoder, and SAC-AE's critic encoder); `AutoencoderTap` loads them into the
+evaluated agent, so the view is always the autoencoder of the evaluated
+policy's own update. Everything here runs in the evaluator's process, after
 an evaluation's episodes: the learner's update loop renders nothing.
 
 <data>/media/media.json lists what is there, for the dashboard:
@@ -25,6 +26,7 @@ from shared.files import finite_only, replace_text
 from shared.scalars import TENSORBOARD_DIR, Scalars
 from shared.video import (
     CAMERA_SIZE,
+    Autoencoder,
     fit,
     newest_frames,
     reconstruct,
@@ -39,25 +41,31 @@ AE_IMAGE = "autoencoder.png"
 
 class AutoencoderTap:
     """Stands for the agent in a WeightsSubscriber: loads the policy into it and, from weights that
-    carry a decoder, the decoder too. `autoencoder` is that agent while its encoder and decoder
-    came in one message (the evaluated policy's own pair), else None; always None for SAC-AE, whose
-    decoder reads its critic's encoder, which the policy's weights do not carry (only the actor's)."""
+    carry the autoencoder's other modules (the agent's `view_extras`: the decoder, and SAC-AE's
+    critic encoder), those too. `autoencoder` is the agent's encoder and decoder while every part of
+    them came in one message (the evaluated policy's own), else None."""
 
     def __init__(self, agent) -> None:  # noqa: ANN001
         self.agent = agent
-        self.autoencoder = None
+        self.autoencoder: Autoencoder | None = None
 
     def load_policy_state_dict(self, state: dict) -> None:
-        decoder = module_state(state, "decoder")
-        module = getattr(self.agent, "decoder", None)
-        if decoder and module is None:
+        extras = self.agent.view_extras()
+        if "decoder" not in extras and module_state(state, "decoder"):
             raise ValueError(f"weights carry a decoder, but {type(self.agent).__name__} has none")
-        if decoder:  # checked before anything loads, as the policy is
-            check_fits(module.state_dict(), decoder, "the decoder's weights")
-        self.agent.load_policy_state_dict({k: v for k, v in state.items() if not k.startswith("decoder.")})
-        if decoder:
-            module.load_state_dict(decoder)
-        self.autoencoder = self.agent if decoder and hasattr(self.agent, "encoder") else None
+        sent = {name: module_state(state, name) for name in extras}
+        for name, part in sent.items():  # checked before anything loads, as the policy is
+            if part:
+                check_fits(extras[name].state_dict(), part, f"the {name}'s weights")
+        prefixes = tuple(f"{name}." for name in extras)
+        self.agent.load_policy_state_dict({k: v for k, v in state.items() if not k.startswith(prefixes)})
+        for name, part in sent.items():
+            if part:
+                extras[name].load_state_dict(part)
+        # Never an encoder shown with another message's decoder: a learner of an older version sent
+        # SAC-AE's decoder without the critic encoder it reads, so its view is not drawn.
+        whole = bool(extras) and all(sent.values())
+        self.autoencoder = Autoencoder(*self.agent.view_modules(), self.agent.algo) if whole else None
 
 
 class EvalMedia:

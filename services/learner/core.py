@@ -111,7 +111,8 @@ class LearnerCore:
     def weights_message(self, epoch: int, evaluation: bool = False) -> bytes | None:
         """The policy's weights as published; version = the update count. None (nothing to
         publish) if a tensor is not finite. `evaluation`: the evaluator's weights of this eval
-        period, with the decoder so it can show the autoencoder's view."""
+        period, with the autoencoder's modules the policy lacks (`view_extras`: the decoder, and SAC-AE's
+        critic encoder) so it can show the autoencoder's view."""
         state = self.agent.policy_state_dict()
         if not all_finite(state):
             self.log.every("nonfinite-weights", 5.0, "weights not published: a tensor is not finite")
@@ -119,8 +120,7 @@ class LearnerCore:
         self.policy_version = self.agent.num_updates
         if evaluation:
             self._eval_sent = self.eval_step()
-            if hasattr(self.agent, "decoder"):
-                state |= {f"decoder.{k}": v for k, v in self.agent.decoder.state_dict().items()}
+            state |= self.agent.view_state_dict()
         tensors = wire.pack_tensors(state)
         return wire.encode(wire.Weights(epoch, self.policy_version, self.env_steps, tensors))
 

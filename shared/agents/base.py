@@ -190,6 +190,9 @@ class ModuleStateMixin:
     # The run's first updates that a warm-up burst makes at one env step (shared.schedule): SAC-AE
     # steps its actor and targets by the env step, so those take that step's path all alike.
     burst_updates: int = 0
+    # The autoencoder that the evaluator's pictures reconstruct through, as the `_modules` names of
+    # its encoder and decoder; None for an agent without a decoder.
+    view: tuple[str, str] | None = None
 
     def update_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         raise NotImplementedError
@@ -257,3 +260,24 @@ class ModuleStateMixin:
         check_fits(self.policy_state_dict(), state, "the policy's weights")
         for prefix, module in self._policy_modules().items():
             module.load_state_dict(module_state(state, prefix))
+
+    def view_modules(self) -> tuple[torch.nn.Module, torch.nn.Module] | None:
+        """The autoencoder's encoder and decoder (`view`), or None."""
+        if self.view is None:
+            return None
+        modules = self._modules()
+        return modules[self.view[0]], modules[self.view[1]]
+
+    def view_extras(self) -> dict[str, torch.nn.Module]:
+        """The autoencoder's modules that the policy's weights do not carry, by name: what the
+        evaluator's weights add to the policy's (the decoder; SAC-AE's critic encoder as well, which
+        its decoder reads where its policy acts through the actor's)."""
+        if self.view is None:
+            return {}
+        modules, policy = self._modules(), list(self._policy_modules().values())
+        return {name: modules[name] for name in self.view if all(modules[name] is not m for m in policy)}
+
+    def view_state_dict(self) -> dict[str, torch.Tensor]:
+        """`view_extras`' tensors, each under its module's name as a prefix."""
+        return {f"{name}.{key}": value for name, module in self.view_extras().items()
+                for key, value in module.state_dict().items()}

@@ -38,6 +38,7 @@ def preprocess_obs(obs: torch.Tensor, bits: int = 5) -> torch.Tensor:
 
 class SACAE(ModuleStateMixin):
     algo = "sac_ae"
+    view = ("critic_encoder", "decoder")  # the decoder is trained on the critic's encoder
     uses_intrinsic = False
 
     def __init__(

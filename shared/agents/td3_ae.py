@@ -17,6 +17,7 @@ from shared.nets import Decoder, sigmoid_mse
 
 class TD3AE(TD3):
     algo = "td3_ae"
+    view = ("encoder", "decoder")
 
     def __init__(
         self,
