@@ -213,17 +213,13 @@ def test_an_actor_on_a_bridge_another_client_holds_steps_nothing_and_says_so_onc
     from services.robot_bridge.client import BridgeEnv, BridgeHeld
     from services.robot_bridge.server import BridgeServer
     from shared import wire
-    from shared.envs import EnvSpec
     from shared.gripper.sim import ValveSim
-    from shared.run_config import RunConfig
     from shared.service import StopFlag
     from shared.zenoh_session import open_client, open_router
-    from tests.tiny import tiny_config
+    from tests.tiny import tiny_gripper_run
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    c = tiny_config("td3_ae", steps=500)
-    c.env.task, c.env.action_repeat = "gripper-valve", 1
-    run = RunConfig(c, EnvSpec((3, 32, 32), 3, 4))
+    run = tiny_gripper_run(steps=500)
     keys = wire.Keys(f"t{free_port()}")
     sim = ValveSim("gripper-valve", seed=7, image_size=32, render_quality="fast")
     with (open_router(endpoint), open_client(endpoint) as bridge_session,

@@ -17,7 +17,7 @@ from shared.evaluation import draws_restarter
 from shared.run_config import RunConfig
 from shared.runlog import read_rows
 from shared.service import StopFlag
-from tests.tiny import tiny_config, tiny_run
+from tests.tiny import tiny_config, tiny_gripper_run, tiny_run
 
 
 def _service(**overrides: object) -> EvaluatorService:
@@ -605,9 +605,7 @@ def test_an_evaluator_on_a_bridge_another_client_holds_says_so_once_not_at_every
     from shared.zenoh_session import open_client, open_router
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    c = tiny_config("td3_ae", steps=500)
-    c.env.task, c.env.action_repeat = "gripper-valve", 1
-    run = RunConfig(c, EnvSpec((3, 32, 32), 3, 4))
+    run = tiny_gripper_run(steps=500)
     keys = wire.Keys(f"t{free_port()}")
     sim = ValveSim("gripper-valve", seed=7, image_size=32, render_quality="fast")
     with (open_router(endpoint), open_client(endpoint) as bridge_session,

@@ -32,3 +32,11 @@ def tiny_config(algo: str = "nasa_td3", **overrides: object) -> TrainConfig:
 def tiny_run(algo: str = "nasa_td3", **overrides: object) -> RunConfig:
     """A RunConfig for cartpole-balance (action dim 1) without building the environment."""
     return RunConfig(tiny_config(algo, **overrides), EnvSpec((3, 32, 32), 3, 1))
+
+
+def tiny_gripper_run(algo: str = "td3_ae", **overrides: object) -> RunConfig:
+    """A RunConfig for the gripper stand-in (action dim 4) at one action per step, for a client of
+    a robot bridge that serves `ValveSim("gripper-valve", ..., image_size=32)`."""
+    c = tiny_config(algo, **overrides)
+    c.env.task, c.env.action_repeat = "gripper-valve", 1
+    return RunConfig(c, EnvSpec((3, 32, 32), 3, 4))
