@@ -207,43 +207,34 @@ def test_an_actor_on_a_bridge_another_client_holds_steps_nothing_and_says_so_onc
     import socket
 
     import pytest
+    from bridge_harness import HOLD_S, held_bridge
 
     from nasa.up import free_port
     from services.actor.actor import ActorArgs, ActorService
     from services.robot_bridge.client import BridgeEnv, BridgeHeld
-    from services.robot_bridge.server import BridgeServer
     from shared import wire
-    from shared.gripper.sim import ValveSim
     from shared.service import StopFlag
-    from shared.zenoh_session import open_client, open_router
     from tests.tiny import tiny_gripper_run
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     run = tiny_gripper_run(steps=500)
     keys = wire.Keys(f"t{free_port()}")
-    sim = ValveSim("gripper-valve", seed=7, image_size=32, render_quality="fast")
-    with (open_router(endpoint), open_client(endpoint) as bridge_session,
-          open_client(endpoint) as actor_session, open_client(endpoint) as other_session):
-        bridge = BridgeServer(bridge_session, "g8", sim, "gripper-valve", log=lambda _: None, hold_s=600.0)
-        with bridge.serve():
-            BridgeEnv(other_session, "g8", client="actor 0 of run elsewhere on x").reset()
-            actor = ActorService(ActorArgs(config=run.config, run_id=keys.run_id, actor_id=3, bridge="g8"),
-                                 actor_session, StopFlag(), run)
-            with actor.bridge:
-                assert actor._connect()
-                for holder in ("actor 0 of run elsewhere on x", "evaluator of run elsewhere on y"):
-                    if holder.startswith("evaluator"):  # the first holder hands the gripper on
-                        bridge.hold.hold_s = 0.0
-                        BridgeEnv(other_session, "g8", client=holder).reset()
-                        bridge.hold.hold_s = 600.0
-                    for _ in range(3):  # what the actor's loop does: an episode, refused, a pause
-                        with pytest.raises(BridgeHeld, match=f"held by {holder} \\(pid ") as refused:
-                            actor._episode()
-                        actor._paused(refused.value)
-                # Its name to the bridge: its id, run and host (not its pid: a restart keeps it).
-                assert actor.env.pixels.client == f"actor 3 of run {keys.run_id} on {socket.gethostname()}"
-            assert actor.env_steps == 0 and bridge.step_index == 0  # nothing stepped while refused
-    sim.close()
+    with held_bridge("g8", "actor 0 of run elsewhere on x") as (bridge, actor_session, other_session):
+        actor = ActorService(ActorArgs(config=run.config, run_id=keys.run_id, actor_id=3, bridge="g8"),
+                             actor_session, StopFlag(), run)
+        with actor.bridge:
+            assert actor._connect()
+            for holder in ("actor 0 of run elsewhere on x", "evaluator of run elsewhere on y"):
+                if holder.startswith("evaluator"):  # the first holder hands the gripper on
+                    bridge.hold.hold_s = 0.0
+                    BridgeEnv(other_session, "g8", client=holder).reset()
+                    bridge.hold.hold_s = HOLD_S
+                for _ in range(3):  # what the actor's loop does: an episode, refused, a pause
+                    with pytest.raises(BridgeHeld, match=f"held by {holder} \\(pid ") as refused:
+                        actor._episode()
+                    actor._paused(refused.value)
+            # Its name to the bridge: its id, run and host (not its pid: a restart keeps it).
+            assert actor.env.pixels.client == f"actor 3 of run {keys.run_id} on {socket.gethostname()}"
+        assert actor.env_steps == 0 and bridge.step_index == 0  # nothing stepped while refused
     said = [line for line in capfd.readouterr().err.splitlines() if "until the gripper is free" in line]
     assert len(said) == 2, said
     assert "held by actor 0 of run elsewhere on x" in said[0] and "held by evaluator of run elsewhere on y" \

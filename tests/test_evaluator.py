@@ -598,31 +598,22 @@ def test_an_evaluator_on_a_bridge_another_client_holds_says_so_once_not_at_every
     abandoned (no result) and played again later; the evaluator says why once for that holder."""
     import socket
 
-    from nasa.up import free_port
-    from services.robot_bridge.client import BridgeEnv
-    from services.robot_bridge.server import BridgeServer
-    from shared.gripper.sim import ValveSim
-    from shared.zenoh_session import open_client, open_router
+    from bridge_harness import held_bridge
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    from nasa.up import free_port
+
     run = tiny_gripper_run(steps=500)
     keys = wire.Keys(f"t{free_port()}")
-    sim = ValveSim("gripper-valve", seed=7, image_size=32, render_quality="fast")
-    with (open_router(endpoint), open_client(endpoint) as bridge_session,
-          open_client(endpoint) as eval_session, open_client(endpoint) as other_session):
-        server = BridgeServer(bridge_session, "e9", sim, "gripper-valve", log=lambda _: None, hold_s=600.0)
-        with server.serve():
-            BridgeEnv(other_session, "e9", client="actor 0 of run elsewhere on x").reset()
-            ev = EvaluatorService(EvaluatorArgs(config=run.config, run_id=keys.run_id, bridge="e9"),
-                                  eval_session, StopFlag(), run)
-            _weights(ev, version=0)
-            with ev.bridge:
-                target = ev.due()
-                assert [ev.evaluate(target) for _ in range(3)] == [None] * 3
-                assert ev.env is None and ev.evaluations == 0
-                server.hold.hold_s = 0.0  # the holder is silent from now on: the evaluator takes it
-                assert ev.evaluate(target) is not None
-                assert server.hold.client == f"evaluator of run {keys.run_id} on {socket.gethostname()}"
-    sim.close()
+    with held_bridge("e9", "actor 0 of run elsewhere on x") as (server, eval_session, _):
+        ev = EvaluatorService(EvaluatorArgs(config=run.config, run_id=keys.run_id, bridge="e9"),
+                              eval_session, StopFlag(), run)
+        _weights(ev, version=0)
+        with ev.bridge:
+            target = ev.due()
+            assert [ev.evaluate(target) for _ in range(3)] == [None] * 3
+            assert ev.env is None and ev.evaluations == 0
+            server.hold.hold_s = 0.0  # the holder is silent from now on: the evaluator takes it
+            assert ev.evaluate(target) is not None
+            assert server.hold.client == f"evaluator of run {keys.run_id} on {socket.gethostname()}"
     said = [line for line in capfd.readouterr().err.splitlines() if "evaluation abandoned" in line]
     assert len(said) == 1 and "held by actor 0 of run elsewhere on x" in said[0], said
