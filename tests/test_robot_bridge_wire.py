@@ -35,6 +35,10 @@ def test_bridge_messages_are_validated() -> None:
     no_rewind = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a"})
     assert wire.decode(no_rewind, wire.BridgeReset).rewind is False  # optional: a plain reset
     assert wire.decode(no_rewind, wire.BridgeReset).pid == 0  # an older client sends none
+    for pid in ("1234", True, -1, 2**63, 1.5):  # a pid is a count: no text, bool, negative or float
+        bad_pid = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a", "pid": pid})
+        with pytest.raises(wire.WireError, match="pid"):
+            wire.decode(bad_pid, wire.BridgeReset)
     bad_rewind = msgpack.packb({"v": wire.SCHEMA_VERSION, "t": "bridge_reset", "client": "a", "rewind": 1})
     with pytest.raises(wire.WireError, match="rewind"):
         wire.decode(bad_rewind, wire.BridgeReset)
